@@ -1,0 +1,334 @@
+"""Calibrated camera rigs and their geometry, as pure jit-able functions.
+
+Camera model (OpenCV's, everywhere): ``x_cam = R @ x_world + t`` in metres; the normalised point
+``(x, y) = x_cam[:2] / x_cam[2]`` is distorted with k1 k2 p1 p2 k3 (cv::projectPoints) and mapped
+to pixels by K. Functions over a rig put the camera axis first: ``(C, ...)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mvpose_jax.errors import InputError
+
+# Depth below which a point counts as behind the camera (metres). Projection clamps the depth to
+# it so that points behind a camera give large but finite pixels and finite gradients.
+MIN_DEPTH = 1e-3
+
+# Iterations of the fixed-point undistortion. OpenCV's cv::undistortPoints stops after 5 by default;
+# with the strong barrel distortion of real rigs (k1 ~ -0.28) that leaves ~0.02 px near the image
+# corners, so we iterate to float32 convergence (10 suffice on the presets). ``num_iters=5``
+# reproduces OpenCV's default.
+UNDISTORT_ITERS = 10
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Rig:
+    """Calibrated cameras. Shapes: C cameras. Build with `make_rig` (it validates).
+
+    ``names`` and ``up`` are static (part of the jit cache key, not traced).
+    """
+
+    K: jax.Array  # (C, 3, 3) intrinsics, pixels
+    dist: jax.Array  # (C, 5) k1 k2 p1 p2 k3
+    R: jax.Array  # (C, 3, 3) cam_from_world rotation
+    t: jax.Array  # (C, 3) cam_from_world translation, metres
+    size: jax.Array  # (C, 2) image (width, height), pixels
+    names: tuple[str, ...] = dataclasses.field(metadata=dict(static=True))
+    # World up direction (unit), or None when the calibration does not say (see `up_vector`).
+    up: tuple[float, float, float] | None = dataclasses.field(
+        default=None, metadata=dict(static=True)
+    )
+
+    @property
+    def num_cameras(self) -> int:
+        return len(self.names)
+
+    def select(self, cameras: Sequence[str | int]) -> Rig:
+        """Returns the rig of the given cameras (names or indices), in that order."""
+        idx = [self.camera_index(c) for c in cameras]
+        take = lambda a: jnp.asarray(np.asarray(a)[idx])  # noqa: E731
+        return Rig(
+            take(self.K), take(self.dist), take(self.R), take(self.t), take(self.size),
+            tuple(self.names[i] for i in idx), self.up,
+        )  # fmt: skip
+
+    def camera_index(self, camera: str | int) -> int:
+        """Index of a camera given by name or index; raises InputError if unknown."""
+        if isinstance(camera, (int, np.integer)) and not isinstance(camera, bool):
+            if 0 <= camera < self.num_cameras:
+                return int(camera)
+        elif camera in self.names:
+            return self.names.index(camera)
+        raise InputError(f"unknown camera; the rig has {list(self.names)}", camera=camera)
+
+
+def make_rig(
+    K: np.ndarray,
+    dist: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    size: np.ndarray,
+    names: Sequence[str],
+    up: Sequence[float] | None = None,
+    *,
+    file: object = None,
+) -> Rig:
+    """Validates calibration arrays and builds a `Rig` (float32 arrays).
+
+    Args:
+      K: (C, 3, 3); dist: (C, 5) or (C, 4) (k3 = 0); R: (C, 3, 3); t: (C, 3); size: (C, 2) wh.
+      names: C unique camera names.
+      up: optional world up vector (3,), normalised here.
+      file: where the numbers came from, for error messages.
+    Raises:
+      InputError naming file, camera and field: wrong shapes, non-finite numbers, a singular or
+      malformed K, a non-orthonormal or reflecting R, non-positive image sizes, duplicate names.
+    """
+    names = tuple(str(n) for n in names)
+    num = len(names)
+    if num == 0:
+        raise InputError("calibration has no cameras", file=file, field="cameras")
+    if len(set(names)) != num:
+        raise InputError(f"duplicate camera names {list(names)}", file=file, field="name")
+    fields = {}
+    for field, value, shape in (
+        ("K", K, (3, 3)), ("dist", dist, None), ("R", R, (3, 3)), ("t", t, (3,)),
+        ("size", size, (2,)),
+    ):  # fmt: skip
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"not an array of numbers ({e})", file=file, field=field) from None
+        if arr.ndim == 0 or arr.shape[0] != num:
+            raise InputError(
+                f"expected {num} entries (one per camera), got shape {arr.shape}",
+                file=file, field=field,
+            )  # fmt: skip
+        if field == "dist":
+            if arr.ndim != 2 or arr.shape[1] not in (4, 5):
+                raise InputError(
+                    f"expected 4 or 5 coefficients [k1, k2, p1, p2(, k3)], got shape {arr.shape[1:]}",
+                    file=file, field=field,
+                )  # fmt: skip
+            arr = np.pad(arr, ((0, 0), (0, 5 - arr.shape[1])))
+        elif arr.shape[1:] != shape:
+            raise InputError(f"expected shape {shape}, got {arr.shape[1:]}", file=file, field=field)
+        for c in range(num):
+            if not np.all(np.isfinite(arr[c])):
+                raise InputError("contains NaN or infinity", file=file, camera=names[c], field=field)
+        fields[field] = arr
+    for c, name in enumerate(names):
+        k = fields["K"][c]
+        if not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
+            raise InputError(
+                "K must be upper triangular with last row [0, 0, 1]", file=file, camera=name, field="K"
+            )  # fmt: skip
+        if k[0, 0] <= 0 or k[1, 1] <= 0 or abs(np.linalg.det(k)) < 1e-9:
+            raise InputError(
+                "K is singular (focal lengths must be positive)", file=file, camera=name, field="K"
+            )  # fmt: skip
+        r = fields["R"][c]
+        err = np.abs(r @ r.T - np.eye(3)).max()
+        if err > 1e-4:
+            raise InputError(
+                f"R is not orthonormal (max |R R^T - I| = {err:.3g})", file=file, camera=name, field="R"
+            )  # fmt: skip
+        if np.linalg.det(r) < 0:
+            raise InputError("R is a reflection (det < 0)", file=file, camera=name, field="R")
+        if np.any(fields["size"][c] <= 0):
+            raise InputError("image size must be positive", file=file, camera=name, field="size")
+    up_t = None
+    if up is not None:
+        u = np.asarray(up, dtype=np.float64)
+        if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+            raise InputError("up must be a finite non-zero 3-vector", file=file, field="up")
+        up_t = tuple(float(x) for x in u / np.linalg.norm(u))
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    return Rig(
+        f32(fields["K"]), f32(fields["dist"]), f32(fields["R"]), f32(fields["t"]),
+        f32(fields["size"]), names, up_t,
+    )  # fmt: skip
+
+
+# --------------------------------------------------------------------------- per-camera kernels
+
+
+def _distort(dist: jax.Array, xy: jax.Array) -> jax.Array:
+    """OpenCV's distortion of normalised points. dist: (5,); xy: (..., 2) -> (..., 2)."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    # Same terms as cv::projectPoints for the 5-coefficient model.
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return jnp.stack([xd, yd], axis=-1)
+
+
+def _to_pixels(K: jax.Array, xy: jax.Array) -> jax.Array:
+    u = K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]
+    v = K[1, 1] * xy[..., 1] + K[1, 2]
+    return jnp.stack([u, v], axis=-1)
+
+
+def _from_pixels(K: jax.Array, px: jax.Array) -> jax.Array:
+    y = (px[..., 1] - K[1, 2]) / K[1, 1]
+    x = (px[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return jnp.stack([x, y], axis=-1)
+
+
+def _cam_from_world(R: jax.Array, t: jax.Array, points: jax.Array) -> jax.Array:
+    return jnp.einsum("ij,...j->...i", R, points) + t
+
+
+def _project_one(K, dist, R, t, points):
+    p_cam = _cam_from_world(R, t, points)
+    z = p_cam[..., 2:3]
+    # Double-where: points behind the camera get a clamped depth, so no inf/NaN, even in grads.
+    z_safe = jnp.where(z > MIN_DEPTH, z, MIN_DEPTH)
+    return _to_pixels(K, _distort(dist, p_cam[..., :2] / z_safe))
+
+
+def _undistort_one(K, dist, px, num_iters):
+    # cv::undistortPoints' fixed-point iteration (cvUndistortPointsInternal), 5-coefficient model.
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    xy0 = _from_pixels(K, px)
+    x0, y0 = xy0[..., 0], xy0[..., 1]
+
+    def body(_, xy):
+        x, y = xy
+        r2 = x * x + y * y
+        icdist = 1.0 / (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
+        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        nx, ny = (x0 - dx) * icdist, (y0 - dy) * icdist
+        # OpenCV falls back to the distorted point when the radial factor turns negative.
+        ok = icdist > 0
+        return jnp.where(ok, nx, x0), jnp.where(ok, ny, y0)
+
+    x, y = jax.lax.fori_loop(0, num_iters, body, (x0, y0))
+    return jnp.stack([x, y], axis=-1)
+
+
+# --------------------------------------------------------------------------- public functions
+
+
+def world_to_camera(rig: Rig, points: jax.Array) -> jax.Array:
+    """Points in every camera's frame. points: (..., 3) metres -> (C, ..., 3)."""
+    return jax.vmap(_cam_from_world, in_axes=(0, 0, None))(rig.R, rig.t, points)
+
+
+def project_points(rig: Rig, points: jax.Array) -> jax.Array:
+    """Projects world points into every camera, lens distortion included (cv2.projectPoints).
+
+    Args:
+      points: (..., 3) world points, metres.
+    Returns:
+      (C, ..., 2) distorted pixel coordinates. Points behind a camera (depth <= MIN_DEPTH) are
+      projected at depth MIN_DEPTH: finite, far off the image; test `point_depths` to mask them.
+    """
+    return jax.vmap(_project_one, in_axes=(0, 0, 0, 0, None))(rig.K, rig.dist, rig.R, rig.t, points)
+
+
+def project_points_per_camera(rig: Rig, points: jax.Array) -> jax.Array:
+    """Like `project_points`, with each camera's own points. points: (C, ..., 3) -> (C, ..., 2)."""
+    return jax.vmap(_project_one)(rig.K, rig.dist, rig.R, rig.t, points)
+
+
+def point_depths(rig: Rig, points: jax.Array) -> jax.Array:
+    """Depth along each camera's optical axis. points: (..., 3) -> (C, ...) metres."""
+    return world_to_camera(rig, points)[..., 2]
+
+
+def undistort_normalized(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
+    """Distorted pixels to undistorted normalised image coordinates (cv2.undistortPoints, P=None).
+
+    Args:
+      px: (C, ..., 2) pixels of each camera.
+      num_iters: fixed-point iterations (OpenCV uses 5).
+    Returns:
+      (C, ..., 2) normalised coordinates (x/z, y/z in the camera frame).
+    """
+    return jax.vmap(_undistort_one, in_axes=(0, 0, 0, None))(rig.K, rig.dist, px, num_iters)
+
+
+def undistort_points(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
+    """Distorted pixels to undistorted pixels (cv2.undistortPoints with P=K).
+
+    Args:
+      px: (C, ..., 2) pixels of each camera.
+    Returns:
+      (C, ..., 2) pixels of an ideal pinhole camera with the same K.
+    """
+    xy = undistort_normalized(rig, px, num_iters=num_iters)
+    return jax.vmap(_to_pixels)(rig.K, xy)
+
+
+def camera_centres(rig: Rig) -> jax.Array:
+    """Camera centres in the world, -R^T t: (C, 3) metres."""
+    return -jnp.einsum("cji,cj->ci", rig.R, rig.t)
+
+
+def pixel_rays(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
+    """Unit directions, in the world, of the rays through (distorted) pixels.
+
+    The ray of pixel ``px[c, ...]`` starts at ``camera_centres(rig)[c]``.
+
+    Args:
+      px: (C, ..., 2) pixels of each camera.
+    Returns:
+      (C, ..., 3) unit vectors, world frame.
+    """
+    xy = undistort_normalized(rig, px, num_iters=num_iters)
+    d_cam = jnp.concatenate([xy, jnp.ones_like(xy[..., :1])], axis=-1)
+    d_cam = d_cam / jnp.linalg.norm(d_cam, axis=-1, keepdims=True)  # norm >= 1: no guard needed
+    return jnp.einsum("cji,c...j->c...i", rig.R, d_cam)  # world_from_cam = R^T
+
+
+def projection_matrices(rig: Rig) -> jax.Array:
+    """Pinhole projection matrices K [R | t] (no distortion): (C, 3, 4)."""
+    return jnp.einsum("cij,cjk->cik", rig.K, jnp.concatenate([rig.R, rig.t[..., None]], axis=-1))
+
+
+def normalise_pixels(rig: Rig, px: jax.Array) -> jax.Array:
+    """Pixels to [-1, 1] by each camera's image size. px: (C, ..., 2) -> (C, ..., 2)."""
+    size = rig.size.reshape(rig.size.shape[:1] + (1,) * (px.ndim - 2) + (2,))
+    return 2.0 * px / size - 1.0
+
+
+def rig_centre_and_radius(rig: Rig) -> tuple[jax.Array, jax.Array]:
+    """Centre (mean camera centre, (3,)) and radius (largest centre distance, ()) of the rig.
+
+    Networks see world coordinates as ``(x - centre) / radius``, so one trained model's inputs
+    are of order one on any rig, whatever its units' origin.
+    """
+    centres = camera_centres(rig)
+    centre = centres.mean(axis=0)
+    radius = jnp.linalg.norm(centres - centre, axis=-1).max()
+    return centre, jnp.maximum(radius, 1e-6)
+
+
+def up_vector(rig: Rig) -> np.ndarray:
+    """World up direction: the calibration's ``up`` or, without one, the mean image-up direction.
+
+    A camera's image-up direction in the world is ``-R[1]`` (its y axis points down the image);
+    cameras that watch people stand roughly upright, so their mean points up.
+
+    Returns:
+      (3,) unit vector (numpy; host-side, for scene set-up).
+    """
+    if rig.up is not None:
+        return np.asarray(rig.up, dtype=np.float64)
+    ups = -np.asarray(rig.R, dtype=np.float64)[:, 1, :]
+    u = ups.mean(axis=0)
+    n = np.linalg.norm(u)
+    if n < 1e-6:
+        raise InputError("cannot infer the up direction: cameras disagree; give 'up'", field="up")
+    return u / n

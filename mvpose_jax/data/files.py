@@ -1,0 +1,103 @@
+"""File edges shared by every format: atomic output and checked JSON/TOML input.
+
+Output is atomic: written to a temporary file in the same folder, then renamed over the target, so
+a reader never sees a half-written file and a crash leaves the old file (or none) in place.
+Input raises `InputError` naming the file (and line/column) for missing, empty or malformed files.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+from mvpose_jax.errors import InputError
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator[IO]:
+    """Opens a temporary file beside ``path``; on success renames it to ``path``.
+
+    Args:
+      path: the final file.
+      mode: ``"w"`` (text, UTF-8 unless ``encoding`` is given) or ``"wb"``.
+    """
+    if mode not in ("w", "wb"):
+        raise ValueError(f"atomic_open writes only, mode 'w' or 'wb', not {mode!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if mode == "w":
+        kwargs.setdefault("encoding", "utf-8")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode, **kwargs) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Writes ``text`` to ``path`` atomically (UTF-8)."""
+    with atomic_open(path, "w") as f:
+        f.write(text)
+
+
+def _read_text(path: str | os.PathLike) -> str:
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError("no such file", file=path) from None
+    except IsADirectoryError:
+        raise InputError("is a folder, expected a file", file=path) from None
+    except OSError as e:
+        raise InputError(f"cannot read ({e.strerror})", file=path) from None
+    if not data.strip():
+        raise InputError("file is empty", file=path)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"not UTF-8 text (byte {e.start})", file=path) from None
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Parses a JSON file; raises InputError (with line and column) when it cannot."""
+    import json
+
+    text = _read_text(path)
+    try:
+        # NaN/Infinity are not JSON; refuse them here rather than let them reach the arrays.
+        return json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as e:
+        raise InputError(f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}", file=path) from None
+    except _NonFinite as e:
+        raise InputError(f"non-finite number {e.args[0]} in JSON", file=path) from None
+    except RecursionError:
+        raise InputError("JSON nested too deeply", file=path) from None
+
+
+def read_toml(path: str | os.PathLike) -> dict[str, Any]:
+    """Parses a TOML file; raises InputError when it cannot."""
+    import tomllib
+
+    text = _read_text(path)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"malformed TOML: {e}", file=path) from None
+
+
+class _NonFinite(ValueError):
+    pass
+
+
+def _reject_constant(name: str):
+    raise _NonFinite(name)
