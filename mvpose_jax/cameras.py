@@ -22,9 +22,9 @@ MIN_DEPTH = 1e-3
 
 # Iterations of the fixed-point undistortion. OpenCV's cv::undistortPoints stops after 5 by default;
 # with the strong barrel distortion of real rigs (k1 ~ -0.28) that leaves ~0.02 px near the image
-# corners, so we iterate to float32 convergence (10 suffice on the presets). ``num_iters=5``
+# corners, so we iterate to float32 convergence (20 cover strong radial+tangential models). ``num_iters=5``
 # reproduces OpenCV's default.
-UNDISTORT_ITERS = 10
+UNDISTORT_ITERS = 20
 
 
 @jax.tree_util.register_dataclass
@@ -185,7 +185,7 @@ def _from_pixels(K: jax.Array, px: jax.Array) -> jax.Array:
 
 
 def _cam_from_world(R: jax.Array, t: jax.Array, points: jax.Array) -> jax.Array:
-    return jnp.einsum("ij,...j->...i", R, points) + t
+    return jnp.einsum("ij,...j->...i", R, points) + t.reshape((1,) * (points.ndim - 1) + (3,))
 
 
 def _project_one(K, dist, R, t, points):
@@ -311,7 +311,7 @@ def rig_centre_and_radius(rig: Rig) -> tuple[jax.Array, jax.Array]:
     """
     centres = camera_centres(rig)
     centre = centres.mean(axis=0)
-    radius = jnp.linalg.norm(centres - centre, axis=-1).max()
+    radius = jnp.linalg.norm(centres - centre[None], axis=-1).max()
     return centre, jnp.maximum(radius, 1e-6)
 
 
