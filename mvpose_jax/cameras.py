@@ -8,6 +8,7 @@ to pixels by K. Functions over a rig put the camera axis first: ``(C, ...)``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 
 import jax
@@ -247,6 +248,7 @@ def point_depths(rig: Rig, points: jax.Array) -> jax.Array:
     return world_to_camera(rig, points)[..., 2]
 
 
+@functools.partial(jax.jit, static_argnames="num_iters")
 def undistort_normalized(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
     """Distorted pixels to undistorted normalised image coordinates (cv2.undistortPoints, P=None).
 
@@ -259,6 +261,7 @@ def undistort_normalized(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_
     return jax.vmap(_undistort_one, in_axes=(0, 0, 0, None))(rig.K, rig.dist, px, num_iters)
 
 
+@functools.partial(jax.jit, static_argnames="num_iters")
 def undistort_points(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
     """Distorted pixels to undistorted pixels (cv2.undistortPoints with P=K).
 
@@ -276,6 +279,7 @@ def camera_centres(rig: Rig) -> jax.Array:
     return -jnp.einsum("cji,cj->ci", rig.R, rig.t)
 
 
+@functools.partial(jax.jit, static_argnames="num_iters")
 def pixel_rays(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
     """Unit directions, in the world, of the rays through (distorted) pixels.
 

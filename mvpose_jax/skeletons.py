@@ -109,7 +109,7 @@ COCO17 = _layout(
     _LIMBS
     + (
         ("l_shoulder", "r_shoulder"), ("l_hip", "r_hip"), ("l_shoulder", "l_hip"),
-        ("r_shoulder", "r_hip"),
+        ("r_shoulder", "r_hip"), ("l_ear", "l_shoulder"), ("r_ear", "r_shoulder"),
     ),
 )  # fmt: skip
 COCO18 = _layout(

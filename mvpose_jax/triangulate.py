@@ -74,6 +74,7 @@ def _flatten(rig: Rig, px: jax.Array, weight: jax.Array):
     return xy, jnp.maximum(w, 0.0).astype(xy.dtype), batch
 
 
+@jax.jit
 def triangulate_points(
     rig: Rig, px: jax.Array, weight: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
@@ -99,6 +100,7 @@ def camera_pairs(num_cameras: int) -> np.ndarray:
     return np.array(list(itertools.combinations(range(num_cameras), 2)), np.int32).reshape(-1, 2)
 
 
+@jax.jit
 def triangulate_pairwise_centroid(
     rig: Rig, px: jax.Array, visible: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
