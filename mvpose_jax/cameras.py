@@ -54,7 +54,7 @@ class Rig:
     def select(self, cameras: Sequence[str | int]) -> Rig:
         """Returns the rig of the given cameras (names or indices), in that order."""
         idx = [self.camera_index(c) for c in cameras]
-        take = lambda a: jnp.asarray(np.asarray(a)[idx])  # noqa: E731
+        take = lambda a: jnp.asarray(a)[np.asarray(idx)]  # noqa: E731  (works under jit too)
         return Rig(
             take(self.K), take(self.dist), take(self.R), take(self.t), take(self.size),
             tuple(self.names[i] for i in idx), self.up,

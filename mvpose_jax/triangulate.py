@@ -71,7 +71,10 @@ def _flatten(rig: Rig, px: jax.Array, weight: jax.Array):
     batch = xy.shape[1:-1]
     xy = jnp.moveaxis(xy.reshape(C, -1, 2), 0, 1)  # (B, C, 2)
     w = jnp.moveaxis(jnp.broadcast_to(weight, (C,) + batch).reshape(C, -1), 0, 1)  # (B, C)
-    return xy, jnp.maximum(w, 0.0).astype(xy.dtype), batch
+    w = jnp.maximum(w, 0.0).astype(xy.dtype)
+    # Unseen points may hold junk (NaN, huge): zero them so that 0 * junk cannot make a NaN.
+    xy = jnp.where((w > 0)[..., None] & jnp.isfinite(xy), xy, 0.0)
+    return xy, w, batch
 
 
 @jax.jit
@@ -101,6 +104,31 @@ def camera_pairs(num_cameras: int) -> np.ndarray:
 
 
 @jax.jit
+def triangulate_pairs(rig: Rig, px: jax.Array, visible: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Two-view triangulation of every camera pair (unweighted DLT on the pair alone).
+
+    Args:
+      px: (C, ..., 2) distorted pixels.
+      visible: (C, ...) bool or scores (> 0 = seen).
+    Returns:
+      xyz: (..., Q, 3) metres, one point per pair of `camera_pairs(C)` (0 where invalid);
+      valid: (..., Q) bool, both views see the point and their rays are not parallel.
+    """
+    Rt, centre, radius = _centred_extrinsics(rig)
+    xy, w, batch = _flatten(rig, px, visible)
+    seen = (w > 0).astype(xy.dtype)  # (B, C)
+    pairs = jnp.asarray(camera_pairs(rig.num_cameras))  # (Q, 2)
+    Q = pairs.shape[0]
+    if Q == 0:
+        return jnp.zeros(batch + (0, 3), xy.dtype), jnp.zeros(batch + (0,), bool)
+    one_pair = lambda pair, xy_b, seen_b: _dlt(Rt[pair], xy_b[pair], seen_b[pair])  # noqa: E731
+    # (B, Q, 3), (B, Q)
+    xyz, ok = jax.vmap(lambda x, s: jax.vmap(lambda p: one_pair(p, x, s))(pairs))(xy, seen)
+    xyz = jnp.where(ok[..., None], xyz * radius + centre[None, None], 0.0)
+    return xyz.reshape(batch + (Q, 3)), ok.reshape(batch + (Q,))
+
+
+@jax.jit
 def triangulate_pairwise_centroid(
     rig: Rig, px: jax.Array, visible: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
@@ -116,20 +144,12 @@ def triangulate_pairwise_centroid(
     Returns:
       xyz: (..., 3) metres (0 where invalid); valid: (...) bool, at least one usable pair.
     """
-    Rt, centre, radius = _centred_extrinsics(rig)
-    xy, w, batch = _flatten(rig, px, visible)
-    seen = (w > 0).astype(xy.dtype)  # (B, C)
-    pairs = jnp.asarray(camera_pairs(rig.num_cameras))  # (Q, 2)
-    if pairs.shape[0] == 0:
-        return jnp.zeros(batch + (3,), xy.dtype), jnp.zeros(batch, bool)
+    xyz_q, ok_q = triangulate_pairs(rig, px, visible)
+    return centroid_of_pairs(xyz_q, ok_q)
 
-    def one_pair(pair, xy_b, seen_b):
-        return _dlt(Rt[pair], xy_b[pair], seen_b[pair])
 
-    # (B, Q, 3), (B, Q)
-    xyz_q, ok_q = jax.vmap(lambda x, s: jax.vmap(lambda p: one_pair(p, x, s))(pairs))(xy, seen)
-    n = ok_q.sum(axis=-1)
-    mean = jnp.sum(jnp.where(ok_q[..., None], xyz_q, 0.0), axis=1) / jnp.maximum(n, 1)[:, None]
-    ok = n > 0
-    xyz = jnp.where(ok[:, None], mean * radius + centre[None], 0.0)
-    return xyz.reshape(batch + (3,)), ok.reshape(batch)
+def centroid_of_pairs(xyz: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Mean of the valid pair points. xyz: (..., Q, 3); valid: (..., Q) -> (..., 3), (...)."""
+    n = valid.sum(axis=-1)
+    mean = jnp.sum(jnp.where(valid[..., None], xyz, 0.0), axis=-2) / jnp.maximum(n, 1)[..., None]
+    return jnp.where((n > 0)[..., None], mean, 0.0), n > 0

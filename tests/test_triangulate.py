@@ -150,3 +150,17 @@ def test_vmaps_over_frames_and_people(ring_rig):
     per_frame = jax.vmap(lambda p: triangulate.triangulate_points(ring_rig, p, jnp.ones(p.shape[:-1]))[0],
                          in_axes=1)(px)  # fmt: skip
     np.testing.assert_allclose(per_frame, X, atol=1e-4)
+
+
+def test_junk_in_unseen_views_does_not_leak(ring_rig):
+    X = _scene_points(ring_rig, 10, (8,))
+    px = np.array(cameras.project_points(ring_rig, jnp.asarray(X)))
+    px[0] = np.nan  # camera 0 saw nothing; its coordinates are junk
+    px[1, :4] = 1e30
+    w = np.ones(px.shape[:-1], np.float32)
+    w[0] = 0.0
+    w[1, :4] = 0.0
+    for fn in (triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid):
+        xyz, ok = fn(ring_rig, jnp.asarray(px), jnp.asarray(w))
+        assert bool(ok.all())
+        np.testing.assert_allclose(xyz, X, atol=1e-4)

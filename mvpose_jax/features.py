@@ -1,0 +1,117 @@
+"""Per-keypoint input features of both networks (DESIGN.md §1.2, §1.3), batched and jit-able.
+
+For camera c and keypoint k, the 10 numbers are: visible flag; x, y normalised to [-1, 1] by the
+image size; score; the camera centre in the world (3); the unit direction, in the world, of the ray
+through the UNDISTORTED pixel (3). A missing keypoint is all zeros. World quantities are expressed
+in the rig's normalised frame, ``(x - centre) / radius`` (`cameras.rig_centre_and_radius`), so any
+rig gives inputs of order one without constants.
+
+The estimator adds 4 numbers, the same in every camera slot: a flag "initial 3D available" and
+the initial 3D estimate, the centroid of the keypoint's two-view triangulations over the camera
+pairs that both see it. Because every pair is triangulated once (`estimator_inputs`), the centroid
+of any subset of views (view-subset augmentation) is a cheap masked mean (`assemble_features`),
+recomputed from the views actually kept.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from mvpose_jax.cameras import (
+    Rig,
+    camera_centres,
+    normalise_pixels,
+    pixel_rays,
+    rig_centre_and_radius,
+)
+from mvpose_jax.triangulate import camera_pairs, centroid_of_pairs, triangulate_pairs
+
+NUM_KEYPOINT_FEATURES = 10
+NUM_ESTIMATOR_FEATURES = 14
+
+
+@jax.jit
+def keypoint_features(rig: Rig, xy: jax.Array, score: jax.Array) -> jax.Array:
+    """The 10 per-(camera, keypoint) numbers.
+
+    Args:
+      rig: the C cameras the detections come from.
+      xy: (C, ..., K, 2) distorted pixels.
+      score: (C, ..., K) detection scores; 0 = missing.
+    Returns:
+      (C, ..., K, 10) features, all zeros where the keypoint is missing.
+    """
+    centre, radius = rig_centre_and_radius(rig)
+    seen = score > 0
+    # Missing keypoints may carry junk coordinates: replace before any geometry touches them.
+    xy = jnp.where(seen[..., None], xy, 0.5 * rig.size.reshape((-1,) + (1,) * (xy.ndim - 2) + (2,)))
+    cam = (camera_centres(rig) - centre[None]) / radius  # (C, 3)
+    cam = jnp.broadcast_to(cam.reshape((-1,) + (1,) * (xy.ndim - 2) + (3,)), xy.shape[:-1] + (3,))
+    feats = jnp.concatenate(
+        [
+            jnp.ones_like(score)[..., None],
+            normalise_pixels(rig, xy),
+            score[..., None],
+            cam,
+            pixel_rays(rig, xy),
+        ],
+        axis=-1,
+    )
+    return jnp.where(seen[..., None], feats, 0.0)
+
+
+class EstimatorInputs(NamedTuple):
+    """What the 3D estimator's features are assembled from, for N people seen by C cameras.
+
+    Q = C (C - 1) / 2 camera pairs, in `triangulate.camera_pairs` order.
+    """
+
+    keypoint: jax.Array  # (N, C, K, 10) per-view features
+    pair_xyz: jax.Array  # (N, K, Q, 3) two-view triangulations, rig-normalised frame
+    pair_ok: jax.Array  # (N, K, Q) bool, the pair saw the keypoint and triangulated it
+
+
+@jax.jit
+def estimator_inputs(rig: Rig, xy: jax.Array, score: jax.Array) -> EstimatorInputs:
+    """Per-person inputs of the 3D estimator, before view selection.
+
+    Args:
+      rig: the C inference cameras (C_i).
+      xy: (N, C, K, 2) each person's detections in each camera (pixels).
+      score: (N, C, K) scores; 0 = missing (a whole view missing is all zeros).
+    Returns:
+      `EstimatorInputs`.
+    """
+    centre, radius = rig_centre_and_radius(rig)
+    keypoint = jnp.moveaxis(keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)), 0, 1)
+    pair_xyz, pair_ok = triangulate_pairs(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))
+    pair_xyz = jnp.where(pair_ok[..., None], (pair_xyz - centre.reshape(1, 1, 1, 3)) / radius, 0.0)
+    return EstimatorInputs(keypoint, pair_xyz, pair_ok)
+
+
+def assemble_features(inputs: EstimatorInputs, view_mask: jax.Array) -> jax.Array:
+    """The 14 numbers per (camera, keypoint), using only the views in ``view_mask``.
+
+    Args:
+      inputs: `EstimatorInputs` of N people.
+      view_mask: (N, C) bool, the views given to the network (others become all zeros and take
+        no part in the initial 3D estimate).
+    Returns:
+      (N, C, K, 14) features.
+    """
+    N, C, K, _ = inputs.keypoint.shape
+    keypoint = jnp.where(view_mask[:, :, None, None], inputs.keypoint, 0.0)
+    pairs = camera_pairs(C)
+    if len(pairs):
+        pair_kept = view_mask[:, pairs[:, 0]] & view_mask[:, pairs[:, 1]]  # (N, Q)
+        init, has_init = centroid_of_pairs(inputs.pair_xyz, inputs.pair_ok & pair_kept[:, None, :])
+        has_init = has_init.astype(keypoint.dtype)  # init: (N, K, 3)
+    else:
+        init = jnp.zeros((N, K, 3), keypoint.dtype)
+        has_init = jnp.zeros((N, K), keypoint.dtype)
+    extra = jnp.concatenate([has_init[..., None], init], axis=-1)  # (N, K, 4)
+    extra = jnp.broadcast_to(extra[:, None], (N, C, K, 4))
+    return jnp.concatenate([keypoint, extra], axis=-1)
