@@ -1,0 +1,21 @@
+"""Data edges: calibration files and rig presets, detection recordings in every format."""
+
+from mvpose_jax.data.formats import FORMATS, load_recording, save_recording
+from mvpose_jax.data.native import read_native, read_native_rig, write_native
+from mvpose_jax.data.npz import read_npz, write_npz
+from mvpose_jax.data.original import read_original, write_original
+from mvpose_jax.data.recording import Recording
+
+__all__ = [
+    "FORMATS",
+    "Recording",
+    "load_recording",
+    "read_native",
+    "read_native_rig",
+    "read_npz",
+    "read_original",
+    "save_recording",
+    "write_native",
+    "write_npz",
+    "write_original",
+]

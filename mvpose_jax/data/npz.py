@@ -1,0 +1,242 @@
+"""Recordings as compressed numpy archives (``.npz``): the fastest format to load.
+
+Members (letters as in `mvpose_jax.skeletons`: F frames, C cameras, P people, K keypoints, G
+ground-truth people)::
+
+    version            ()               int, 1
+    layout             ()               str, keypoint layout name (fixes K)
+    cameras            (C,)             str, camera names
+    xy                 (F, C, P, K, 2)  float32 pixels
+    score              (F, C, P, K)     float32 in [0, 1], 0 = missing
+    count              (F, C)           int32, skeletons per view (rows >= count are padding)
+    identity           (F, C, P)        int32, optional: G index of each detection, -1 unknown
+    gt_xyz             (F, G, K, 3)     float32 metres, optional, with the two masks below
+    gt_valid           (F, G)           bool
+    gt_keypoint_valid  (F, G, K)        bool
+    timestamps         (F,)             float64 seconds, optional
+    image_names        (F, C)           str, optional
+    projected          (F, C, P, K, 2)  float32 pixels, optional
+
+Reading never unpickles (``allow_pickle=False``): an archive with object arrays is refused, so a
+file from elsewhere cannot run code. Every member's dtype, shape and values are checked; any other
+member is an error (nothing in the file is silently ignored).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mvpose_jax.data.files import atomic_open
+from mvpose_jax.data.formats import check_recording
+from mvpose_jax.data.recording import Recording
+from mvpose_jax.errors import InputError
+from mvpose_jax.skeletons import LAYOUTS, Detections, Poses3D, get_layout
+
+VERSION = 1
+_REQUIRED = ("version", "layout", "cameras", "xy", "score", "count")
+_GT = ("gt_xyz", "gt_valid", "gt_keypoint_valid")
+_OPTIONAL = ("identity", *_GT, "timestamps", "image_names", "projected")
+
+
+def write_npz(recording: Recording, path: str | os.PathLike) -> None:
+    """Writes a recording as a compressed ``.npz`` archive, atomically.
+
+    Raises:
+      InputError on invalid values in the recording (nothing is written then).
+    """
+    check_recording(recording, file=path)
+    det = recording.detections
+    arrays: dict[str, np.ndarray] = {
+        "version": np.asarray(VERSION, np.int32),
+        "layout": np.asarray(recording.layout, dtype=str),
+        "cameras": np.asarray(recording.cameras, dtype=str),
+        "xy": np.asarray(det.xy, np.float32),
+        "score": np.asarray(det.score, np.float32),
+        "count": np.asarray(det.count, np.int32),
+    }
+    if recording.identity is not None:
+        arrays["identity"] = np.asarray(recording.identity, np.int32)
+    gt = recording.ground_truth
+    if gt is not None:
+        arrays["gt_xyz"] = np.asarray(gt.xyz, np.float32)
+        arrays["gt_valid"] = np.asarray(gt.valid, bool)
+        arrays["gt_keypoint_valid"] = np.asarray(gt.keypoint_valid, bool)
+    if recording.timestamps is not None:
+        arrays["timestamps"] = np.asarray(recording.timestamps, np.float64)
+    if recording.image_names is not None:
+        arrays["image_names"] = np.asarray(recording.image_names).astype(str)
+    if recording.projected is not None:
+        arrays["projected"] = np.asarray(recording.projected, np.float32)
+    with atomic_open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def read_npz(path: str | os.PathLike) -> Recording:
+    """Reads a recording written by `write_npz` (members in the module docstring).
+
+    Raises:
+      InputError naming the file and member (and frame and camera for bad values): a missing,
+      empty, truncated or non-zip file, object (pickled) arrays, wrong dtypes or shapes, unknown
+      members, non-finite values, scores outside [0, 1], inconsistent counts or identities.
+    """
+    arrays = _load_members(path)
+    err = lambda reason, field: InputError(reason, file=path, field=field)  # noqa: E731
+
+    def need(name: str, kinds: str, ndim: int) -> np.ndarray:
+        a = arrays[name]
+        if a.dtype.kind not in kinds or a.ndim != ndim:
+            raise err(
+                f"expected a {ndim}-d array of kind {kinds!r}, got {a.dtype} with shape {a.shape}",
+                name,
+            )
+        return a
+
+    version = need("version", "iu", 0)
+    if int(version) != VERSION:
+        raise err(
+            f"unsupported version {int(version)}; this reader knows version {VERSION}", "version"
+        )
+    layout = str(need("layout", "U", 0))
+    if layout not in LAYOUTS:
+        raise err(f"unknown keypoint layout {layout!r}; known: {sorted(LAYOUTS)}", "layout")
+    K = get_layout(layout).num_keypoints
+    xy = need("xy", "f", 5)
+    F, C, P = xy.shape[:3]
+    shapes = {
+        "xy": (F, C, P, K, 2),
+        "score": (F, C, P, K),
+        "count": (F, C),
+        "cameras": (C,),
+        "identity": (F, C, P),
+        "timestamps": (F,),
+        "image_names": (F, C),
+        "projected": (F, C, P, K, 2),
+    }
+    if "gt_xyz" in arrays:
+        G = need("gt_xyz", "f", 4).shape[1]
+        shapes.update(gt_xyz=(F, G, K, 3), gt_valid=(F, G), gt_keypoint_valid=(F, G, K))
+    kinds = {
+        "xy": "f",
+        "score": "f",
+        "count": "iu",
+        "cameras": "U",
+        "identity": "iu",
+        "gt_xyz": "f",
+        "gt_valid": "b",
+        "gt_keypoint_valid": "b",
+        "timestamps": "fiu",
+        "image_names": "U",
+        "projected": "f",
+    }
+    for name, shape in shapes.items():
+        if name in arrays:
+            need(name, kinds[name], len(shape))
+            if arrays[name].shape != shape:
+                raise err(
+                    f"expected shape {shape} (layout {layout!r}), got {arrays[name].shape}", name
+                )
+
+    cameras = tuple(arrays["cameras"].tolist())
+    if any(not name for name in cameras) or len(set(cameras)) != len(cameras):
+        raise err(f"camera names must be unique and non-empty, got {list(cameras)}", "cameras")
+    count = arrays["count"]
+    if count.size and (count.min() < 0 or count.max() > np.iinfo(np.int32).max):
+        raise err("count must be non-negative int32", "count")
+    score = arrays["score"]
+    with np.errstate(over="ignore", invalid="ignore"):
+        det = Detections(
+            # Coordinates of missing keypoints are meaningless: zero them as every reader does.
+            np.where(score[..., None] > 0, xy, 0.0).astype(np.float32)
+            if np.isfinite(xy).all()
+            else xy,
+            score,
+            count.astype(np.int32),
+        )
+    gt = None
+    if "gt_xyz" in arrays:
+        kvalid = arrays["gt_keypoint_valid"]
+        gt_xyz = np.where(kvalid[..., None], arrays["gt_xyz"], 0.0)
+        gt = Poses3D(gt_xyz, arrays["gt_valid"], kvalid)
+    identity = arrays.get("identity")
+    if identity is not None:
+        if identity.size and (identity.min() < -1 or identity.max() > np.iinfo(np.int32).max):
+            raise err("identity must be int32 values >= -1", "identity")
+        identity = identity.astype(np.int32)
+    try:
+        rec = Recording(
+            detections=det,
+            cameras=cameras,
+            layout=layout,
+            ground_truth=gt,
+            identity=identity,
+            timestamps=arrays.get("timestamps"),
+            image_names=arrays.get("image_names"),
+            projected=arrays.get("projected"),
+        )
+    except InputError as e:
+        raise e.at(file=path) from None
+    # Values: ranges, finiteness, padding, identities (frame and camera named), then exact dtypes.
+    check_recording(rec, file=path)
+    f32 = lambda a: None if a is None else np.asarray(a, np.float32)  # noqa: E731
+    return Recording(
+        detections=Detections(f32(det.xy), f32(det.score), det.count),
+        cameras=cameras,
+        layout=layout,
+        ground_truth=None if gt is None else Poses3D(f32(gt.xyz), gt.valid, gt.keypoint_valid),
+        identity=identity,
+        timestamps=None if rec.timestamps is None else np.asarray(rec.timestamps, np.float64),
+        image_names=rec.image_names,
+        projected=f32(rec.projected),
+    )
+
+
+def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every member of the archive, loaded and checked for presence; InputError on any failure."""
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+    except FileNotFoundError:
+        raise InputError("no such file", file=path) from None
+    except OSError as e:
+        raise InputError(f"cannot read ({e.strerror})", file=path) from None
+    if p.is_dir():
+        raise InputError("is a folder, expected a file", file=path)
+    if size == 0:
+        raise InputError("file is empty", file=path)
+    # The file is untrusted bytes: numpy and zipfile raise many kinds of errors on corrupt input
+    # (BadZipFile, zlib.error, EOFError, ValueError, struct.error ...); all of them mean "bad file".
+    try:
+        archive = np.load(p, allow_pickle=False)
+    except Exception as e:  # noqa: BLE001
+        raise InputError(
+            f"not a readable .npz archive ({type(e).__name__}: {e})", file=path
+        ) from None
+    if not isinstance(archive, np.lib.npyio.NpzFile):
+        raise InputError("a single .npy array, expected a .npz archive", file=path)
+    out: dict[str, Any] = {}
+    with archive:
+        for name in archive.files:
+            if name not in _REQUIRED and name not in _OPTIONAL:
+                raise InputError(
+                    f"unknown member; members are {list(_REQUIRED + _OPTIONAL)}",
+                    file=path,
+                    field=name,
+                )
+            try:
+                out[name] = archive[name]
+            except Exception as e:  # noqa: BLE001 - see above
+                raise InputError(
+                    f"cannot read member ({type(e).__name__}: {e})", file=path, field=name
+                ) from None
+    for name in _REQUIRED:
+        if name not in out:
+            raise InputError("missing member", file=path, field=name)
+    present = [name for name in _GT if name in out]
+    if present and len(present) != len(_GT):
+        missing = next(name for name in _GT if name not in out)
+        raise InputError(f"ground truth needs all of {list(_GT)}", file=path, field=missing)
+    return out
