@@ -19,7 +19,13 @@ from mvpose_jax.errors import InputError
 
 # Depth below which a point counts as behind the camera (metres). Projection clamps the depth to
 # it so that points behind a camera give large but finite pixels and finite gradients.
-MIN_DEPTH = 1e-3
+MIN_DEPTH = 1e-2
+
+# The distortion polynomial is a fit valid over the image only; far outside it r^6 terms explode
+# (a point 1 m off-axis at 1 cm depth would land at ~1e19 px and overflow float32 losses). The
+# radial factor is therefore evaluated at most at this multiple of the image corners' squared
+# normalised radius: exact (OpenCV) over the image and well beyond, finite everywhere.
+MAX_R2_FACTOR = 4.0
 
 # Iterations of the fixed-point undistortion. OpenCV's cv::undistortPoints stops after 5 by default;
 # with the strong barrel distortion of real rigs (k1 ~ -0.28) that leaves ~0.02 px near the image
@@ -161,12 +167,16 @@ def make_rig(
 # --------------------------------------------------------------------------- per-camera kernels
 
 
-def _distort(dist: jax.Array, xy: jax.Array) -> jax.Array:
-    """OpenCV's distortion of normalised points. dist: (5,); xy: (..., 2) -> (..., 2)."""
+def _distort(dist: jax.Array, xy: jax.Array, r2_max: jax.Array) -> jax.Array:
+    """OpenCV's distortion of normalised points. dist: (5,); xy: (..., 2) -> (..., 2).
+
+    ``r2_max`` bounds the squared radius at which the polynomial is evaluated (MAX_R2_FACTOR).
+    """
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    rc = jnp.minimum(r2, r2_max)
+    radial = 1.0 + rc * (k1 + rc * (k2 + rc * k3))
     # Same terms as cv::projectPoints for the 5-coefficient model.
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
@@ -189,12 +199,18 @@ def _cam_from_world(R: jax.Array, t: jax.Array, points: jax.Array) -> jax.Array:
     return jnp.einsum("ij,...j->...i", R, points) + t.reshape((1,) * (points.ndim - 1) + (3,))
 
 
-def _project_one(K, dist, R, t, points):
+def _max_r2(K: jax.Array, size: jax.Array) -> jax.Array:
+    """MAX_R2_FACTOR times the largest squared normalised radius of the image corners."""
+    corners = jnp.stack([jnp.zeros(2), size * jnp.array([1.0, 0.0]), size * jnp.array([0.0, 1.0]), size])
+    return MAX_R2_FACTOR * jnp.max(jnp.sum(jnp.square(_from_pixels(K, corners)), axis=-1))
+
+
+def _project_one(K, dist, R, t, size, points):
     p_cam = _cam_from_world(R, t, points)
     z = p_cam[..., 2:3]
     # Double-where: points behind the camera get a clamped depth, so no inf/NaN, even in grads.
     z_safe = jnp.where(z > MIN_DEPTH, z, MIN_DEPTH)
-    return _to_pixels(K, _distort(dist, p_cam[..., :2] / z_safe))
+    return _to_pixels(K, _distort(dist, p_cam[..., :2] / z_safe, _max_r2(K, size)))
 
 
 def _undistort_one(K, dist, px, num_iters):
@@ -234,13 +250,16 @@ def project_points(rig: Rig, points: jax.Array) -> jax.Array:
     Returns:
       (C, ..., 2) distorted pixel coordinates. Points behind a camera (depth <= MIN_DEPTH) are
       projected at depth MIN_DEPTH: finite, far off the image; test `point_depths` to mask them.
+      Far outside the image the radial factor is frozen (MAX_R2_FACTOR) to stay finite.
     """
-    return jax.vmap(_project_one, in_axes=(0, 0, 0, 0, None))(rig.K, rig.dist, rig.R, rig.t, points)
+    return jax.vmap(_project_one, in_axes=(0, 0, 0, 0, 0, None))(
+        rig.K, rig.dist, rig.R, rig.t, rig.size, points
+    )
 
 
 def project_points_per_camera(rig: Rig, points: jax.Array) -> jax.Array:
     """Like `project_points`, with each camera's own points. points: (C, ..., 3) -> (C, ..., 2)."""
-    return jax.vmap(_project_one)(rig.K, rig.dist, rig.R, rig.t, points)
+    return jax.vmap(_project_one)(rig.K, rig.dist, rig.R, rig.t, rig.size, points)
 
 
 def point_depths(rig: Rig, points: jax.Array) -> jax.Array:

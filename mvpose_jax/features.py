@@ -19,6 +19,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mvpose_jax.cameras import (
     Rig,
@@ -115,3 +116,53 @@ def assemble_features(inputs: EstimatorInputs, view_mask: jax.Array) -> jax.Arra
     extra = jnp.concatenate([has_init[..., None], init], axis=-1)  # (N, K, 4)
     extra = jnp.broadcast_to(extra[:, None], (N, C, K, 4))
     return jnp.concatenate([keypoint, extra], axis=-1)
+
+
+# --------------------------------------------------------------------------- grouping people
+
+
+def main_skeletons(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per view, the skeleton with the most keypoints: the person of a single-person frame.
+
+    DESIGN.md §1.2: in a one-person recording every other skeleton in a view is a false detection.
+
+    Args:
+      xy: (F, C, P, K, 2); score: (F, C, P, K) (padding rows are all zero).
+    Returns:
+      xy (F, C, K, 2) and score (F, C, K); a view without skeletons has score 0.
+    """
+    counts = (score > 0).sum(axis=-1)  # (F, C, P)
+    best = counts.argmax(axis=-1)  # (F, C); ties: the first, as the detector listed them
+    take = best[..., None, None]
+    main_score = np.take_along_axis(score, take, axis=2)[:, :, 0]
+    main_xy = np.take_along_axis(xy, take[..., None], axis=2)[:, :, 0]
+    return main_xy, main_score
+
+
+def people_from_identity(
+    xy: np.ndarray, score: np.ndarray, identity: np.ndarray, num_people: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Groups detections by their person (true proposals, or any per-detection assignment).
+
+    Args:
+      xy: (F, C, P, K, 2); score: (F, C, P, K).
+      identity: (F, C, P) int, the person of each detection, -1 for none.
+      num_people: G, the size of the person axis.
+    Returns:
+      xy (F, G, C, K, 2) and score (F, G, C, K): each person's skeleton in each view (score 0
+      where the view has none). Two detections of one person in one view would be ambiguous:
+      the one with more keypoints wins.
+    """
+    F, C, P, K = score.shape
+    out_xy = np.zeros((F, num_people, C, K, 2), np.float32)
+    out_score = np.zeros((F, num_people, C, K), np.float32)
+    f, c, p = np.nonzero(identity >= 0)
+    g = identity[f, c, p]
+    if np.any(g >= num_people):
+        raise ValueError(f"identity {g.max()} out of range for {num_people} people")
+    # Write detections in increasing keypoint count: with duplicates the fullest lands last.
+    order = np.argsort((score[f, c, p] > 0).sum(axis=-1), kind="stable")
+    f, c, p, g = f[order], c[order], p[order], g[order]
+    out_xy[f, g, c] = xy[f, c, p]
+    out_score[f, g, c] = score[f, c, p]
+    return out_xy, out_score

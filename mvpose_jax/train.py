@@ -1,0 +1,460 @@
+"""Training: train states, jit-compiled steps, the fit loop, early stopping, orbax checkpoints.
+
+Shape of every model's training (STYLE.md §4): an explicit `TrainState` pytree; one pure step
+``(state, batch) -> (state, metrics)`` compiled once; a Python `fit` loop that evaluates every
+``eval_every`` epochs, stops after ``patience`` checks without improvement, keeps the best
+parameters, and checkpoints best and latest with orbax (the only orbax import in the package).
+
+The 3D estimator's training (DESIGN.md §1.3) is `train_estimator`: inputs from the inference
+cameras C_i, reprojection loss over all training cameras C_t, view-subset augmentation inside the
+step (each seed sample gets ``num_augment`` derived samples with random non-empty proper subsets
+of its available views; their initial 3D is recomputed from the kept views; their loss uses every
+view of the seed). No 3D ground truth is an input of anything here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from mvpose_jax.cameras import Rig, rig_centre_and_radius
+from mvpose_jax.errors import InputError
+from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
+from mvpose_jax.losses import masked_mean, reprojection_error_l1
+from mvpose_jax.models import MLPConfig, PoseMLP, to_world
+
+
+class TrainState(NamedTuple):
+    """Everything that changes during training."""
+
+    step: jax.Array  # () int32
+    params: nnx.State  # trainable nnx.Param leaves
+    opt_state: optax.OptState
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (defaults: the paper's for the 3D estimator).
+
+    Attributes:
+      learning_rate: Adam's step size (paper 1e-4).
+      clip_norm: global gradient-norm clip (paper 10).
+      batch_size: seed samples per step (augmented ones come on top).
+      max_epochs: hard limit on passes over the training set.
+      max_steps: optional hard limit on steps (None: epochs decide).
+      eval_every: validate every this many epochs.
+      patience: stop after this many validations without improvement (paper 20).
+      seed: seeds initialisation, shuffling and augmentation.
+    """
+
+    learning_rate: float = 1e-4
+    clip_norm: float = 10.0
+    batch_size: int = 256
+    max_epochs: int = 10_000
+    max_steps: int | None = None
+    eval_every: int = 1
+    patience: int = 20
+    seed: int = 0
+
+
+def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    """Adam with global-norm clipping."""
+    return optax.chain(optax.clip_by_global_norm(config.clip_norm), optax.adam(config.learning_rate))
+
+
+def init_train_state(model: nnx.Module, tx: optax.GradientTransformation):
+    """Splits a model once; returns (graphdef, rest, TrainState) with committed, typed leaves."""
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    # An explicit int32 counter and device_put avoid a recompile after a checkpoint restore.
+    state = TrainState(jnp.zeros((), jnp.int32), params, tx.init(params))
+    return graphdef, rest, jax.device_put(state)
+
+
+def make_train_step(graphdef, rest, tx, loss_fn: Callable):
+    """A jitted ``(state, batch) -> (state, metrics)``.
+
+    ``loss_fn(model, batch, key) -> (per_item, mask, metrics)``: unreduced losses and their mask;
+    the step reduces them with `masked_mean`. ``key`` is folded from the step, so a resumed run
+    draws the same randomness as an uninterrupted one.
+    """
+
+    @functools.partial(jax.jit, donate_argnums=0)
+    def train_step(state: TrainState, batch, base_key):
+        key = jax.random.fold_in(base_key, state.step)
+
+        def objective(params):
+            model = nnx.merge(graphdef, params, rest)
+            per_item, mask, aux = loss_fn(model, batch, key)
+            return masked_mean(per_item, mask), aux
+
+        (loss, aux), grads = jax.value_and_grad(objective, has_aux=True)(state.params)
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads), **aux}
+        return TrainState(state.step + 1, params, opt_state), metrics
+
+    return train_step
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+class Checkpoints:
+    """Best and latest checkpoints of a run (orbax), each with the run's config as JSON.
+
+    ``directory/best`` keeps the state with the lowest validation loss, ``directory/latest`` the
+    newest; both are written atomically by orbax (temporary folder, then rename).
+    """
+
+    def __init__(self, directory: str | Path):
+        import orbax.checkpoint as ocp
+
+        self._ocp = ocp
+        self.directory = Path(directory).absolute()
+        opts = dict(enable_async_checkpointing=False)
+        self.best = ocp.CheckpointManager(
+            self.directory / "best",
+            options=ocp.CheckpointManagerOptions(
+                max_to_keep=1, best_fn=lambda m: m["val_loss"], best_mode="min", **opts
+            ),
+            item_names=("state", "config"),
+        )
+        self.latest = ocp.CheckpointManager(
+            self.directory / "latest",
+            options=ocp.CheckpointManagerOptions(max_to_keep=1, **opts),
+            item_names=("state", "config"),
+        )
+
+    def _args(self, state, config):
+        ocp = self._ocp
+        return ocp.args.Composite(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config))
+
+    def save_latest(self, state: TrainState, config: dict) -> None:
+        self.latest.save(int(state.step), args=self._args(state, config), force=True)
+
+    def save_best(self, state: TrainState, config: dict, val_loss: float) -> None:
+        self.best.save(
+            int(state.step), args=self._args(state, config), metrics={"val_loss": float(val_loss)}, force=True
+        )
+
+    def restore(self, abstract_state: TrainState, which: str = "best") -> tuple[TrainState, dict]:
+        """Restores ``which`` ("best" or "latest") against an abstract target."""
+        ocp = self._ocp
+        manager = self.best if which == "best" else self.latest
+        step = manager.best_step() if which == "best" else manager.latest_step()
+        if step is None:
+            raise InputError(f"no {which} checkpoint", file=self.directory / which)
+        try:
+            out = manager.restore(
+                step,
+                args=ocp.args.Composite(
+                    state=ocp.args.StandardRestore(abstract_state), config=ocp.args.JsonRestore()
+                ),
+            )
+        except (ValueError, KeyError, TypeError, FileNotFoundError) as e:
+            raise InputError(
+                f"checkpoint does not match this model or is damaged ({type(e).__name__}: {e})",
+                file=self.directory / which / str(step),
+            ) from None
+        return jax.device_put(out.state), dict(out.config)
+
+    def close(self) -> None:
+        self.best.close()
+        self.latest.close()
+
+
+# --------------------------------------------------------------------------- the fit loop
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What `fit` returns: the best state, its validation loss and the per-check history."""
+
+    state: TrainState
+    best_val_loss: float
+    history: list[dict[str, float]]
+    seconds: float
+    steps: int
+
+
+def fit(
+    state: TrainState,
+    train_step: Callable,
+    epoch_batches: Callable[[int], Iterable[Any]],
+    evaluate: Callable[[TrainState], dict[str, float]],
+    config: TrainConfig,
+    *,
+    steps_per_epoch: int,
+    checkpoints: Checkpoints | None = None,
+    run_config: dict | None = None,
+    desc: str = "train",
+    progress: bool = True,
+) -> FitResult:
+    """Trains until ``max_epochs``/``max_steps`` or early stopping; returns the best state.
+
+    Args:
+      state: the initial `TrainState`.
+      train_step: a jitted ``(state, batch, key) -> (state, metrics)`` (`make_train_step`).
+      epoch_batches: ``epoch -> iterable of batches`` (deterministic given the epoch).
+      evaluate: ``state -> {"val_loss": ..., ...}`` on held-out data.
+      steps_per_epoch: for the progress bar.
+      checkpoints: where to save best and latest (optional).
+      run_config: JSON-able config saved with every checkpoint.
+    """
+    from tqdm.auto import tqdm
+
+    base_key = jax.random.key(config.seed)
+    max_steps = config.max_steps or config.max_epochs * steps_per_epoch
+    total = min(max_steps, config.max_epochs * steps_per_epoch)
+    best_state = jax.tree.map(jnp.copy, state)
+    best, bad_checks, history = math.inf, 0, []
+    start, step = time.perf_counter(), 0
+    bar = tqdm(total=total, desc=desc, unit="step", disable=not progress, dynamic_ncols=True)
+    try:
+        for epoch in range(config.max_epochs):
+            train_metrics = []
+            for batch in epoch_batches(epoch):
+                state, metrics = train_step(state, batch, base_key)
+                train_metrics.append(metrics)
+                step += 1
+                bar.update(1)
+                if step >= max_steps:
+                    break
+            stop = step >= max_steps
+            if (epoch + 1) % config.eval_every == 0 or stop:
+                record = {k: float(np.mean([float(m[k]) for m in train_metrics])) for k in train_metrics[0]}
+                record = {f"train_{k}": v for k, v in record.items()}
+                record.update({k: float(v) for k, v in evaluate(state).items()})
+                record.update(epoch=epoch + 1, step=step, seconds=time.perf_counter() - start)
+                history.append(record)
+                improved = record["val_loss"] < best
+                if improved:
+                    best, bad_checks = record["val_loss"], 0
+                    best_state = jax.tree.map(jnp.copy, state)
+                    if checkpoints is not None:
+                        checkpoints.save_best(state, run_config or {}, best)
+                else:
+                    bad_checks += 1
+                if checkpoints is not None:
+                    checkpoints.save_latest(state, run_config or {})
+                bar.set_postfix(loss=f"{record['train_loss']:.4g}", val=f"{record['val_loss']:.4g}",
+                                best=f"{best:.4g}")  # fmt: skip
+                if bad_checks >= config.patience:
+                    break
+            if stop:
+                break
+    finally:
+        bar.close()
+    return FitResult(best_state, best, history, time.perf_counter() - start, step)
+
+
+def shuffled_batches(num_items: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]:
+    """Index batches of one epoch, reproducible from (seed, epoch); the last short batch is
+    padded by wrapping around, so every batch has the same shape (one compilation)."""
+    rng = np.random.default_rng([seed, epoch])
+    order = rng.permutation(num_items)
+    n = max(1, math.ceil(num_items / batch_size))
+    order = np.resize(order, n * batch_size)
+    return [order[i * batch_size : (i + 1) * batch_size] for i in range(n)]
+
+
+# --------------------------------------------------------------------------- the 3D estimator
+
+
+class EstimatorBatch(NamedTuple):
+    """Seed samples of the 3D estimator: one person each, with all training views."""
+
+    inputs: EstimatorInputs  # features of the inference views (N, C_i, ...)
+    available: jax.Array  # (N, C_i) bool, the inference view has at least one keypoint
+    xy: jax.Array  # (N, C_t, K, 2) detections in every training camera (loss targets)
+    score: jax.Array  # (N, C_t, K) scores, 0 = missing
+
+
+def make_estimator_batch(
+    rig_train: Rig, infer_cameras: Sequence[int], xy: jax.Array, score: jax.Array
+) -> EstimatorBatch:
+    """Builds estimator samples from people's detections in the training cameras.
+
+    Args:
+      rig_train: the training cameras C_t.
+      infer_cameras: indices into C_t of the inference cameras C_i.
+      xy: (N, C_t, K, 2) pixels; score: (N, C_t, K).
+    """
+    idx = np.asarray(infer_cameras)
+    rig_infer = rig_train.select(list(idx))
+    xy = jnp.asarray(xy, jnp.float32)
+    score = jnp.asarray(score, jnp.float32)
+    inputs = estimator_inputs(rig_infer, xy[:, idx], score[:, idx])
+    available = (score[:, idx] > 0).any(axis=-1)
+    return EstimatorBatch(inputs, available, xy, score)
+
+
+def random_view_subsets(key: jax.Array, available: jax.Array, num: int) -> tuple[jax.Array, jax.Array]:
+    """Random non-empty proper subsets of each sample's available views.
+
+    Args:
+      available: (N, C) bool.
+      num: subsets per sample.
+    Returns:
+      masks (num, N, C) bool and valid (num, N): False where the sample has < 2 views (no
+      non-empty proper subset exists).
+    """
+    N, C = available.shape
+    n_avail = available.sum(axis=-1)  # (N,)
+    k_size, k_order = jax.random.split(key)
+    # Subset size uniform in 1 .. n_avail - 1, then that many views chosen at random.
+    size = 1 + jnp.floor(jax.random.uniform(k_size, (num, N)) * jnp.maximum(n_avail - 1, 1)).astype(jnp.int32)
+    priority = jnp.where(available[None], jax.random.uniform(k_order, (num, N, C)), -1.0)
+    rank = jnp.argsort(jnp.argsort(-priority, axis=-1), axis=-1)  # 0 = highest priority
+    masks = (rank < size[..., None]) & available[None]
+    return masks, jnp.broadcast_to(n_avail >= 2, (num, N))
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorConfig:
+    """A 3D estimator: its cameras, network and training.
+
+    Attributes:
+      train_cameras: names of C_t (None: every camera of the rig).
+      infer_cameras: names of C_i, a subset of C_t (None: C_t).
+      mlp: the network.
+      train: optimisation.
+      num_augment: derived view-subset samples per seed sample (paper: up to 4).
+    """
+
+    train_cameras: tuple[str, ...] | None = None
+    infer_cameras: tuple[str, ...] | None = None
+    mlp: MLPConfig = MLPConfig()
+    train: TrainConfig = TrainConfig()
+    num_augment: int = 4
+
+
+class Estimator(NamedTuple):
+    """A trained 3D estimator: what inference needs."""
+
+    graphdef: Any
+    rest: Any
+    params: Any
+    rig_infer: Rig
+    config: EstimatorConfig
+
+
+def estimator_loss_fn(rig_train: Rig, rig_infer: Rig, num_augment: int):
+    """``loss_fn(model, batch, key)`` of the estimator, for `make_train_step`."""
+    centre, radius = rig_centre_and_radius(rig_infer)
+
+    def loss_fn(model, batch: EstimatorBatch, key):
+        subsets, subset_ok = random_view_subsets(key, batch.available, num_augment)
+        masks = jnp.concatenate([batch.available[None], subsets], axis=0)  # (1+A, N, C_i)
+        ok = jnp.concatenate([batch.available.any(-1)[None], subset_ok], axis=0)  # (1+A, N)
+        feats = jax.vmap(assemble_features, in_axes=(None, 0))(batch.inputs, masks)
+        xyz = to_world(model(feats), centre, radius)  # (1+A, N, K, 3)
+        err = jax.vmap(reprojection_error_l1, in_axes=(None, 0, None, None))(
+            rig_train, xyz, batch.xy, batch.score
+        )  # (1+A, N)
+        n_kp = jnp.maximum((batch.score > 0).sum(axis=(1, 2)), 1)
+        metrics = {"px_per_keypoint": masked_mean(err[0] / n_kp, ok[0])}
+        return jnp.square(err), ok, metrics
+
+    return loss_fn
+
+
+def train_estimator(
+    rig: Rig,
+    train_xy: np.ndarray,
+    train_score: np.ndarray,
+    dev_xy: np.ndarray,
+    dev_score: np.ndarray,
+    config: EstimatorConfig = EstimatorConfig(),
+    *,
+    checkpoint_dir: str | Path | None = None,
+    progress: bool = True,
+) -> tuple[Estimator, FitResult]:
+    """Trains a 3D estimator from people's 2D detections alone (no 3D labels).
+
+    Args:
+      rig: a rig holding (at least) the training cameras.
+      train_xy, dev_xy: (N, C_t, K, 2) per-person detections in the training cameras, in the
+        order of ``config.train_cameras``; train_score, dev_score: (N, C_t, K).
+      config: `EstimatorConfig`.
+      checkpoint_dir: where best and latest checkpoints go (optional).
+    Returns:
+      (the best `Estimator`, the `FitResult`).
+    """
+    train_names = config.train_cameras or rig.names
+    infer_names = config.infer_cameras or train_names
+    rig_train = rig.select(list(train_names))
+    missing = [c for c in infer_names if c not in train_names]
+    if missing:
+        raise InputError(f"inference cameras {missing} are not training cameras", field="infer_cameras")
+    infer_idx = [train_names.index(c) for c in infer_names]
+    rig_infer = rig_train.select(infer_idx)
+    K = train_xy.shape[-2]
+    tcfg = config.train
+
+    def batches_of(xy, score, chunk=4096):
+        parts = [make_estimator_batch(rig_train, infer_idx, xy[i : i + chunk], score[i : i + chunk])
+                 for i in range(0, len(xy), chunk)]  # fmt: skip
+        return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+
+    train_data = batches_of(train_xy, train_score)
+    dev_data = batches_of(dev_xy, dev_score)
+
+    model = PoseMLP(len(infer_idx), K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
+    tx = make_optimizer(tcfg)
+    graphdef, rest, state = init_train_state(model, tx)
+    loss_fn = estimator_loss_fn(rig_train, rig_infer, config.num_augment)
+    step = make_train_step(graphdef, rest, tx, loss_fn)
+    eval_loss = jax.jit(functools.partial(_estimator_eval, graphdef, rest, rig_train, rig_infer))
+
+    n_train = len(train_xy)
+    batch = min(tcfg.batch_size, n_train)
+
+    def epoch_batches(epoch):
+        for idx in shuffled_batches(n_train, batch, tcfg.seed, epoch):
+            yield jax.tree.map(lambda a: a[idx], train_data)
+
+    def evaluate(state):
+        return {k: float(v) for k, v in eval_loss(state.params, dev_data).items()}
+
+    checkpoints = Checkpoints(checkpoint_dir) if checkpoint_dir is not None else None
+    run_config = _jsonable(dataclasses.asdict(config))
+    try:
+        result = fit(
+            state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=math.ceil(n_train / batch),
+            checkpoints=checkpoints, run_config=run_config, desc="estimator", progress=progress,
+        )  # fmt: skip
+    finally:
+        if checkpoints is not None:
+            checkpoints.close()
+    return Estimator(graphdef, rest, result.state.params, rig_infer, config), result
+
+
+def _estimator_eval(graphdef, rest, rig_train, rig_infer, params, data: EstimatorBatch):
+    centre, radius = rig_centre_and_radius(rig_infer)
+    model = nnx.merge(graphdef, params, rest)
+    feats = assemble_features(data.inputs, data.available)
+    xyz = to_world(model(feats), centre, radius)
+    err = reprojection_error_l1(rig_train, xyz, data.xy, data.score)
+    ok = data.available.any(-1)
+    n_kp = jnp.maximum((data.score > 0).sum(axis=(1, 2)), 1)
+    return {"val_loss": masked_mean(jnp.square(err), ok), "val_px_per_keypoint": masked_mean(err / n_kp, ok)}
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
