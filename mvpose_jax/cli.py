@@ -58,6 +58,24 @@ def _rig(args: argparse.Namespace) -> int:
     return 0
 
 
+def _generate_arguments(p: argparse.ArgumentParser) -> None:
+    from mvpose_jax.data.synthetic.cli import add_generate_arguments
+
+    add_rig_argument(p)
+    add_generate_arguments(p)
+
+
+@command(
+    "generate",
+    "Generate a synthetic recording (or single-person training recordings) on any rig.",
+    _generate_arguments,
+)
+def _generate(args: argparse.Namespace) -> int:
+    from mvpose_jax.data.synthetic.cli import run_generate
+
+    return run_generate(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mvpose-jax", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -149,7 +149,8 @@ def test_select_and_camera_index(preset_rig):
 
 def test_up_vector_inferred_from_cameras_matches_calibration(preset_rig):
     inferred = cameras.up_vector(cameras.Rig(**{**preset_rig.__dict__, "up": None}))
-    assert np.dot(inferred, cameras.up_vector(preset_rig)) > 0.95
+    # Level cameras pin up down to a few degrees (the mean image-up alone is 6-10 degrees off).
+    assert np.dot(inferred, cameras.up_vector(preset_rig)) > np.cos(np.radians(3.0))
 
 
 @pytest.mark.parametrize(

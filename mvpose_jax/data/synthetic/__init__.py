@@ -1,0 +1,45 @@
+"""Synthetic multi-camera recordings: people, motion and 2D-detector behaviour on any rig.
+
+Pure numpy, vectorised over frames, people and cameras. See `docs/synthetic.md` for every
+parameter and why its default is realistic.
+"""
+
+from __future__ import annotations
+
+from mvpose_jax.data.synthetic.config import (
+    BodyConfig,
+    DetectorConfig,
+    MotionConfig,
+    SceneConfig,
+    SyntheticConfig,
+)
+from mvpose_jax.data.synthetic.figure import render_frame_figure
+from mvpose_jax.data.synthetic.generate import (
+    SyntheticScene,
+    detection_variants,
+    generate_recording,
+    generate_single_person_recordings,
+    simulate,
+)
+from mvpose_jax.data.synthetic.scene import (
+    SceneGeometry,
+    estimate_floor_height,
+    scene_geometry,
+)
+
+__all__ = [
+    "BodyConfig",
+    "DetectorConfig",
+    "MotionConfig",
+    "SceneConfig",
+    "SyntheticConfig",
+    "SyntheticScene",
+    "SceneGeometry",
+    "detection_variants",
+    "estimate_floor_height",
+    "generate_recording",
+    "generate_single_person_recordings",
+    "render_frame_figure",
+    "scene_geometry",
+    "simulate",
+]

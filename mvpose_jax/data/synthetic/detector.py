@@ -1,0 +1,375 @@
+"""A 2D skeleton detector model: what an OpenPose-like detector reports for the true 3D poses.
+
+Effects, each configured in `DetectorConfig` and on by default at realistic levels:
+
+* Systematic offsets: detectors do not mark the joint centres a motion-capture ground truth
+  holds (hips sit higher and wider, shoulders higher, knees on the kneecap …). A per-keypoint
+  offset in the person's body frame (`SYSTEMATIC_OFFSETS`, varied per person) moves each keypoint
+  in 3D before projection, so it is consistent across views, like a real detector's bias.
+* Pixel noise: per axis, ``noise_relative * h + noise_floor`` pixels, with h the person's height
+  in the image; the floor makes the relative error grow as people get small. Occluded keypoints
+  are noisier (the detector guesses them).
+* Occlusion, from geometry: body volumes are capsules (limbs, torso sides and centre, head
+  sphere). A keypoint is occluded when a capsule of its own body (not one it belongs to) or of
+  someone else covers it in the image and lies in front of it; face keypoints turned away from
+  the camera are occluded by the head. Occluded keypoints are dropped at ``occluded_drop_rate``
+  and otherwise reported with lower scores.
+* Truncation: keypoints outside the image (or behind the camera) are never reported.
+* Scores fall with occlusion and with the person's image size, plus noise.
+* Missed people (``miss_rate``), false-positive skeletons (partial bodies off the people, Poisson
+  ``false_positive_rate`` per view and frame) and left/right swaps (``swap_rate``).
+
+Everything is vectorised over frames, cameras and people (frames are processed in chunks to bound
+memory, never one at a time).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from mvpose_jax.data.synthetic import body as bm
+from mvpose_jax.data.synthetic.config import DetectorConfig
+from mvpose_jax.data.synthetic.scene import MIN_DEPTH, CameraModel
+
+K = bm.NUM_KEYPOINTS
+
+# Systematic offsets (metres for a 1.75 m person) in the body frame: forward, outward (away from
+# the body's midline; mirrored for the right side), up. Typical of COCO-trained detectors against
+# joint-centre ground truth (e.g. CMU Panoptic): hips placed high and wide at the trochanters,
+# shoulders on the acromion, knees on the kneecap; 0.6-3.2 cm, 1.3 cm on average.
+SYSTEMATIC_OFFSETS = np.array([
+    [0.008, 0.000, 0.000],  # nose
+    [0.004, 0.000, 0.004], [0.004, 0.000, 0.004],  # eyes
+    [0.008, -0.008, 0.000], [0.008, -0.008, 0.000],  # ears
+    [0.000, 0.008, 0.015], [0.000, 0.008, 0.015],  # shoulders
+    [0.000, 0.008, 0.000], [0.000, 0.008, 0.000],  # elbows
+    [0.008, 0.000, 0.000], [0.008, 0.000, 0.000],  # wrists
+    [0.000, 0.020, 0.025], [0.000, 0.020, 0.025],  # hips
+    [0.015, 0.000, 0.000], [0.015, 0.000, 0.000],  # knees
+    [0.000, 0.000, 0.010], [0.000, 0.000, 0.010],  # ankles
+    [0.008, 0.000, 0.015],  # neck
+])  # fmt: skip
+_SIDE = np.array([0, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 0], np.float64)
+
+# Score of a clearly visible keypoint of a large person: faces and the neck are easy, wrists,
+# hips and ankles hard.
+BASE_SCORES = np.array(
+    [0.90, 0.88, 0.88, 0.80, 0.80, 0.85, 0.85, 0.80, 0.80, 0.72, 0.72, 0.72, 0.72, 0.78, 0.78, 0.72, 0.72, 0.90]
+)
+# Facing test of face keypoints: visible when cos(normal, direction to the camera) exceeds this.
+_FACE_COS = np.array([-0.1, -0.1, -0.1, -0.35, -0.35])
+
+# Left/right swaps: arms, legs, the whole body.
+_L_ARM, _R_ARM = [5, 7, 9], [6, 8, 10]
+_L_LEG, _R_LEG = [11, 13, 15], [12, 14, 16]
+
+
+def _swap_permutations() -> np.ndarray:
+    perms = np.tile(np.arange(K), (4, 1))
+    for row, (a, b) in ((1, (_L_ARM, _R_ARM)), (2, (_L_LEG, _R_LEG))):
+        perms[row, a], perms[row, b] = b, a
+    perms[3] = [0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15, 17]
+    return perms
+
+
+_SWAPS = _swap_permutations()
+
+# Parts a false positive can show (masks over coco18), plus "random".
+_PARTS = np.zeros((7, K), bool)
+_PARTS[0, [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 17]] = True  # upper body
+_PARTS[1, [11, 12, 13, 14, 15, 16]] = True  # legs
+_PARTS[2, [5, 7, 9, 17]] = True  # an arm
+_PARTS[3, [6, 8, 10, 17]] = True
+_PARTS[4, [0, 1, 2, 3, 4, 5, 6, 17]] = True  # head and shoulders
+_PARTS[5, [11, 13, 15]] = True  # a leg
+_PARTS[6, [12, 14, 16]] = True
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectorOutput:
+    """Per-person detector results, F frames, C cameras, G people (before assembly into rows)."""
+
+    xy: np.ndarray  # (F, C, G, K, 2) reported pixels (after swaps); 0 where missing
+    score: np.ndarray  # (F, C, G, K) 0 = missing
+    reported: np.ndarray  # (F, C, G) bool: the person has a detection in this view
+    projected: np.ndarray  # (F, C, G, K, 2) noise-free projection of the ground truth
+    in_image: np.ndarray  # (F, C, G, K) bool: the true keypoint projects inside the image
+    occluded: np.ndarray  # (F, C, G, K) bool: by the own body or someone else
+    occluded_by_others: np.ndarray  # (F, C, G, K) bool
+    in_view: np.ndarray  # (F, C, G) bool: >= min_keypoints_in_view keypoints in the image
+    missed: np.ndarray  # (F, C, G) bool: dropped by the miss rate
+    swapped: np.ndarray  # (F, C, G) int: 0 none, 1 arms, 2 legs, 3 whole body
+    height_px: np.ndarray  # (F, C, G) the person's height in the image, pixels
+
+
+def detect_people(
+    cams: CameraModel,
+    points: np.ndarray,
+    axes: np.ndarray,
+    heights: np.ndarray,
+    radii: np.ndarray,
+    group: np.ndarray,
+    config: DetectorConfig,
+    rng: np.random.Generator,
+) -> DetectorOutput:
+    """Runs the detector model on the true poses.
+
+    Args:
+      cams: the cameras.
+      points: (F, G, NUM_POINTS, 3) world points (keypoints, pelvis and head centres), metres.
+      axes: (F, G, 3, 3) each person's heading frame in the world (rows forward, left, up).
+      heights: (G,) standing heights, metres.
+      radii: (G, S) capsule radii, metres.
+      group: (G,) scene of each person; people occlude only people of their own scene.
+      config: detector settings.
+      rng: random generator.
+    """
+    F, G = points.shape[:2]
+    C = cams.num_cameras
+    # Person-level systematic offsets in the body frame, scaled by height, mirrored by side.
+    table = SYSTEMATIC_OFFSETS * np.stack([np.ones(K), _SIDE, np.ones(K)], -1)
+    person_off = (
+        table[None] * (1 + config.offset_person_std * rng.standard_normal((G, K, 3)))
+        * (heights / 1.75)[:, None, None] * config.offset_scale
+    )  # (G, K, 3)
+    offsets = np.einsum("gkj,fgjd->fgkd", person_off, axes)  # (F, G, K, 3) world
+    exempt = bm.capsule_exempt()
+    # Bound temporaries to about 4 M entries per (C, frames, G, K, S) array.
+    chunk = max(1, int(4e6 // (C * G * K * bm.NUM_CAPSULES)))
+    parts = [
+        _detect_chunk(cams, points[s : s + chunk], offsets[s : s + chunk], heights, radii, group,
+                      exempt, config, rng)
+        for s in range(0, F, chunk)
+    ]  # fmt: skip
+    return DetectorOutput(*(np.concatenate(a, axis=0) for a in zip(*(_fields(p) for p in parts))))
+
+
+def _detect_chunk(cams, points, offsets, heights, radii, group, exempt, config: DetectorConfig, rng):
+    F, G = points.shape[:2]
+    C = cams.num_cameras
+    pc = cams.to_camera(points)  # (C, F, G, NP, 3)
+    px_true, z, in_img = cams.project_camera_points(pc[..., :K, :])
+    px_bias, _, _ = cams.project(points[..., :K, :] + offsets)
+
+    occluded, by_others = _occlusion(pc, radii, group, exempt)
+
+    # Person height in the image from the pelvis depth: robust to truncation.
+    z_pelvis = pc[..., bm.PELVIS, 2]
+    fy = cams.K[:, 1, 1].reshape(C, 1, 1)
+    height_px = np.where(z_pelvis > MIN_DEPTH, fy * heights[None, None] / np.maximum(z_pelvis, MIN_DEPTH), 0.0)
+    img_h = cams.size[:, 1].reshape(C, 1, 1)
+    diag = np.hypot(cams.size[:, 0], cams.size[:, 1]).reshape(C, 1, 1)
+
+    # Pixel noise: relative to the person's image height, plus a floor scaled by image size.
+    sigma = config.noise_relative * height_px + config.noise_floor_px * diag / np.hypot(1920, 1080)
+    sigma = sigma[..., None] * np.where(occluded, config.occluded_noise_factor, 1.0)
+    xy = px_bias + sigma[..., None] * rng.standard_normal(px_bias.shape)
+    w, h = cams.size[:, 0].reshape(C, 1, 1, 1), cams.size[:, 1].reshape(C, 1, 1, 1)
+    inside = in_img & (xy[..., 0] >= 0) & (xy[..., 0] < w) & (xy[..., 1] >= 0) & (xy[..., 1] < h)
+
+    # Scores: fall with size (half at size_half_score of the image height) and with occlusion.
+    size_factor = 1.0 / (1.0 + (config.size_half_score * img_h / np.maximum(height_px, 1e-6)) ** 2)
+    quality = rng.uniform(0.85, 1.0, (C, F, G, 1))
+    score = BASE_SCORES * size_factor[..., None] * quality * np.where(occluded, config.occluded_score_factor, 1.0)
+    score = np.clip(score + config.score_noise * rng.standard_normal(score.shape), 0.05, 1.0)
+
+    u = rng.random(score.shape)
+    dropped = np.where(occluded, u < config.occluded_drop_rate, u < config.keypoint_drop_rate)
+    kept = inside & ~dropped
+    n_in = in_img.sum(-1)
+    in_view = n_in >= config.min_keypoints_in_view
+    candidate = n_in >= max(config.min_keypoints, 1)
+    missed = candidate & (rng.random((C, F, G)) < config.miss_rate)
+    reported = candidate & ~missed & (kept.sum(-1) >= config.min_keypoints)
+
+    # Left/right swaps of reported detections.
+    swap = np.where(
+        reported & (rng.random((C, F, G)) < config.swap_rate), rng.choice([1, 2, 3], (C, F, G), p=[0.4, 0.4, 0.2]), 0
+    )
+    sw = np.nonzero(swap)
+    if sw[0].size:
+        perm = _SWAPS[swap[sw]]  # (n, K)
+        rows = np.arange(perm.shape[0])[:, None]
+        xy[sw] = xy[sw][rows, perm]
+        score[sw] = score[sw][rows, perm]
+        kept[sw] = kept[sw][rows, perm]
+    kept &= reported[..., None]
+    score = np.where(kept, score, 0.0)
+    xy = np.where(kept[..., None], xy, 0.0)
+
+    tr = lambda a: np.swapaxes(a, 0, 1)  # noqa: E731  (C, F, ...) -> (F, C, ...)
+    return DetectorOutput(
+        tr(xy).astype(np.float32), tr(score).astype(np.float32), tr(reported), tr(px_true),
+        tr(in_img), tr(occluded), tr(by_others), tr(in_view), tr(missed), tr(swap), tr(height_px),
+    )  # fmt: skip
+
+
+def _occlusion(pc: np.ndarray, radii: np.ndarray, group: np.ndarray, exempt: np.ndarray):
+    """Occlusion of every keypoint in every view by body capsules.
+
+    Args:
+      pc: (C, F, G, NP, 3) points in the camera frames.
+      radii: (G, S) capsule radii.
+      group: (G,) scene ids.
+      exempt: (K, S) capsules of the own body that cannot occlude a keypoint.
+    Returns:
+      occluded (C, F, G, K) and occluded_by_others (C, F, G, K), bool.
+    """
+    C, F, G = pc.shape[:3]
+    f32 = np.float32
+    z = np.maximum(pc[..., 2], MIN_DEPTH).astype(f32)
+    x = (pc[..., 0] / z).astype(f32)  # pinhole image coordinates, (C, F, G, NP)
+    y = (pc[..., 1] / z).astype(f32)
+    ia = np.array([a for a, _, _ in bm.CAPSULES])
+    ib = np.array([b for _, b, _ in bm.CAPSULES])
+    r = radii.astype(f32)  # (G, S)
+
+    # Own body: only the (keypoint, capsule) pairs that can occlude, (C, F, G, pairs).
+    kk, ss = np.nonzero(~exempt)
+    hit = _covers(
+        x[..., kk], y[..., kk], z[..., kk], x[..., ia[ss]], y[..., ia[ss]], z[..., ia[ss]],
+        x[..., ib[ss]], y[..., ib[ss]], z[..., ib[ss]], r[:, ss],
+    )  # fmt: skip
+    # Any hit of each keypoint over its capsules (pairs are sorted by keypoint, none is empty).
+    bounds = np.searchsorted(kk, np.arange(K))
+    occluded = np.add.reduceat(hit.astype(np.int8), bounds, axis=-1) > 0
+
+    # Faces turned away from the camera are hidden by the head (the camera sits at the origin).
+    face = list(bm.FACE_KEYPOINTS)
+    normal = pc[..., face, :] - pc[..., bm.HEAD : bm.HEAD + 1, :]
+    view = -pc[..., face, :]
+    cos = np.einsum("...i,...i->...", normal, view) / np.maximum(
+        np.linalg.norm(normal, axis=-1) * np.linalg.norm(view, axis=-1), 1e-9
+    )
+    occluded[..., face] |= cos < _FACE_COS
+
+    # Other people: only pairs whose image boxes overlap and whose occluder is nearer.
+    by_others = np.zeros_like(occluded)
+    same = (group[:, None] == group[None, :]) & ~np.eye(G, dtype=bool)
+    if same.any():
+        zc = z[..., : bm.NUM_POINTS]
+        rad = (r[None, None] / np.minimum(zc[..., ia], zc[..., ib]))  # (C, F, G, S)
+        xs = np.concatenate([x[..., ia], x[..., ib]], -1)
+        ys = np.concatenate([y[..., ia], y[..., ib]], -1)
+        rr = np.concatenate([rad, rad], -1)
+        x_lo, x_hi = (xs - rr).min(-1), (xs + rr).max(-1)  # (C, F, G)
+        y_lo, y_hi = (ys - rr).min(-1), (ys + rr).max(-1)
+        near = np.minimum(zc[..., ia], zc[..., ib]).min(-1)
+        far = z[..., :K].max(-1)
+        overlap = (
+            (x_lo[..., None, :] < x_hi[..., :, None]) & (x_hi[..., None, :] > x_lo[..., :, None])
+            & (y_lo[..., None, :] < y_hi[..., :, None]) & (y_hi[..., None, :] > y_lo[..., :, None])
+            & (near[..., None, :] < far[..., :, None]) & same
+        )  # (C, F, G[target], G[occluder])  # fmt: skip
+        c, f, g, o = np.nonzero(overlap)
+        if c.size:
+            q = lambda a: a[c, f, g][:, :K, None]  # noqa: E731  (n, K, 1)
+            s_ = lambda a, idx: a[c, f, o][:, None, idx]  # noqa: E731  (n, 1, S)
+            hit = _covers(
+                q(x), q(y), q(z), s_(x, ia), s_(y, ia), s_(z, ia), s_(x, ib), s_(y, ib), s_(z, ib),
+                r[o][:, None, :],
+            ).any(-1)  # fmt: skip
+            counts = np.zeros((C * F * G, K), np.int32)
+            np.add.at(counts, np.ravel_multi_index((c, f, g), (C, F, G)), hit)
+            by_others = counts.reshape(C, F, G, K) > 0
+            occluded |= by_others
+    return occluded, by_others
+
+
+def _covers(qx, qy, qz, ax, ay, az, bx, by, bz, r):
+    """Whether a capsule (a-b, radius r) covers image point q and lies in front of it.
+
+    Points in pinhole image coordinates (x, y) with depths z (metres). Broadcasts.
+    """
+    dx, dy = bx - ax, by - ay
+    wx, wy = qx - ax, qy - ay
+    dd = dx * dx + dy * dy
+    t = np.clip((wx * dx + wy * dy) / np.maximum(dd, 1e-12), 0.0, 1.0)
+    ex, ey = wx - t * dx, wy - t * dy
+    zc = az + t * (bz - az)
+    # Covered: within the radius seen at that depth; in front: the capsule's back surface is
+    # nearer than the keypoint. Written without divisions: dist^2 zc^2 < r^2.
+    return ((ex * ex + ey * ey) * (zc * zc) < r * r) & (zc + r < qz)
+
+
+def false_positives(
+    cams: CameraModel,
+    local_poses: np.ndarray,
+    reported: np.ndarray,
+    det_xy: np.ndarray,
+    height_px: np.ndarray,
+    config: DetectorConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """False-positive skeletons for every view of every frame of B scenes.
+
+    Args:
+      cams: the cameras.
+      local_poses: (N, K, 3) body-frame poses (forward, left, up; metres, pelvis at 0) to shape
+        false positives from.
+      reported: (F, C, B, Gp) bool, real detections (to place "leftover limb" false positives).
+      det_xy: (F, C, B, Gp, K, 2) reported pixels of the real detections.
+      height_px: (F, C, B, Gp) image heights of the people.
+    Returns:
+      xy (F, C, B, M, K, 2), score (F, C, B, M, K) and valid (F, C, B, M), M the most false
+      positives of any view (0 when the rate is 0).
+    """
+    F, C, B, Gp = reported.shape
+    rate = config.false_positive_rate
+    n = rng.poisson(rate, (F, C, B)) if rate > 0 else np.zeros((F, C, B), np.int64)
+    M = int(n.max()) if n.size else 0
+    out_xy = np.zeros((F, C, B, M, K, 2), np.float32)
+    out_score = np.zeros((F, C, B, M, K), np.float32)
+    valid = np.arange(M) < n[..., None]
+    if M == 0:
+        return out_xy, out_score, valid
+    # Only the false positives that exist are computed: N of them, flat.
+    fi, ci, bi, mi = np.nonzero(valid)
+    N = fi.size
+    # Shape: a random pose seen from a random side, orthographic, upright.
+    src = local_poses[rng.integers(0, len(local_poses), N)]  # (N, K, 3)
+    yaw = rng.uniform(-np.pi, np.pi, N)[:, None]
+    lateral = np.cos(yaw) * src[..., 1] - np.sin(yaw) * src[..., 0]
+    shape2d = np.stack([lateral, -src[..., 2]], -1)  # (N, K, 2) metres, image y down
+    span = shape2d[..., 1].max(-1) - shape2d[..., 1].min(-1)
+    wh = cams.size[ci]  # (N, 2)
+    size = rng.uniform(0.12, 0.5, N) * wh[:, 1]  # pixels for a whole body
+    centre = rng.random((N, 2)) * wh
+    # "Leftover limbs": next to a real detection of the view, at a similar scale.
+    rep = reported[fi, ci, bi]  # (N, Gp)
+    use = rep.any(-1) & (rng.random(N) < config.false_positive_near_fraction)
+    if Gp and use.any():
+        pick = np.argmax(np.where(rep, rng.random((N, Gp)), -1.0), axis=-1)
+        ref_pts = det_xy[fi, ci, bi, pick]  # (N, K, 2)
+        ref_h = height_px[fi, ci, bi, pick]
+        nz = np.abs(ref_pts).sum(-1) > 0
+        ref_c = (ref_pts * nz[..., None]).sum(-2) / np.maximum(nz.sum(-1, keepdims=True), 1)
+        side = np.where(rng.random(N) < 0.5, -1.0, 1.0)
+        offset = np.stack([side * rng.uniform(0.5, 1.1, N), rng.uniform(-0.3, 0.3, N)], -1)
+        centre = np.where(use[:, None], ref_c + offset * ref_h[:, None], centre)
+        size = np.where(use, ref_h * rng.uniform(0.5, 1.0, N), size)
+    xy = shape2d * (size / np.maximum(span, 1e-6))[:, None, None]
+    part = rng.integers(0, len(_PARTS) + 1, N)
+    mask = np.where(
+        (part < len(_PARTS))[:, None], _PARTS[np.minimum(part, len(_PARTS) - 1)], rng.random((N, K)) < 0.4
+    )
+    mask[mask.sum(-1) < 2] = _PARTS[4]
+    # Centre the shown keypoints' box on the chosen spot, kept inside the image.
+    lo = np.where(mask[..., None], xy, np.inf).min(-2)
+    hi = np.where(mask[..., None], xy, -np.inf).max(-2)
+    c = np.clip(centre, (hi - lo) / 2 + 1, wh - (hi - lo) / 2 - 1)
+    xy = xy - ((lo + hi) / 2)[:, None] + c[:, None]
+    xy = xy + (0.01 * size)[:, None, None] * rng.standard_normal(xy.shape)
+    inside = (xy >= 0).all(-1) & (xy < wh[:, None]).all(-1)
+    mask &= inside
+    out_xy[fi, ci, bi, mi] = np.where(mask[..., None], xy, 0.0)
+    out_score[fi, ci, bi, mi] = np.where(mask, rng.uniform(0.05, 0.45, (N, K)), 0.0)
+    valid[fi, ci, bi, mi] = mask.sum(-1) >= 1
+    return out_xy, out_score, valid
+
+
+def _fields(obj) -> tuple:
+    """The fields of a dataclass, shallow (dataclasses.astuple deep-copies arrays)."""
+    return tuple(getattr(obj, f.name) for f in dataclasses.fields(obj))
