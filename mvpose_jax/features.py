@@ -114,7 +114,8 @@ def assemble_features(inputs: EstimatorInputs, view_mask: jax.Array) -> jax.Arra
         init = jnp.zeros((N, K, 3), keypoint.dtype)
         has_init = jnp.zeros((N, K), keypoint.dtype)
     extra = jnp.concatenate([has_init[..., None], init], axis=-1)  # (N, K, 4)
-    extra = jnp.broadcast_to(extra[:, None], (N, C, K, 4))
+    # The same in every slot of a present view; a slot with no view is all zeros.
+    extra = jnp.where(view_mask[:, :, None, None], extra[:, None], 0.0)  # (N, C, K, 4)
     return jnp.concatenate([keypoint, extra], axis=-1)
 
 

@@ -126,3 +126,264 @@ def triangulate_grouped(
 def _confidence(score: np.ndarray) -> np.ndarray:
     seen = score > 0
     return np.where(seen, score, 0).sum(axis=(-1, -2)) / np.maximum(seen.sum(axis=(-1, -2)), 1)
+
+
+# =========================================================================== skeleton matching
+# (DESIGN.md §1.2) Match scores for many frames per jit call, then proposals (host-side union-find).
+# A "match table" is the common currency of the learned and the geometric matcher: rows
+# ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` (M, 5) and their scores (M,).
+
+from typing import NamedTuple  # noqa: E402
+
+from mvpose_jax.cameras import undistort_points  # noqa: E402
+from mvpose_jax.graphs import GraphBatch, build_graphs, detection_features, match_table  # noqa: E402
+from mvpose_jax.errors import InputError  # noqa: E402
+from mvpose_jax.skeletons import Detections  # noqa: E402
+from mvpose_jax.train import Matcher  # noqa: E402
+from mvpose_jax.triangulate import camera_pairs  # noqa: E402
+
+FRAMES_PER_CALL = 32
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
+    return nnx.merge(graphdef, params, rest)(batch)
+
+
+def match_scores(matcher: Matcher, batch: GraphBatch) -> np.ndarray:
+    """The matcher's (N,) node scores for a padded batch of graphs (one jit call)."""
+    return np.asarray(_match_scores(matcher.graphdef, matcher.rest, matcher.params, batch))
+
+
+def gat_match_table(
+    matcher: Matcher, detections: Detections, *, frames_per_call: int = FRAMES_PER_CALL
+) -> tuple[np.ndarray, np.ndarray]:
+    """Match scores of every cross-view skeleton pair of every frame, by the learned matcher.
+
+    Frames go through the network ``frames_per_call`` at a time, as one padded graph batch each
+    (the last chunk is padded with empty frames, so the graph budget and the feature shapes stay
+    fixed and jit compiles a handful of shapes for a whole recording).
+
+    Args:
+      matcher: a trained `Matcher`.
+      detections: `Detections` with xy (F, C, P, K, 2) in the matcher's camera order
+        (``matcher.rig.names``; use `data.formats.select_cameras` on a recording).
+    Returns:
+      rows (M, 5) ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` and scores (M,).
+    """
+    xy = np.asarray(detections.xy, np.float32)
+    score = np.asarray(detections.score, np.float32)
+    count = np.asarray(detections.count)
+    F, C, P, K = score.shape
+    if C != matcher.rig.num_cameras:
+        raise InputError(f"detections have {C} cameras, the matcher {matcher.rig.num_cameras}", field="cameras")
+    valid = np.arange(P)[None, None] < count[..., None]
+    rows, scores = [], []
+    for start in range(0, F, frames_per_call):
+        stop = min(F, start + frames_per_call)
+        pad = [(0, frames_per_call - (stop - start))] + [(0, 0)] * 3
+        feats = detection_features(matcher.rig, np.pad(xy[start:stop], pad + [(0, 0)]), np.pad(score[start:stop], pad))
+        batch = build_graphs(feats[: stop - start], valid[start:stop], num_graphs=frames_per_call)
+        r, s = match_table(batch, match_scores(matcher, batch))
+        r[:, 0] += start
+        rows.append(r)
+        scores.append(s)
+    if not rows:
+        return np.zeros((0, 5), np.int64), np.zeros(0, np.float32)
+    return np.concatenate(rows), np.concatenate(scores)
+
+
+@functools.partial(jax.jit, static_argnames=("min_shared",))
+def _epipolar_distances(rig: Rig, xy: jax.Array, score: jax.Array, *, min_shared: int) -> jax.Array:
+    """Mean symmetric epipolar distance (px) of every skeleton pair of every camera pair.
+
+    xy: (C, F, P, K, 2) distorted pixels; score: (C, F, P, K). Returns (Q, F, P, P), inf where
+    fewer than ``min_shared`` keypoints are seen in both views.
+    """
+    u = undistort_points(rig, xy)
+    u_h = jnp.concatenate([u, jnp.ones_like(u[..., :1])], axis=-1)  # (C, F, P, K, 3)
+    k_inv = jnp.linalg.inv(rig.K)
+    out = []
+    for i, j in camera_pairs(rig.num_cameras):
+        r_rel = rig.R[j] @ rig.R[i].T
+        t_rel = rig.t[j] - r_rel @ rig.t[i]
+        tx = jnp.array([[0.0, -t_rel[2], t_rel[1]], [t_rel[2], 0.0, -t_rel[0]], [-t_rel[1], t_rel[0], 0.0]])
+        fund = k_inv[j].T @ tx @ r_rel @ k_inv[i]  # x_j^T F x_i = 0
+        line_j = jnp.einsum("ab,fpkb->fpka", fund, u_h[i])  # lines in view j of view i's points
+        line_i = jnp.einsum("ba,fqkb->fqka", fund, u_h[j])
+        num = jnp.abs(jnp.einsum("fpka,fqka->fpqk", line_j, u_h[j]))
+        d_j = num / jnp.maximum(jnp.linalg.norm(line_j[..., :2], axis=-1), 1e-9)[:, :, None, :]
+        d_i = num / jnp.maximum(jnp.linalg.norm(line_i[..., :2], axis=-1), 1e-9)[:, None, :, :]
+        shared = (score[i] > 0)[:, :, None, :] & (score[j] > 0)[:, None, :, :]  # (F, P, P, K)
+        n = shared.sum(-1)
+        d = jnp.where(shared, 0.5 * (d_i + d_j), 0.0).sum(-1) / jnp.maximum(n, 1)
+        out.append(jnp.where(n >= min_shared, d, jnp.inf))
+    return jnp.stack(out)
+
+
+def geometric_match_table(
+    rig: Rig,
+    detections: Detections,
+    *,
+    half_score_px: float = 20.0,
+    min_shared: int = 3,
+    frames_per_call: int = FRAMES_PER_CALL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The non-learned baseline: scores from the symmetric epipolar distance of skeleton pairs.
+
+    The distance of a pair is the mean, over keypoints seen in both views, of the symmetric
+    epipolar distance of the undistorted pixels; ``score = 2^(-d / half_score_px)`` is 0.5 at
+    ``half_score_px`` (so the proposal threshold 0.5 means ``d < half_score_px``), and 0 when fewer
+    than ``min_shared`` keypoints are shared.
+
+    Args:
+      rig: the C cameras of the detections, in their order.
+      detections: xy (F, C, P, K, 2), score (F, C, P, K), count (F, C).
+    Returns:
+      rows (M, 5) and scores (M,), as `gat_match_table`.
+    """
+    xy = np.asarray(detections.xy, np.float32)
+    score = np.asarray(detections.score, np.float32)
+    count = np.asarray(detections.count)
+    F, C, P, K = score.shape
+    pairs = camera_pairs(C)
+    if C < 2 or F == 0:
+        return np.zeros((0, 5), np.int64), np.zeros(0, np.float32)
+    dist = []
+    for start in range(0, F, frames_per_call):
+        stop = min(F, start + frames_per_call)
+        pad = [(0, frames_per_call - (stop - start))] + [(0, 0)] * 3
+        xy_c = np.moveaxis(np.pad(xy[start:stop], pad + [(0, 0)]), 1, 0)
+        sc_c = np.moveaxis(np.pad(score[start:stop], pad), 1, 0)
+        dist.append(np.asarray(_epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared))[:, : stop - start])
+    dist = np.concatenate(dist, axis=1)  # (Q, F, P, P)
+    ok = np.arange(P)[None, None] < count[..., None]  # (F, C, P)
+    both = ok[:, pairs[:, 0], :, None] & ok[:, pairs[:, 1], None, :]  # (F, Q, P, P)
+    f, q, pa, pb = np.nonzero(both)
+    rows = np.stack([f, pairs[q, 0], pa, pairs[q, 1], pb], axis=1).astype(np.int64)
+    d = dist[q, f, pa, pb]
+    return rows, np.exp2(-d / half_score_px).astype(np.float32)
+
+
+class Proposals(NamedTuple):
+    """People proposed in F frames of C views (P skeletons per view, padded)."""
+
+    identity: np.ndarray  # (F, C, P) int32: the person (0.. within its frame) of each skeleton, -1 none
+    people: list[np.ndarray]  # per frame (num_people, C) int32: each person's skeleton per view, -1 none
+
+
+def propose_people(
+    rows: np.ndarray,
+    scores: np.ndarray,
+    count: np.ndarray,
+    *,
+    num_skeletons: int | None = None,
+    threshold: float = 0.5,
+    min_views: int = 2,
+) -> Proposals:
+    """Groups skeletons into people from scored cross-view pairs (DESIGN.md §1.2).
+
+    Pairs scoring above ``threshold`` are taken best first; each joins its two skeletons' groups
+    unless the joined group would hold two skeletons of one camera. A person is a group of at
+    least ``min_views`` skeletons. With a single camera every skeleton is its own person.
+
+    Args:
+      rows: (M, 5) int ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``.
+      scores: (M,) pair scores.
+      count: (F, C) skeletons per view.
+      num_skeletons: P, the padded skeleton axis of the output (default ``count.max()``).
+    Returns:
+      `Proposals`.
+    """
+    count = np.asarray(count)
+    F, C = count.shape
+    P = max(1, int(count.max(initial=0)) if num_skeletons is None else num_skeletons)
+    if C > 62:
+        raise InputError("proposals support at most 62 cameras", field="cameras")
+    ok = np.arange(P)[None, None] < count[..., None]  # (F, C, P)
+    n = F * C * P
+    rows = np.asarray(rows, np.int64).reshape(-1, 5)
+    scores = np.asarray(scores).reshape(-1)
+    if C == 1:
+        parent = np.arange(n)
+    else:
+        keep = scores > threshold
+        rows, scores = rows[keep], scores[keep]
+        order = np.argsort(-scores, kind="stable")
+        a = ((rows[order, 0] * C + rows[order, 1]) * P + rows[order, 2]).tolist()
+        b = ((rows[order, 0] * C + rows[order, 3]) * P + rows[order, 4]).tolist()
+        parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
+    return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
+
+
+def union_find_exclusive(num_items: int, a: list[int], b: list[int], group: np.ndarray) -> np.ndarray:
+    """Greedy union-find that never joins two items of the same group (camera).
+
+    Args:
+      num_items: items 0..n-1.
+      a, b: the pairs to join, in order (best first).
+      group: (n,) int in 0..62, the camera of each item.
+    Returns:
+      (n,) the root of every item's set.
+    """
+    parent = list(range(num_items))
+    cams = [1 << int(g) for g in np.asarray(group).tolist()]  # camera bitmask of each root
+
+    def find(x: int) -> int:
+        root = x
+        while parent[root] != root:
+            root = parent[root]
+        while parent[x] != root:  # path compression
+            parent[x], x = root, parent[x]
+        return root
+
+    for x, y in zip(a, b, strict=True):
+        rx, ry = find(x), find(y)
+        if rx == ry or cams[rx] & cams[ry]:
+            continue
+        if rx > ry:
+            rx, ry = ry, rx
+        parent[ry] = rx
+        cams[rx] |= cams[ry]
+    return np.array([find(x) for x in range(num_items)], np.int64)
+
+
+def _proposals_from_roots(root: np.ndarray, ok: np.ndarray, min_views: int) -> Proposals:
+    F, C, P = ok.shape
+    flat_root = np.where(ok, root, -1).reshape(-1)
+    size = np.bincount(flat_root[flat_root >= 0], minlength=F * C * P)
+    person = ok.reshape(-1) & (size[np.maximum(flat_root, 0)] >= min_views)
+    identity = np.full(F * C * P, -1, np.int64)
+    frame = np.arange(F * C * P) // (C * P)
+    # Number each frame's people 0.. in the order of their first skeleton (camera, then index).
+    key = frame[person] * (F * C * P) + flat_root[person]
+    uniq, inverse = np.unique(key, return_inverse=True)
+    first_of_frame = np.searchsorted(uniq // (F * C * P), np.arange(F))
+    identity[person] = inverse - first_of_frame[frame[person]]
+    identity = identity.reshape(F, C, P).astype(np.int32)
+    num = np.bincount(uniq // (F * C * P), minlength=F)
+    table = np.full((F, max(1, int(num.max(initial=0))), C), -1, np.int32)
+    f_i, c_i, p_i = np.nonzero(identity >= 0)
+    table[f_i, identity[f_i, c_i, p_i], c_i] = p_i
+    return Proposals(identity, [table[f, : num[f]] for f in range(F)])
+
+
+def propose_with_matcher(matcher: Matcher, detections: Detections, *, threshold: float = 0.5,
+                         min_views: int = 2) -> Proposals:  # fmt: skip
+    """`gat_match_table` then `propose_people` (single-camera matchers: one person per skeleton)."""
+    count = np.asarray(detections.count)
+    if matcher.rig.num_cameras == 1:
+        rows, scores = np.zeros((0, 5), np.int64), np.zeros(0)
+    else:
+        rows, scores = gat_match_table(matcher, detections)
+    return propose_people(rows, scores, count, num_skeletons=np.shape(detections.score)[2],
+                          threshold=threshold, min_views=min_views)  # fmt: skip
+
+
+def propose_geometric(rig: Rig, detections: Detections, *, threshold: float = 0.5, min_views: int = 2,
+                      **kwargs) -> Proposals:  # fmt: skip
+    """`geometric_match_table` then `propose_people`."""
+    rows, scores = geometric_match_table(rig, detections, **kwargs)
+    return propose_people(rows, scores, np.asarray(detections.count), num_skeletons=np.shape(detections.score)[2],
+                          threshold=threshold, min_views=min_views)  # fmt: skip
+

@@ -42,3 +42,20 @@ def reprojection_error_l1(
 def reprojection_loss(rig: Rig, xyz: jax.Array, xy: jax.Array, score: jax.Array) -> jax.Array:
     """Per-sample loss e_d^2 (reduce with `masked_mean`). Shapes as `reprojection_error_l1`."""
     return jnp.square(reprojection_error_l1(rig, xyz, xy, score))
+
+
+# =========================================================================== skeleton matching
+
+
+def match_mse(scores: jax.Array, labels: jax.Array) -> jax.Array:
+    """The matcher's per-node loss (paper: MSE): ``(score - label)^2``.
+
+    Reduce with `masked_mean` over real match nodes only (``is_match & node_mask``).
+
+    Args:
+      scores: (N,) sigmoid outputs in [0, 1].
+      labels: (N,) 0/1 targets.
+    Returns:
+      (N,) squared errors.
+    """
+    return jnp.square(scores - labels)

@@ -3,12 +3,17 @@
 3D poses:
   * `match_people`: per frame, the assignment of predictions to ground truth that minimises the
     total error (Hungarian, scipy), on the evaluation keypoints both have.
-  * `pose_metrics`: MPJPE (mm) over matched pairs; AP at 25..150 mm and their mean (mAP) and mean
-    recall (mR), computed the way VoxelPose's evaluation (which the paper follows) does: every
-    prediction is matched to its nearest ground truth, predictions are ranked by confidence, a
-    prediction is a true positive when its MPJPE is under the threshold and its ground truth is not
-    taken yet; PCP (a bone is correct when the mean error of its two ends is at most half its
-    length); completeness (share of ground-truth keypoints that got a prediction).
+  * `pose_metrics`: MPJPE (mm) over matched pairs, on the keypoints a prediction has (so an
+    incomplete triangulation is scored on what it reconstructed, as the paper scores it); AP at
+    25..150 mm and their mean (mAP) and mean recall (mR), computed the way VoxelPose's evaluation
+    (which the paper follows) does: every prediction is matched to its nearest ground truth,
+    predictions are ranked by confidence, a prediction is a true positive when its MPJPE is under
+    the threshold and its ground truth is not taken yet. For AP and recall a prediction must be
+    complete: a ground-truth evaluation keypoint it did not produce makes its error infinite
+    (``require_complete``; this is what makes the paper's triangulation, 22.63 mm MPJPE, score
+    a lower mAP and mR than its network). PCP (a bone is correct when the mean error of its two
+    ends is at most half its length); completeness (share of ground-truth keypoints that got a
+    prediction).
   * `reprojection_errors`: per camera, the pixel distances between projected predictions and the
     detections they came from (mean and median; the paper's Table 7, no ground truth needed).
 """
@@ -23,17 +28,21 @@ from mvpose_jax.skeletons import Poses3D, evaluation_keypoints, get_layout
 AP_THRESHOLDS_MM = (25, 50, 75, 100, 125, 150)
 
 
-def _pair_errors(pred_xyz, pred_kv, gt_xyz, gt_kv):
+def _pair_errors(pred_xyz, pred_kv, gt_xyz, gt_kv, require_complete=False):
     """Mean keypoint error (m) of every (prediction, ground truth) pair of one frame.
 
     pred_xyz (P, K, 3), pred_kv (P, K), gt_xyz (G, K, 3), gt_kv (G, K) -> (P, G), inf where no
-    keypoint is shared.
+    keypoint is shared or, with ``require_complete``, where the prediction lacks a keypoint the
+    ground truth has.
     """
     d = np.linalg.norm(pred_xyz[:, None] - gt_xyz[None], axis=-1)  # (P, G, K)
     both = pred_kv[:, None] & gt_kv[None]
     n = both.sum(axis=-1)
     err = np.where(both, d, 0.0).sum(axis=-1) / np.maximum(n, 1)
-    return np.where(n > 0, err, np.inf)
+    bad = n == 0
+    if require_complete:
+        bad |= (gt_kv[None] & ~pred_kv[:, None]).any(axis=-1)
+    return np.where(bad, np.inf, err)
 
 
 def match_people(pred: Poses3D, gt: Poses3D, keypoints: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -72,6 +81,7 @@ def pose_metrics(
     layout: str = "coco18",
     confidence: np.ndarray | None = None,
     thresholds_mm: tuple[float, ...] = AP_THRESHOLDS_MM,
+    require_complete: bool = True,
 ) -> dict[str, float]:
     """The paper's 3D metrics over a recording.
 
@@ -81,6 +91,8 @@ def pose_metrics(
       layout: keypoint layout (the evaluation keypoints are all but eyes and ears).
       confidence: optional (F, P) ranking score of each prediction for AP (default: all equal,
         ranked by frame order).
+      require_complete: for AP and recall, a prediction missing an evaluation keypoint of its
+        ground truth is never correct.
     Returns:
       mpjpe_mm, ap_<th> (percent) per threshold, map, mean_recall (percent), pcp (percent),
       completeness (percent), num_gt, num_pred.
@@ -115,11 +127,11 @@ def pose_metrics(
         "pcp": 100.0 * pcp_hits / max(pcp_total, 1),
         "completeness": 100.0 * produced / max(gt_kp_total, 1),
     }
-    out.update(_ap_and_recall(pred, gt, kps, confidence, thresholds_mm))
+    out.update(_ap_and_recall(pred, gt, kps, confidence, thresholds_mm, require_complete))
     return out
 
 
-def _ap_and_recall(pred, gt, kps, confidence, thresholds_mm):
+def _ap_and_recall(pred, gt, kps, confidence, thresholds_mm, require_complete):
     """VoxelPose-style AP and recall: each prediction against its nearest ground truth."""
     records = []  # (confidence, mpjpe_mm, frame, gt index)
     num_gt = int(np.asarray(gt.valid).sum())
@@ -133,9 +145,11 @@ def _ap_and_recall(pred, gt, kps, confidence, thresholds_mm):
             for p in p_idx:
                 records.append((_conf(confidence, f, p), np.inf, f, -1))
             continue
-        err = _pair_errors(pred.xyz[f][p_idx][:, kps], pred.keypoint_valid[f][p_idx][:, kps],
-                           gt.xyz[f][g_idx][:, kps], gt.keypoint_valid[f][g_idx][:, kps])  # fmt: skip
-        nearest = err.argmin(axis=1)
+        args = (pred.xyz[f][p_idx][:, kps], pred.keypoint_valid[f][p_idx][:, kps],
+                gt.xyz[f][g_idx][:, kps], gt.keypoint_valid[f][g_idx][:, kps])  # fmt: skip
+        # The nearest ground truth by shared keypoints; its error for AP may then be infinite.
+        nearest = _pair_errors(*args).argmin(axis=1)
+        err = _pair_errors(*args, require_complete=require_complete)
         for i, p in enumerate(p_idx):
             records.append((_conf(confidence, f, p), 1000.0 * err[i, nearest[i]], f, g_idx[nearest[i]]))
     # Highest confidence first; ties keep frame order (stable).
@@ -200,4 +214,115 @@ def reprojection_errors(
             "median": float(np.median(e)) if e.size else float("nan"),
             "count": float(e.size),
         }
+    return out
+
+
+# =========================================================================== matching as clustering
+# (DESIGN.md §1.4, Tables 3-4) Detections are the samples; persons (true or proposed) the clusters.
+# The formulas are those of Hubert & Arabie (ARI) and Rosenberg & Hirschberg (V-measure), computed
+# from the non-zero cells of the contingency table, with scikit-learn's conventions for the
+# degenerate cases (so the numbers equal `sklearn.metrics`' exactly).
+
+
+def clustering_scores(labels_true: np.ndarray, labels_pred: np.ndarray) -> dict[str, float]:
+    """Adjusted Rand index, homogeneity, completeness and V-measure (beta = 1).
+
+    Args:
+      labels_true: (n,) int class of each sample.
+      labels_pred: (n,) int cluster of each sample.
+    Returns:
+      {"ari", "homogeneity", "completeness", "v_measure"}.
+    """
+    labels_true = np.asarray(labels_true).reshape(-1)
+    labels_pred = np.asarray(labels_pred).reshape(-1)
+    if labels_true.shape != labels_pred.shape:
+        raise ValueError(f"{labels_true.shape} true labels, {labels_pred.shape} predicted")
+    n = labels_true.size
+    if n == 0:
+        return {"ari": 1.0, "homogeneity": 1.0, "completeness": 1.0, "v_measure": 1.0}
+    _, t = np.unique(labels_true, return_inverse=True)
+    _, p = np.unique(labels_pred, return_inverse=True)
+    cells, n_ij = np.unique(t.astype(np.int64) * (p.max() + 1) + p, return_counts=True)
+    row, col = cells // (p.max() + 1), cells % (p.max() + 1)
+    a = np.bincount(t).astype(np.int64)  # class sizes
+    b = np.bincount(p).astype(np.int64)  # cluster sizes
+
+    # ARI from the pair confusion matrix (ordered pairs), in Python integers (no overflow).
+    sum_sq = int(np.sum(n_ij * n_ij))
+    tp = sum_sq - n
+    fp = int(np.sum(n_ij * b[col])) - sum_sq
+    fn = int(np.sum(n_ij * a[row])) - sum_sq
+    tn = n * n - fp - fn - sum_sq
+    if fn == 0 and fp == 0:
+        ari = 1.0
+    else:
+        ari = 2.0 * (tp * tn - fn * fp) / ((tp + fn) * (fn + tn) + (tp + fp) * (fp + tn))
+
+    def entropy(sizes: np.ndarray) -> float:
+        if sizes.size == 1:
+            return 0.0
+        return float(-np.sum(sizes / n * (np.log(sizes) - np.log(n))))
+
+    h_true, h_pred = entropy(a), entropy(b)
+    if a.size == 1 or b.size == 1:
+        mi = 0.0
+    else:
+        # I = sum_ij n_ij/n * log(n * n_ij / (a_i * b_j))
+        terms = n_ij / n * (np.log(n_ij) - np.log(n) - np.log(a[row] * b[col]) + 2 * np.log(n))
+        terms = np.where(np.abs(terms) < np.finfo(np.float64).eps, 0.0, terms)
+        mi = max(float(np.sum(terms)), 0.0)
+    homogeneity = mi / h_true if h_true else 1.0
+    completeness = mi / h_pred if h_pred else 1.0
+    total = homogeneity + completeness
+    v = 0.0 if total == 0 else 2.0 * homogeneity * completeness / total
+    return {"ari": float(ari), "homogeneity": float(homogeneity), "completeness": float(completeness),
+            "v_measure": float(v)}  # fmt: skip
+
+
+def detection_clusters(identity: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Cluster labels of every real detection of F frames, unique across frames.
+
+    A detection with identity -1 (a false positive, or one left out of every proposal) is a
+    cluster of its own.
+
+    Args:
+      identity: (F, C, P) int, the person of each detection within its frame, -1 for none.
+      count: (F, C) detections per view (rows ``p >= count`` are padding and are skipped).
+    Returns:
+      (n,) int64 labels, in (frame, camera, skeleton) order of the real detections.
+    """
+    identity = np.asarray(identity, np.int64)
+    F, C, P = identity.shape
+    ok = np.arange(P)[None, None] < np.asarray(count)[..., None]
+    f, c, p = np.nonzero(ok)
+    person = identity[f, c, p]
+    width = max(1, int(identity.max(initial=-1)) + 1)
+    singleton = width * F + np.arange(len(f))  # beyond every person label
+    return np.where(person >= 0, f * width + person, singleton)
+
+
+def matching_scores(true_identity: np.ndarray, pred_identity: np.ndarray, count: np.ndarray) -> dict[str, float]:
+    """Clustering scores of proposals against the truth, pooled over all detections of F frames.
+
+    Pooled: every detection of the test set is one sample (labels made unique per frame), which is
+    how a dataset-level table is computed; ``frame_mean_*`` adds the mean of per-frame scores.
+
+    Args:
+      true_identity: (F, C, P) true person of each detection (-1: false positive, a singleton).
+      pred_identity: (F, C, P) proposed person (-1: in no proposal, a singleton).
+      count: (F, C) detections per view.
+    Returns:
+      {"ari", "homogeneity", "completeness", "v_measure", "frame_mean_ari", "frame_mean_v_measure",
+      "detections", "frames"}.
+    """
+    t = detection_clusters(true_identity, count)
+    p = detection_clusters(pred_identity, count)
+    out = clustering_scores(t, p)
+    per = [clustering_scores(detection_clusters(true_identity[f : f + 1], count[f : f + 1]),
+                             detection_clusters(pred_identity[f : f + 1], count[f : f + 1]))
+           for f in range(len(count))]  # fmt: skip
+    out["frame_mean_ari"] = float(np.mean([s["ari"] for s in per])) if per else 1.0
+    out["frame_mean_v_measure"] = float(np.mean([s["v_measure"] for s in per])) if per else 1.0
+    out["detections"] = float(len(t))
+    out["frames"] = float(len(count))
     return out

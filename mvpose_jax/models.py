@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -26,10 +27,15 @@ class MLPConfig:
       widths: hidden layer widths; the paper's by default (29.1 M parameters for 5 views and 18
         keypoints), `quick()` gives a small one for fast runs.
       slope: negative slope of the LeakyReLU after each hidden layer (paper: 0.1).
+      output: what the linear output layer predicts. "absolute" (the paper): the keypoints
+        themselves. "anchored": offsets from the person's anchor, the mean of its initial 3D
+        estimates. "residual": offsets from each keypoint's initial 3D estimate where it has
+        one, else from the anchor. All three read only the network's own inputs.
     """
 
     widths: tuple[int, ...] = PAPER_MLP_WIDTHS
     slope: float = 0.1
+    output: str = "absolute"
 
     @classmethod
     def quick(cls) -> MLPConfig:
@@ -43,19 +49,79 @@ class PoseMLP(nnx.Module):
     """
 
     def __init__(self, num_cameras: int, num_keypoints: int, config: MLPConfig, *, rngs: nnx.Rngs):
+        if config.output not in ("absolute", "anchored", "residual"):
+            raise ValueError(f"MLPConfig.output must be absolute, anchored or residual, not {config.output!r}")
         self.num_keypoints = num_keypoints
         self.slope = config.slope
-        sizes = (num_cameras * num_keypoints * NUM_ESTIMATOR_FEATURES,) + tuple(config.widths)
+        self.output = config.output
+        num_inputs = num_cameras * num_keypoints * NUM_ESTIMATOR_FEATURES
+        if config.output != "absolute":
+            num_inputs += num_keypoints * 4  # the pose-relative initial estimate, see __call__
+        sizes = (num_inputs,) + tuple(config.widths)
         self.hidden = nnx.List(
             [nnx.Linear(a, b, rngs=rngs) for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
         )
-        self.out = nnx.Linear(sizes[-1], num_keypoints * 3, rngs=rngs)
+        # Offset outputs start at zero, so an untrained network returns its anchor (the
+        # triangulation, for "residual") instead of noise around it.
+        init = nnx.initializers.zeros if config.output != "absolute" else nnx.initializers.lecun_normal()
+        self.out = nnx.Linear(sizes[-1], num_keypoints * 3, kernel_init=init, rngs=rngs)
 
     def __call__(self, features: jax.Array) -> jax.Array:
-        h = features.reshape(features.shape[:-3] + (-1,))
+        batch = features.shape[:-3]
+        h = features.reshape(batch + (-1,))
+        if self.output != "absolute":
+            # The initial estimate once per keypoint, relative to the person's anchor: the
+            # per-slot copies are zero in absent views, so reading them needs a division by
+            # the number of views, which an MLP learns slowly; relative coordinates make the
+            # pose's shape independent of where the person stands.
+            xyz, has, anchor = _initial_estimate(features)
+            rel = jnp.where(has[..., None] > 0, xyz - anchor[..., None, :], 0.0)
+            h = jnp.concatenate([h, jnp.concatenate([has[..., None], rel], -1).reshape(batch + (-1,))], -1)
         for layer in self.hidden:
             h = jax.nn.leaky_relu(layer(h), self.slope)
-        return self.out(h).reshape(features.shape[:-3] + (self.num_keypoints, 3))
+        out = self.out(h).reshape(batch + (self.num_keypoints, 3))
+        if self.output == "absolute":
+            return out
+        return out + initial_estimate(features, per_keypoint=self.output == "residual")
+
+
+def _initial_estimate(features: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(xyz (..., K, 3), has (..., K), anchor (..., 3)) read from estimator features."""
+    flag = features[..., 10]  # (..., C, K): 1 in present views of keypoints with an estimate
+    has = flag.max(axis=-2)  # (..., K)
+    # Every present slot holds the same estimate: their mean is it.
+    xyz = jnp.sum(features[..., 11:14] * flag[..., None], axis=-3) / jnp.maximum(
+        flag.sum(axis=-2), 1.0
+    )[..., None]
+    anchor = jnp.sum(xyz * has[..., None], axis=-2) / jnp.maximum(has.sum(axis=-1), 1.0)[..., None]
+    return xyz, has, anchor
+
+
+def initial_estimate(features: jax.Array, per_keypoint: bool) -> jax.Array:
+    """The initial 3D carried in the estimator features (rig-normalised).
+
+    Args:
+      features: (..., C, K, 14) as `features.assemble_features` makes them.
+      per_keypoint: each keypoint's own initial estimate where it has one; for a keypoint one
+        view sees, the point on its ray at the anchor's distance from that camera; else the
+        anchor. False: the anchor (mean of the person's initial estimates) for every keypoint.
+    Returns:
+      (..., K, 3); zeros (the rig centre) for a person without any initial estimate.
+    """
+    xyz, has, anchor = _initial_estimate(features)
+    anchor = jnp.broadcast_to(anchor[..., None, :], xyz.shape)
+    if not per_keypoint:
+        return anchor
+    # A keypoint one view sees lies on that view's ray: take the point of the ray as far from the
+    # camera as the anchor is (bodies are shallow next to camera distances).
+    seen = features[..., 0]  # (..., C, K) visible flags
+    cam = jnp.sum(features[..., 4:7] * seen[..., None], axis=-3)  # the one view's camera (..., K, 3)
+    ray = jnp.sum(features[..., 7:10] * seen[..., None], axis=-3)  # and its unit ray
+    depth = jnp.linalg.norm(anchor - cam, axis=-1, keepdims=True)
+    on_ray = cam + ray * depth
+    one_view = (seen.sum(axis=-2) == 1) & (has.sum(axis=-1, keepdims=True) > 0)
+    fallback = jnp.where(one_view[..., None], on_ray, anchor)
+    return jnp.where(has[..., None] > 0, xyz, fallback)
 
 
 def to_world(xyz_normalised: jax.Array, centre: jax.Array, radius: jax.Array) -> jax.Array:
@@ -65,4 +131,138 @@ def to_world(xyz_normalised: jax.Array, centre: jax.Array, radius: jax.Array) ->
 
 def count_params(params) -> int:
     """Number of scalars in a parameter pytree."""
-    return int(sum(jnp.size(x) for x in jax.tree_util.tree_leaves(params)))
+    return int(sum(math.prod(x.shape) for x in jax.tree_util.tree_leaves(params)))
+
+
+# =========================================================================== skeleton matching GAT
+# (DESIGN.md §1.2; graphs come from `mvpose_jax.graphs`.)
+
+import jraph  # noqa: E402  (the matching section's own imports)
+
+from mvpose_jax.graphs import DETECTION, MATCH, GraphBatch  # noqa: E402
+
+PAPER_GAT_WIDTHS = (40, 40, 40, 30, 1)
+PAPER_GAT_HEADS = (10, 10, 8, 5, 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class GATConfig:
+    """The skeleton-matching GAT's architecture (the paper's by default).
+
+    Attributes:
+      widths: output width of each attention layer, heads concatenated; the last must be 1 (the
+        match score). Paper: [40, 40, 40, 30] hidden and 1 output.
+      heads: attention heads of each layer (each width must divide by its heads). Paper:
+        [10, 10, 8, 5] and 1.
+      inner_slope: LeakyReLU slope inside each layer's projection ``W2·LeakyReLU(W1·h)`` and in the
+        attention logits (paper/original code 0.15).
+      between_slope: LeakyReLU slope between layers (0.01).
+    """
+
+    widths: tuple[int, ...] = PAPER_GAT_WIDTHS
+    heads: tuple[int, ...] = PAPER_GAT_HEADS
+    inner_slope: float = 0.15
+    between_slope: float = 0.01
+
+    def __post_init__(self):
+        if len(self.widths) != len(self.heads) or not self.widths:
+            raise ValueError("GATConfig: widths and heads need the same, non-zero length")
+        if self.widths[-1] != 1 or self.heads[-1] != 1:
+            raise ValueError("GATConfig: the last layer must have width 1 and 1 head")
+        for w, h in zip(self.widths, self.heads, strict=True):
+            if w % h:
+                raise ValueError(f"GATConfig: width {w} is not a multiple of {h} heads")
+
+    @classmethod
+    def quick(cls) -> GATConfig:
+        """Three attention layers instead of five, for fast runs and tests."""
+        return cls(widths=(24, 24, 1), heads=(4, 4, 1))
+
+
+class GATLayer(nnx.Module):
+    """One graph-attention layer: (N, in) node features -> (N, heads * width/heads).
+
+    ``z = W2·LeakyReLU(W1·h)`` (W1 square; both with bias), split into heads; per edge
+    ``e = LeakyReLU(a_l·z_src + a_r·z_dst)``; softmax of ``e`` over the edges entering each node;
+    the node's new feature is the attention-weighted sum of ``z_src``; heads are concatenated.
+    """
+
+    def __init__(self, in_dim: int, width: int, heads: int, slope: float, *, rngs: nnx.Rngs):
+        self.heads, self.head_dim, self.slope = heads, width // heads, slope
+        self.fc1 = nnx.Linear(in_dim, in_dim, rngs=rngs)
+        self.fc2 = nnx.Linear(in_dim, width, rngs=rngs)
+        init = nnx.initializers.xavier_normal()
+        self.attn_src = nnx.Param(init(rngs.params(), (heads, self.head_dim)))
+        self.attn_dst = nnx.Param(init(rngs.params(), (heads, self.head_dim)))
+
+    def project(self, h: jax.Array) -> jax.Array:
+        """(N, in) -> z (N, heads, head_dim)."""
+        z = self.fc2(jax.nn.leaky_relu(self.fc1(h), self.slope))
+        return z.reshape(z.shape[:-1] + (self.heads, self.head_dim))
+
+    def attend(self, z: jax.Array, graphs: jraph.GraphsTuple) -> jax.Array:
+        """Attention over incoming edges. z: (N, heads, head_dim) -> (N, heads * head_dim)."""
+        num_nodes = z.shape[0]
+        z_src, z_dst = z[graphs.senders], z[graphs.receivers]  # (E, heads, head_dim)
+        logits = (z_src * self.attn_src[...][None]).sum(-1) + (z_dst * self.attn_dst[...][None]).sum(-1)
+        logits = jax.nn.leaky_relu(logits, self.slope)[..., None]  # (E, heads, 1)
+        alpha = jraph.segment_softmax(logits, graphs.receivers, num_nodes)
+        out = jax.ops.segment_sum(alpha * z_src, graphs.receivers, num_nodes)  # (N, heads, head_dim)
+        return out.reshape(num_nodes, self.heads * self.head_dim)
+
+    def __call__(self, h: jax.Array, graphs: jraph.GraphsTuple) -> jax.Array:
+        return self.attend(self.project(h), graphs)
+
+
+class MatchingGAT(nnx.Module):
+    """The skeleton-matching GAT: a `GraphBatch` -> (N,) scores in [0, 1] (match nodes matter).
+
+    The first layer's input is the paper's (N, 2 + C·K·10) matrix, which is zero outside the
+    one-hot and the node's own camera slot. Its projection is computed exactly but cheaply: match
+    and padding nodes carry only a one-hot, so their ``z`` is one of two rows computed once; the
+    square ``W1`` multiplies detection rows only (`graphs.GraphBatch.det_features`).
+    """
+
+    def __init__(self, num_cameras: int, num_keypoints: int, config: GATConfig, *, rngs: nnx.Rngs):
+        from mvpose_jax.features import NUM_KEYPOINT_FEATURES
+
+        self.in_dim = 2 + num_cameras * num_keypoints * NUM_KEYPOINT_FEATURES
+        self.between_slope = config.between_slope
+        dims = (self.in_dim,) + tuple(config.widths[:-1])
+        self.layers = nnx.List([
+            GATLayer(d, w, h, config.inner_slope, rngs=rngs)
+            for d, w, h in zip(dims, config.widths, config.heads, strict=True)
+        ])  # fmt: skip
+
+    def first_projection(self, batch: GraphBatch) -> jax.Array:
+        """z of the first layer, (N, heads, head_dim), without densifying the node features."""
+        layer = self.layers[0]
+        w1, b1 = layer.fc1.kernel[...], layer.fc1.bias[...]  # (in, in), (in,)
+        project = lambda pre: layer.fc2(jax.nn.leaky_relu(pre, layer.slope))  # noqa: E731
+        # Match and padding nodes carry only their one-hot (or nothing): their z is one of two rows.
+        kind = batch.graphs.nodes  # (N, 2)
+        table = project(jnp.stack([w1[MATCH] + b1, b1]))  # (2, width): match, padding
+        is_match = kind[:, MATCH:MATCH + 1]
+        z = is_match * table[0][None] + (1.0 - is_match) * table[1][None]  # (N, width)
+        # Detection rows: the full product, one-hot row plus their camera slot.
+        z_det = project(batch.det_features @ w1[2:] + (w1[DETECTION] + b1)[None])  # (D, width)
+        # Padding rows point at a padding node: whatever they write there stays in padding.
+        z = z.at[batch.det_node].set(jnp.where(batch.det_mask[:, None], z_det, table[1][None]))
+        return z.reshape(z.shape[:-1] + (layer.heads, layer.head_dim))
+
+    def __call__(self, batch: GraphBatch) -> jax.Array:
+        graphs = batch.graphs
+        h = self.layers[0].attend(self.first_projection(batch), graphs)
+        for layer in self.layers[1:]:
+            h = layer(jax.nn.leaky_relu(h, self.between_slope), graphs)
+        return jax.nn.sigmoid(h[:, 0])
+
+    def dense_forward(self, node_features: jax.Array, graphs: jraph.GraphsTuple) -> jax.Array:
+        """The same network on the paper's dense (N, 2 + C·K·10) features (reference, tests)."""
+        h = node_features
+        for i, layer in enumerate(self.layers):
+            if i:
+                h = jax.nn.leaky_relu(h, self.between_slope)
+            h = layer(h, graphs)
+        return jax.nn.sigmoid(h[:, 0])
+

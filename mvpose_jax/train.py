@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -56,6 +57,7 @@ class TrainConfig:
       eval_every: validate every this many epochs.
       patience: stop after this many validations without improvement (paper 20).
       seed: seeds initialisation, shuffling and augmentation.
+      cosine_decay: decay the learning rate to 1% over ``max_steps`` (the paper: constant).
     """
 
     learning_rate: float = 1e-4
@@ -66,11 +68,15 @@ class TrainConfig:
     eval_every: int = 1
     patience: int = 20
     seed: int = 0
+    cosine_decay: bool = False
 
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
-    """Adam with global-norm clipping."""
-    return optax.chain(optax.clip_by_global_norm(config.clip_norm), optax.adam(config.learning_rate))
+    """Adam with global-norm clipping; with ``cosine_decay`` and ``max_steps``, a cosine schedule."""
+    lr = config.learning_rate
+    if config.cosine_decay and config.max_steps:
+        lr = optax.cosine_decay_schedule(config.learning_rate, config.max_steps, alpha=0.01)
+    return optax.chain(optax.clip_by_global_norm(config.clip_norm), optax.adam(lr))
 
 
 def init_train_state(model: nnx.Module, tx: optax.GradientTransformation):
@@ -169,6 +175,16 @@ class Checkpoints:
             ) from None
         return jax.device_put(out.state), dict(out.config)
 
+    def read_config(self, which: str = "best") -> dict:
+        """The run config saved with the ``which`` checkpoint (to rebuild the model first)."""
+        ocp = self._ocp
+        manager = self.best if which == "best" else self.latest
+        step = manager.best_step() if which == "best" else manager.latest_step()
+        if step is None:
+            raise InputError(f"no {which} checkpoint", file=self.directory / which)
+        out = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+        return dict(out.config)
+
     def close(self) -> None:
         self.best.close()
         self.latest.close()
@@ -200,6 +216,8 @@ def fit(
     run_config: dict | None = None,
     desc: str = "train",
     progress: bool = True,
+    best_val_loss: float = math.inf,
+    best_state: TrainState | None = None,
 ) -> FitResult:
     """Trains until ``max_epochs``/``max_steps`` or early stopping; returns the best state.
 
@@ -211,20 +229,32 @@ def fit(
       steps_per_epoch: for the progress bar.
       checkpoints: where to save best and latest (optional).
       run_config: JSON-able config saved with every checkpoint.
+      best_val_loss, best_state: the best so far (when resuming; default: none yet).
+
+    A state whose step is not 0 (a restored checkpoint) continues where it stopped: the epoch's
+    batches are deterministic and the step's randomness is folded from the step, so the run
+    goes on as if never interrupted (early-stopping patience restarts from zero).
     """
     from tqdm.auto import tqdm
 
     base_key = jax.random.key(config.seed)
     max_steps = config.max_steps or config.max_epochs * steps_per_epoch
     total = min(max_steps, config.max_epochs * steps_per_epoch)
-    best_state = jax.tree.map(jnp.copy, state)
-    best, bad_checks, history = math.inf, 0, []
-    start, step = time.perf_counter(), 0
-    bar = tqdm(total=total, desc=desc, unit="step", disable=not progress, dynamic_ncols=True)
+    best_state = jax.tree.map(jnp.copy, state if best_state is None else best_state)
+    best, bad_checks, history = best_val_loss, 0, []
+    step = int(state.step)
+    first_epoch, skip = divmod(step, steps_per_epoch)
+    start = time.perf_counter()
+    bar = tqdm(total=total, initial=min(step, total), desc=desc, unit="step", disable=not progress,
+               dynamic_ncols=True)  # fmt: skip
     try:
-        for epoch in range(config.max_epochs):
+        for epoch in range(first_epoch, config.max_epochs):
+            if step >= max_steps:
+                break
             train_metrics = []
-            for batch in epoch_batches(epoch):
+            for i, batch in enumerate(epoch_batches(epoch)):
+                if epoch == first_epoch and i < skip:
+                    continue  # done before the interruption
                 state, metrics = train_step(state, batch, base_key)
                 train_metrics.append(metrics)
                 step += 1
@@ -232,7 +262,7 @@ def fit(
                 if step >= max_steps:
                     break
             stop = step >= max_steps
-            if (epoch + 1) % config.eval_every == 0 or stop:
+            if train_metrics and ((epoch + 1) % config.eval_every == 0 or stop):
                 record = {k: float(np.mean([float(m[k]) for m in train_metrics])) for k in train_metrics[0]}
                 record = {f"train_{k}": v for k, v in record.items()}
                 record.update({k: float(v) for k, v in evaluate(state).items()})
@@ -257,6 +287,40 @@ def fit(
     finally:
         bar.close()
     return FitResult(best_state, best, history, time.perf_counter() - start, step)
+
+
+def resume_state(
+    checkpoints: Checkpoints, state: TrainState, run_config: dict
+) -> tuple[TrainState, TrainState, float]:
+    """(latest state, best state, best validation loss) of an interrupted run, or the fresh
+    ``state`` (twice) and inf when the folder has no checkpoint yet.
+
+    Raises:
+      InputError when the checkpoint was written by a run with another config (a different
+      model or data would make "resuming" a silent restart of something else). Only the
+      length of training (max_steps, max_epochs) may change, to extend a run.
+    """
+    if checkpoints.latest.latest_step() is None:
+        return state, state, math.inf
+    saved = _without_length(checkpoints.read_config("latest"))
+    wanted = _without_length(run_config)
+    if saved != wanted:
+        diff = sorted(k for k in set(saved) | set(wanted) if saved.get(k) != wanted.get(k))
+        raise InputError(f"checkpoint was written with another config (differs in {diff}); "
+                         "use another folder or the same settings", file=checkpoints.directory)  # fmt: skip
+    abstract = jax.eval_shape(lambda: state)
+    latest, _ = checkpoints.restore(abstract, "latest")
+    if checkpoints.best.best_step() is None:
+        return latest, latest, math.inf
+    best, _ = checkpoints.restore(abstract, "best")
+    return latest, best, float(checkpoints.best.metrics(checkpoints.best.best_step())["val_loss"])
+
+
+def _without_length(config: dict) -> dict:
+    config = json.loads(json.dumps(_jsonable(config)))  # tuples -> lists, as saved
+    for key in ("max_steps", "max_epochs"):
+        config.get("train", {}).pop(key, None)
+    return config
 
 
 def shuffled_batches(num_items: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]:
@@ -314,7 +378,7 @@ def random_view_subsets(key: jax.Array, available: jax.Array, num: int) -> tuple
     n_avail = available.sum(axis=-1)  # (N,)
     k_size, k_order = jax.random.split(key)
     # Subset size uniform in 1 .. n_avail - 1, then that many views chosen at random.
-    size = 1 + jnp.floor(jax.random.uniform(k_size, (num, N)) * jnp.maximum(n_avail - 1, 1)).astype(jnp.int32)
+    size = 1 + jnp.floor(jax.random.uniform(k_size, (num, N)) * jnp.maximum(n_avail - 1, 1)[None]).astype(jnp.int32)
     priority = jnp.where(available[None], jax.random.uniform(k_order, (num, N, C)), -1.0)
     rank = jnp.argsort(jnp.argsort(-priority, axis=-1), axis=-1)  # 0 = highest priority
     masks = (rank < size[..., None]) & available[None]
@@ -331,6 +395,10 @@ class EstimatorConfig:
       mlp: the network.
       train: optimisation.
       num_augment: derived view-subset samples per seed sample (paper: up to 4).
+      loss_power: the per-sample loss is e_d ** loss_power, e_d the summed Manhattan
+        reprojection error; 2 is the paper's. 1 weighs every sample alike, so a few samples
+        with gross detector errors (swapped limbs, a false positive taken for the person)
+        cannot drown the rest.
     """
 
     train_cameras: tuple[str, ...] | None = None
@@ -338,6 +406,7 @@ class EstimatorConfig:
     mlp: MLPConfig = MLPConfig()
     train: TrainConfig = TrainConfig()
     num_augment: int = 4
+    loss_power: float = 2.0
 
 
 class Estimator(NamedTuple):
@@ -350,7 +419,7 @@ class Estimator(NamedTuple):
     config: EstimatorConfig
 
 
-def estimator_loss_fn(rig_train: Rig, rig_infer: Rig, num_augment: int):
+def estimator_loss_fn(rig_train: Rig, rig_infer: Rig, num_augment: int, loss_power: float = 2.0):
     """``loss_fn(model, batch, key)`` of the estimator, for `make_train_step`."""
     centre, radius = rig_centre_and_radius(rig_infer)
 
@@ -365,7 +434,7 @@ def estimator_loss_fn(rig_train: Rig, rig_infer: Rig, num_augment: int):
         )  # (1+A, N)
         n_kp = jnp.maximum((batch.score > 0).sum(axis=(1, 2)), 1)
         metrics = {"px_per_keypoint": masked_mean(err[0] / n_kp, ok[0])}
-        return jnp.square(err), ok, metrics
+        return err**loss_power, ok, metrics
 
     return loss_fn
 
@@ -380,6 +449,7 @@ def train_estimator(
     *,
     checkpoint_dir: str | Path | None = None,
     progress: bool = True,
+    resume: bool = False,
 ) -> tuple[Estimator, FitResult]:
     """Trains a 3D estimator from people's 2D detections alone (no 3D labels).
 
@@ -389,6 +459,7 @@ def train_estimator(
         order of ``config.train_cameras``; train_score, dev_score: (N, C_t, K).
       config: `EstimatorConfig`.
       checkpoint_dir: where best and latest checkpoints go (optional).
+      resume: continue from the latest checkpoint in ``checkpoint_dir`` (same config required).
     Returns:
       (the best `Estimator`, the `FitResult`).
     """
@@ -414,9 +485,11 @@ def train_estimator(
     model = PoseMLP(len(infer_idx), K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
     tx = make_optimizer(tcfg)
     graphdef, rest, state = init_train_state(model, tx)
-    loss_fn = estimator_loss_fn(rig_train, rig_infer, config.num_augment)
+    loss_fn = estimator_loss_fn(rig_train, rig_infer, config.num_augment, config.loss_power)
     step = make_train_step(graphdef, rest, tx, loss_fn)
-    eval_loss = jax.jit(functools.partial(_estimator_eval, graphdef, rest, rig_train, rig_infer))
+    eval_loss = jax.jit(
+        functools.partial(_estimator_eval, graphdef, rest, rig_train, rig_infer, config.loss_power)
+    )
 
     n_train = len(train_xy)
     batch = min(tcfg.batch_size, n_train)
@@ -430,10 +503,16 @@ def train_estimator(
 
     checkpoints = Checkpoints(checkpoint_dir) if checkpoint_dir is not None else None
     run_config = _jsonable(dataclasses.asdict(config))
+    # What restoring needs beyond the config: the resolved cameras and the keypoint count.
+    run_config.update(train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K))
     try:
+        best_state, best = None, math.inf
+        if resume and checkpoints is not None:
+            state, best_state, best = resume_state(checkpoints, state, run_config)
         result = fit(
             state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=math.ceil(n_train / batch),
             checkpoints=checkpoints, run_config=run_config, desc="estimator", progress=progress,
+            best_val_loss=best, best_state=best_state,
         )  # fmt: skip
     finally:
         if checkpoints is not None:
@@ -441,7 +520,43 @@ def train_estimator(
     return Estimator(graphdef, rest, result.state.params, rig_infer, config), result
 
 
-def _estimator_eval(graphdef, rest, rig_train, rig_infer, params, data: EstimatorBatch):
+def estimator_config_from_dict(d: dict) -> EstimatorConfig:
+    """Rebuilds an `EstimatorConfig` from its saved JSON form (`dataclasses.asdict`)."""
+    tup = lambda v: None if v is None else tuple(v)  # noqa: E731
+    try:
+        mlp = MLPConfig(**{**d["mlp"], "widths": tuple(d["mlp"]["widths"])})
+        return EstimatorConfig(
+            train_cameras=tup(d["train_cameras"]), infer_cameras=tup(d["infer_cameras"]), mlp=mlp,
+            train=TrainConfig(**d["train"]), num_augment=d["num_augment"], loss_power=d["loss_power"],
+        )  # fmt: skip
+    except (KeyError, TypeError) as e:
+        raise InputError(f"not an estimator config ({e})", field="config") from None
+
+
+def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Estimator:
+    """Restores an estimator saved by `train_estimator` (its config comes with the checkpoint).
+
+    Args:
+      directory: the ``checkpoint_dir`` of training.
+      rig: a rig holding the estimator's inference cameras (by name).
+    """
+    checkpoints = Checkpoints(directory)
+    try:
+        saved = checkpoints.read_config(which)
+        config = estimator_config_from_dict(saved)
+        if "num_keypoints" not in saved:
+            raise InputError("checkpoint config lacks num_keypoints", file=directory, field="config")
+        rig_infer = rig.select(list(config.infer_cameras or config.train_cameras or rig.names))
+        K = int(saved["num_keypoints"])
+        model = PoseMLP(rig_infer.num_cameras, K, config.mlp, rngs=nnx.Rngs(0))
+        graphdef, rest, state = init_train_state(model, make_optimizer(config.train))
+        state, _ = checkpoints.restore(jax.eval_shape(lambda: state), which)
+    finally:
+        checkpoints.close()
+    return Estimator(graphdef, rest, state.params, rig_infer, config)
+
+
+def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, data: EstimatorBatch):
     centre, radius = rig_centre_and_radius(rig_infer)
     model = nnx.merge(graphdef, params, rest)
     feats = assemble_features(data.inputs, data.available)
@@ -449,7 +564,7 @@ def _estimator_eval(graphdef, rest, rig_train, rig_infer, params, data: Estimato
     err = reprojection_error_l1(rig_train, xyz, data.xy, data.score)
     ok = data.available.any(-1)
     n_kp = jnp.maximum((data.score > 0).sum(axis=(1, 2)), 1)
-    return {"val_loss": masked_mean(jnp.square(err), ok), "val_px_per_keypoint": masked_mean(err / n_kp, ok)}
+    return {"val_loss": masked_mean(err**loss_power, ok), "val_px_per_keypoint": masked_mean(err / n_kp, ok)}
 
 
 def _jsonable(value):
@@ -458,3 +573,171 @@ def _jsonable(value):
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     return value
+
+
+# =========================================================================== skeleton matching
+# (DESIGN.md §1.2) Self-supervised: labels come from composing single-person recordings.
+
+from mvpose_jax.data.recording import Recording  # noqa: E402
+from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches  # noqa: E402
+from mvpose_jax.losses import match_mse  # noqa: E402
+from mvpose_jax.models import GATConfig, MatchingGAT  # noqa: E402
+
+# The paper's matcher optimisation: Adam 1e-4, 15 graphs per batch, validation every 5 epochs,
+# early stop after 5 checks without improvement. (Gradient clipping at 10 is ours; it only acts
+# on rare spikes.)
+MATCHER_TRAIN = TrainConfig(learning_rate=1e-4, batch_size=15, max_epochs=1000, eval_every=5, patience=5)
+
+
+@dataclasses.dataclass(frozen=True)
+class MatcherConfig:
+    """A skeleton matcher: its cameras, network, training and training-sample composition.
+
+    Attributes:
+      cameras: names of the inference cameras C_i (None: every camera of the rig).
+      gat: the network.
+      train: optimisation; ``batch_size`` counts graphs (frames) per step.
+      max_people: most single-person frames composed into one training frame. The paper draws
+        up to the number of recordings; we cap it (default 8, the largest test scene) so graph
+        sizes stay those of real scenes however many recordings there are.
+      samples_per_epoch: composed training frames per epoch (samples are streamed, never stored).
+      num_dev_samples: composed validation frames, drawn once from the dev recordings.
+      subset_probability: share of samples that keep only a random subset of the views.
+      min_views: the smallest view subset kept by augmentation.
+      final_lr_fraction: 1.0 keeps the step size constant (the paper); below 1 it follows a cosine
+        decay to this fraction of ``train.learning_rate`` at the last step (shorter CPU runs).
+    """
+
+    cameras: tuple[str, ...] | None = None
+    gat: GATConfig = GATConfig()
+    train: TrainConfig = MATCHER_TRAIN
+    max_people: int = 8
+    samples_per_epoch: int = 1500
+    num_dev_samples: int = 300
+    subset_probability: float = 0.5
+    min_views: int = 2
+    final_lr_fraction: float = 1.0
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return max(1, self.samples_per_epoch // self.train.batch_size)
+
+    @classmethod
+    def quick(cls, cameras: tuple[str, ...] | None = None) -> MatcherConfig:
+        """The small network, a larger step size and short epochs (tests, quick experiments)."""
+        train = dataclasses.replace(MATCHER_TRAIN, learning_rate=1e-3, max_epochs=50, eval_every=2)
+        return cls(cameras=cameras, gat=GATConfig.quick(), train=train, samples_per_epoch=300,
+                   num_dev_samples=90)  # fmt: skip
+
+
+class Matcher(NamedTuple):
+    """A trained skeleton matcher: what inference needs."""
+
+    graphdef: Any
+    rest: Any
+    params: Any
+    rig: Rig  # the inference cameras C_i, in the order of the features' camera slots
+    config: MatcherConfig
+
+
+def matcher_loss_fn(model: MatchingGAT, batch: GraphBatch, key) -> tuple[jax.Array, jax.Array, dict]:
+    """``loss_fn(model, batch, key)`` of the matcher for `make_train_step`: MSE on match nodes."""
+    del key  # augmentation happens on the host, when samples are composed
+    scores = model(batch)
+    mask = batch.is_match & batch.node_mask
+    correct = (scores > 0.5) == (batch.label > 0.5)
+    return match_mse(scores, batch.label), mask, {"accuracy": masked_mean(correct.astype(jnp.float32), mask)}
+
+
+def train_matcher(
+    rig: Rig,
+    train_recordings: Sequence[Recording],
+    dev_recordings: Sequence[Recording],
+    config: MatcherConfig = MatcherConfig(),
+    *,
+    checkpoint_dir: str | Path | None = None,
+    progress: bool = True,
+) -> tuple[Matcher, FitResult]:
+    """Trains a skeleton matcher from single-person recordings alone (no association labels).
+
+    Args:
+      rig: a rig holding (at least) the inference cameras.
+      train_recordings, dev_recordings: single-person recordings (each needs the cameras).
+      config: `MatcherConfig`.
+      checkpoint_dir: where best and latest checkpoints go (optional).
+    Returns:
+      (the best `Matcher`, the `FitResult`).
+    """
+    tcfg = config.train
+    rig_infer = rig.select(list(config.cameras or rig.names))
+    train_pool = make_pool(rig_infer, train_recordings)
+    dev_pool = make_pool(rig_infer, dev_recordings)
+    compose = dict(max_people=config.max_people, subset_probability=config.subset_probability,
+                   min_views=config.min_views)  # fmt: skip
+    per_batch = tcfg.batch_size
+    steps_per_epoch = config.steps_per_epoch
+    num_dev = max(1, math.ceil(config.num_dev_samples / per_batch))
+    dev_batches = sample_batches(dev_pool, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, per_batch, **compose)
+
+    K = train_recordings[0].num_keypoints
+    model = MatchingGAT(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
+    tx = matcher_optimizer(config)
+    graphdef, rest, state = init_train_state(model, tx)
+    step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
+    eval_batch = jax.jit(functools.partial(_matcher_eval, graphdef, rest))
+
+    def epoch_batches(epoch):
+        rng = np.random.default_rng([tcfg.seed, epoch])
+        # Built lazily: the host builds batch i+1 while the device runs step i (async dispatch).
+        for _ in range(steps_per_epoch):
+            yield sample_batches(train_pool, rng, 1, per_batch, **compose)[0]
+
+    def evaluate(state):
+        sums = [eval_batch(state.params, b) for b in dev_batches]
+        total = {k: sum(float(s[k]) for s in sums) for k in sums[0]}
+        n = max(total["count"], 1.0)
+        return {"val_loss": total["sq_error"] / n, "val_accuracy": total["correct"] / n}
+
+    checkpoints = Checkpoints(checkpoint_dir) if checkpoint_dir is not None else None
+    try:
+        result = fit(
+            state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
+            checkpoints=checkpoints, run_config=_jsonable(dataclasses.asdict(config)), desc="matcher",
+            progress=progress,
+        )  # fmt: skip
+    finally:
+        if checkpoints is not None:
+            checkpoints.close()
+    return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
+
+
+def load_matcher(directory: str | Path, rig: Rig, config: MatcherConfig, num_keypoints: int,
+                 which: str = "best") -> Matcher:  # fmt: skip
+    """Restores a matcher saved by `train_matcher` (``config`` must be the one it was trained with)."""
+    rig_infer = rig.select(list(config.cameras or rig.names))
+    model = MatchingGAT(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
+    graphdef, rest, state = init_train_state(model, matcher_optimizer(config))
+    checkpoints = Checkpoints(directory)
+    try:
+        state, _ = checkpoints.restore(jax.eval_shape(lambda: state), which)
+    finally:
+        checkpoints.close()
+    return Matcher(graphdef, rest, state.params, rig_infer, config)
+
+
+def matcher_optimizer(config: MatcherConfig) -> optax.GradientTransformation:
+    """`make_optimizer`, with the optional cosine decay of ``config.final_lr_fraction``."""
+    tcfg = config.train
+    if config.final_lr_fraction >= 1.0:
+        return make_optimizer(tcfg)
+    total = tcfg.max_steps or tcfg.max_epochs * config.steps_per_epoch
+    schedule = optax.cosine_decay_schedule(tcfg.learning_rate, total, alpha=config.final_lr_fraction)
+    return optax.chain(optax.clip_by_global_norm(tcfg.clip_norm), optax.adam(schedule))
+
+
+def _matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:
+    scores = nnx.merge(graphdef, params, rest)(batch)
+    mask = (batch.is_match & batch.node_mask).astype(jnp.float32)
+    correct = ((scores > 0.5) == (batch.label > 0.5)).astype(jnp.float32)
+    return {"sq_error": jnp.sum(match_mse(scores, batch.label) * mask), "correct": jnp.sum(correct * mask),
+            "count": jnp.sum(mask)}  # fmt: skip

@@ -42,6 +42,16 @@ def random_rig(seed: int = 0, num_cameras: int = 4):
     return make_rig(K, dist, R, t, [[1920, 1080]] * num_cameras, [f"cam{c}" for c in range(num_cameras)])
 
 
+def scene_points(rig, seed, shape):
+    """Points in front of every camera of the rig, near where the cameras look: shape + (3,)."""
+    from mvpose_jax.cameras import camera_centres
+
+    centres = np.asarray(camera_centres(rig))
+    looks = centres + 3.0 * np.asarray(rig.R)[:, 2]  # 3 m along each optical axis
+    rng = np.random.default_rng(seed)
+    return (rng.normal(size=tuple(shape) + (3,)) * 0.4 + looks.mean(axis=0)).astype(np.float32)
+
+
 @pytest.fixture(scope="session")
 def ring_rig():
     return random_rig()

@@ -11,26 +11,12 @@ import numpy as np
 import pytest
 
 from mvpose_jax import cameras, triangulate
-from tests.conftest import random_rig
-
-
-def _points(seed, shape):
-    rng = np.random.default_rng(seed)
-    return (rng.normal(size=shape + (3,)) * 0.5 + [0.0, -1.0, 0.0]).astype(np.float32)
-
-
-def _scene_points(rig, seed, shape):
-    """Points in front of every camera of the rig, near the rig's centre of attention."""
-    centres = np.asarray(cameras.camera_centres(rig))
-    looks = centres + 3.0 * np.asarray(rig.R)[:, 2]  # 3 m along each optical axis
-    target = looks.mean(axis=0)
-    rng = np.random.default_rng(seed)
-    return (rng.normal(size=shape + (3,)) * 0.4 + target).astype(np.float32)
+from tests.conftest import random_rig, scene_points
 
 
 @pytest.mark.parametrize("fn", [triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid])
 def test_noise_free_points_are_recovered_exactly(preset_rig, fn):
-    X = _scene_points(preset_rig, 0, (4, 18))
+    X = scene_points(preset_rig, 0, (4, 18))
     with jax.enable_x64(True):
         rig64 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), preset_rig)
         X64 = jnp.asarray(X, jnp.float64)
@@ -56,7 +42,7 @@ def _cv_two_view(rig, i, j, px_i, px_j):
 
 
 def test_two_views_agree_with_opencv_under_noise(preset_rig):
-    X = _scene_points(preset_rig, 1, (40,))
+    X = scene_points(preset_rig, 1, (40,))
     px = np.asarray(cameras.project_points(preset_rig, jnp.asarray(X)))
     px = px + np.random.default_rng(2).normal(scale=1.0, size=px.shape)  # 1 px detector noise
     for i, j in [(0, 1), (1, 2)]:
@@ -70,7 +56,7 @@ def test_two_views_agree_with_opencv_under_noise(preset_rig):
 
 
 def test_pairwise_centroid_is_the_mean_of_opencv_pairs(ring_rig):
-    X = _scene_points(ring_rig, 3, (25,))
+    X = scene_points(ring_rig, 3, (25,))
     px = np.asarray(cameras.project_points(ring_rig, jnp.asarray(X)))
     px = px + np.random.default_rng(4).normal(scale=1.5, size=px.shape)
     vis = np.ones(px.shape[:-1], bool)
@@ -87,7 +73,7 @@ def test_pairwise_centroid_is_the_mean_of_opencv_pairs(ring_rig):
 
 
 def test_weights_mask_views_out(ring_rig):
-    X = _scene_points(ring_rig, 5, (10,))
+    X = scene_points(ring_rig, 5, (10,))
     px = np.array(cameras.project_points(ring_rig, jnp.asarray(X)))
     px[1] += 300.0  # camera 1's observations are garbage ...
     w = np.ones(px.shape[:-1], np.float32)
@@ -98,7 +84,7 @@ def test_weights_mask_views_out(ring_rig):
 
 
 def test_score_weighting_pulls_towards_confident_views(ring_rig):
-    X = _scene_points(ring_rig, 6, (10,))
+    X = scene_points(ring_rig, 6, (10,))
     px = np.array(cameras.project_points(ring_rig, jnp.asarray(X)))
     px[2] += 20.0  # one view is off by 20 px
     err = []
@@ -112,7 +98,7 @@ def test_score_weighting_pulls_towards_confident_views(ring_rig):
 
 @pytest.mark.parametrize("batch", [(), (1,), (3, 2, 4)])
 def test_batch_shapes(ring_rig, batch):
-    X = _scene_points(ring_rig, 7, batch)
+    X = scene_points(ring_rig, 7, batch)
     px = cameras.project_points(ring_rig, jnp.asarray(X))
     for fn in (triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid):
         xyz, ok = fn(ring_rig, px, jnp.ones(px.shape[:-1]))
@@ -129,7 +115,7 @@ def test_degenerate_inputs_are_invalid_never_nan():
         np.stack([np.asarray(rig.t[0]), np.asarray(rig.t[0]), np.asarray(rig.t[2])]),
         np.asarray(rig.size), ["a", "b", "c"],
     )  # fmt: skip
-    X = _scene_points(same, 8, (6,))
+    X = scene_points(same, 8, (6,))
     px = cameras.project_points(same, jnp.asarray(X))
     for fn in (triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid):
         # Only the two coincident cameras see the points: no depth information at all.
@@ -145,7 +131,7 @@ def test_degenerate_inputs_are_invalid_never_nan():
 
 
 def test_vmaps_over_frames_and_people(ring_rig):
-    X = _scene_points(ring_rig, 9, (5, 3, 18))  # (F, P, K, 3)
+    X = scene_points(ring_rig, 9, (5, 3, 18))  # (F, P, K, 3)
     px = cameras.project_points(ring_rig, jnp.asarray(X))  # (C, F, P, K, 2)
     per_frame = jax.vmap(lambda p: triangulate.triangulate_points(ring_rig, p, jnp.ones(p.shape[:-1]))[0],
                          in_axes=1)(px)  # fmt: skip
@@ -153,7 +139,7 @@ def test_vmaps_over_frames_and_people(ring_rig):
 
 
 def test_junk_in_unseen_views_does_not_leak(ring_rig):
-    X = _scene_points(ring_rig, 10, (8,))
+    X = scene_points(ring_rig, 10, (8,))
     px = np.array(cameras.project_points(ring_rig, jnp.asarray(X)))
     px[0] = np.nan  # camera 0 saw nothing; its coordinates are junk
     px[1, :4] = 1e30

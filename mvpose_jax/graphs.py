@@ -1,0 +1,403 @@
+"""Matching graphs (DESIGN.md §1.2): host-side numpy building, padded jraph batches, training samples.
+
+One graph per frame. Detection nodes: one per skeleton per inference view. Match nodes: one per
+unordered pair of detection nodes of DIFFERENT views. Edges: each match node is joined both ways
+to its two detection nodes, and every node has a self-loop; detection nodes are never joined
+directly. Within a graph the nodes are ordered detections first (by camera, then skeleton), then
+match nodes; edges are self-loops first, then four per match node.
+
+Node features are the paper's ``2 + C·K·10`` numbers: a one-hot [detection, match], then one
+``K·10`` slot per camera, filled only in the slot of the node's own camera (`features
+.keypoint_features`). A match node is all zeros but the one-hot. Stored factorised because the
+slots are almost all zero: ``graphs.nodes`` holds the (N, 2) one-hot and ``det_features`` the
+(D, C·K·10) camera slots of the detection nodes only. The GAT's first layer then multiplies the
+square ``W1`` by detection rows alone (D ≈ N/10 in a crowded frame), the same numbers as the dense
+product at a tenth of its cost; `dense_node_features` rebuilds the paper's (N, 2 + C·K·10) matrix.
+
+Padding follows ``jraph.pad_with_graphs`` exactly (one padding graph holding every padding node
+and edge, padding edges on the first padding node, then empty graphs) but is built directly,
+vectorised over all frames of a batch. Budgets are powers of two (`graph_budget`): a stream of
+random frames compiles a handful of shapes.
+
+Training samples (`compose_samples`) put ``n`` single-person frames of ``n`` DIFFERENT recordings
+into one frame; per view a recording's main skeleton (most keypoints) is its person, any other
+skeleton a false detection; a match node is labelled 1 when both ends are main skeletons of the
+same recording.
+
+Letters: F frames (graphs), C cameras, P skeletons per view, K keypoints, N nodes, D detection
+rows, E edges, G graphs (padded), R recordings, T pooled frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import jraph
+import numpy as np
+
+from mvpose_jax.cameras import Rig
+from mvpose_jax.data.recording import Recording
+from mvpose_jax.errors import InputError
+from mvpose_jax.features import NUM_KEYPOINT_FEATURES, keypoint_features
+
+DETECTION, MATCH = 0, 1  # positions in the one-hot
+MIN_NODES = 64
+MIN_DETECTIONS = 16
+
+
+class GraphBatch(NamedTuple):
+    """Padded matching graphs of F frames (a jit-able pytree; numpy on the host).
+
+    ``graphs`` is a jraph `GraphsTuple` padded as ``jraph.pad_with_graphs`` pads: the real graphs,
+    one padding graph with every padding node and edge, then empty graphs.
+    """
+
+    graphs: jraph.GraphsTuple  # nodes (N, 2) one-hot; senders, receivers (E,); n_node, n_edge (G,)
+    det_features: jax.Array  # (D, C*K*10) camera slots of detection rows; zeros on padding rows
+    det_node: jax.Array  # (D,) int32 node id of each detection row (padding rows: a padding node)
+    det_mask: jax.Array  # (D,) bool, real detection rows
+    node_mask: jax.Array  # (N,) bool = jraph.get_node_padding_mask(graphs)
+    is_match: jax.Array  # (N,) bool, real match nodes
+    label: jax.Array  # (N,) float32 0/1 target of match nodes (0 elsewhere)
+    pair: jax.Array  # (N, 2) int32 the two detection-node ids of a match node (-1 elsewhere)
+    node_camera: jax.Array  # (N,) int32 camera of a detection node (-1 elsewhere)
+    node_skeleton: jax.Array  # (N,) int32 skeleton index p in its view (-1 elsewhere)
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """Padded sizes of a `GraphBatch`: nodes, detection rows, edges, graphs."""
+
+    nodes: int
+    dets: int
+    edges: int
+    graphs: int
+
+
+def next_power_of_two(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+def graph_budget(num_dets: int, num_matches: int, num_graphs: int) -> Budget:
+    """The bucket of a batch: node and detection budgets are powers of two.
+
+    The edge budget follows from the node budget (every real node has a self-loop and every match
+    node four more edges, so E = N + 4M <= 5N), which keeps the buckets one-dimensional in nodes
+    and detections. Node and graph budgets leave room for `jraph.pad_with_graphs`' padding node
+    and padding graph.
+    """
+    nodes = max(MIN_NODES, next_power_of_two(num_dets + num_matches + 1))
+    dets = max(MIN_DETECTIONS, next_power_of_two(num_dets))
+    return Budget(nodes=nodes, dets=dets, edges=5 * nodes, graphs=num_graphs + 1)
+
+
+def detection_features(rig: Rig, xy: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """The 10 numbers per keypoint of every skeleton (`features.keypoint_features`), flattened.
+
+    Args:
+      rig: the C cameras of the views.
+      xy: (F, C, P, K, 2) pixels; score: (F, C, P, K), 0 = missing.
+    Returns:
+      (F, C, P, K*10) float32 numpy.
+    """
+    F, C, P, K = np.shape(score)
+    xy_c = jnp.moveaxis(jnp.asarray(xy, jnp.float32), 1, 0)
+    score_c = jnp.moveaxis(jnp.asarray(score, jnp.float32), 1, 0)
+    feats = np.asarray(keypoint_features(rig, xy_c, score_c))  # (C, F, P, K, 10)
+    return np.ascontiguousarray(np.moveaxis(feats, 0, 1).reshape(F, C, P, K * NUM_KEYPOINT_FEATURES))
+
+
+def build_graphs(
+    features: np.ndarray,
+    valid: np.ndarray,
+    identity: np.ndarray | None = None,
+    *,
+    num_graphs: int | None = None,
+    budget: Budget | None = None,
+) -> GraphBatch:
+    """Builds the padded matching graphs of F frames, vectorised over frames.
+
+    Args:
+      features: (F, C, P, K*10) per-skeleton features (`detection_features`).
+      valid: (F, C, P) bool, the skeleton exists (a detection node).
+      identity: optional (F, C, P) int, the person of each skeleton, -1 for a false detection;
+        match labels are 1 where both ends share a person >= 0. None: all labels 0.
+      num_graphs: graphs the batch must hold (>= F; default F): fix it to keep one graph budget.
+      budget: explicit padded sizes (default `graph_budget` of the batch).
+    Returns:
+      A `GraphBatch` of numpy arrays; graph f is frame f.
+    Raises:
+      InputError when ``budget`` is too small.
+    """
+    features = np.asarray(features, np.float32)
+    valid = np.asarray(valid, bool)
+    F, C, P, KF = features.shape
+    num_graphs = F if num_graphs is None else num_graphs
+    if num_graphs < F:
+        raise InputError(f"num_graphs {num_graphs} < {F} frames", field="num_graphs")
+    ident = np.full((F, C, P), -1, np.int64) if identity is None else np.asarray(identity, np.int64)
+
+    # Detection rows in (frame, camera, skeleton) order: graph-contiguous, as jraph needs.
+    f_d, c_d, p_d = np.nonzero(valid)  # (D,)
+    D = len(f_d)
+    n_det = np.bincount(f_d, minlength=F)  # (F,)
+    det_start = np.concatenate([[0], np.cumsum(n_det)[:-1]])
+    local = np.arange(D) - det_start[f_d]  # index of the detection within its frame
+
+    # Every pair (i < j) of a frame's detections from different cameras is a match node.
+    width = max(1, int(n_det.max(initial=0)))
+    slot = np.full((F, width), -1, np.int64)
+    slot[f_d, local] = np.arange(D)
+    cam = np.append(c_d, -1)[slot]  # (F, width); slot -1 picks the appended -1
+    i_idx, j_idx = np.triu_indices(width, k=1)
+    ok = (slot[:, i_idx] >= 0) & (slot[:, j_idx] >= 0) & (cam[:, i_idx] != cam[:, j_idx])
+    f_m, q = np.nonzero(ok)  # (M,) sorted by frame
+    a_row, b_row = slot[f_m, i_idx[q]], slot[f_m, j_idx[q]]
+    M = len(f_m)
+    n_match = np.bincount(f_m, minlength=F)
+
+    n_node = n_det + n_match
+    node_start = np.concatenate([[0], np.cumsum(n_node)[:-1]])
+    det_node = node_start[f_d] + local  # (D,)
+    match_start = np.concatenate([[0], np.cumsum(n_match)[:-1]])
+    match_node = node_start[f_m] + n_det[f_m] + (np.arange(M) - match_start[f_m])  # (M,)
+    a_node, b_node = det_node[a_row], det_node[b_row]
+    N_real = int(n_node.sum())
+
+    # Edges, grouped by graph: its self-loops, then det->match, det->match, match->det, match->det.
+    loops = np.arange(N_real)
+    loop_graph = np.repeat(np.arange(F), n_node)
+    m_send = np.stack([a_node, b_node, match_node, match_node], axis=1).reshape(-1)
+    m_recv = np.stack([match_node, match_node, a_node, b_node], axis=1).reshape(-1)
+    senders = np.concatenate([loops, m_send])
+    receivers = np.concatenate([loops, m_recv])
+    order = np.argsort(np.concatenate([loop_graph, np.repeat(f_m, 4)]), kind="stable")
+    senders, receivers = senders[order], receivers[order]
+    n_edge = n_node + 4 * n_match
+    E_real = len(senders)
+
+    budget = budget or graph_budget(D, M, num_graphs)
+    if budget.nodes <= N_real or budget.edges < E_real or budget.graphs <= F or budget.dets < D:
+        raise InputError(
+            f"budget {budget} too small for {N_real} nodes, {D} detections, {E_real} edges, "
+            f"{F} graphs", field="budget",
+        )  # fmt: skip
+    N, E, G, Db = budget.nodes, budget.edges, budget.graphs, budget.dets
+    pad_node = N_real  # first padding node: jraph points every padding edge at it
+
+    kind = np.zeros((N, 2), np.float32)
+    kind[det_node, DETECTION] = 1.0
+    kind[match_node, MATCH] = 1.0
+    graph_n_node = np.zeros(G, np.int32)
+    graph_n_edge = np.zeros(G, np.int32)
+    graph_n_node[:F], graph_n_edge[:F] = n_node, n_edge
+    graph_n_node[F], graph_n_edge[F] = N - N_real, E - E_real
+    graphs = jraph.GraphsTuple(
+        nodes=kind,
+        edges=None,
+        senders=np.concatenate([senders, np.full(E - E_real, pad_node)]).astype(np.int32),
+        receivers=np.concatenate([receivers, np.full(E - E_real, pad_node)]).astype(np.int32),
+        n_node=graph_n_node,
+        n_edge=graph_n_edge,
+        globals=None,
+    )
+
+    det_features = np.zeros((Db, C, KF), np.float32)
+    det_features[np.arange(D), c_d] = features[f_d, c_d, p_d]
+    det_node_p = np.full(Db, pad_node, np.int32)
+    det_node_p[:D] = det_node
+    det_mask = np.arange(Db) < D
+
+    node_mask = np.arange(N) < N_real
+    is_match = np.zeros(N, bool)
+    is_match[match_node] = True
+    person = ident[f_d, c_d, p_d]  # (D,)
+    label = np.zeros(N, np.float32)
+    label[match_node] = ((person[a_row] >= 0) & (person[a_row] == person[b_row])).astype(np.float32)
+    pair = np.full((N, 2), -1, np.int32)
+    pair[match_node, 0], pair[match_node, 1] = a_node, b_node
+    node_camera = np.full(N, -1, np.int32)
+    node_skeleton = np.full(N, -1, np.int32)
+    node_camera[det_node], node_skeleton[det_node] = c_d, p_d
+
+    return GraphBatch(
+        graphs=graphs,
+        det_features=det_features.reshape(Db, C * KF),
+        det_node=det_node_p,
+        det_mask=det_mask,
+        node_mask=node_mask,
+        is_match=is_match,
+        label=label,
+        pair=pair,
+        node_camera=node_camera,
+        node_skeleton=node_skeleton,
+    )
+
+
+def dense_node_features(batch: GraphBatch) -> np.ndarray:
+    """The paper's node feature matrix (N, 2 + C*K*10): one-hot, then the camera slots."""
+    kind = np.asarray(batch.graphs.nodes)
+    dense = np.zeros((kind.shape[0], np.shape(batch.det_features)[1]), np.float32)
+    mask = np.asarray(batch.det_mask)
+    dense[np.asarray(batch.det_node)[mask]] = np.asarray(batch.det_features)[mask]
+    return np.concatenate([kind, dense], axis=1)
+
+
+def node_graph(batch: GraphBatch) -> np.ndarray:
+    """Graph (frame) index of every node: (N,) int (padding nodes: the padding graph's index)."""
+    n_node = np.asarray(batch.graphs.n_node)
+    return np.repeat(np.arange(len(n_node)), n_node)
+
+
+def match_table(batch: GraphBatch, scores: np.ndarray) -> np.ndarray:
+    """The real match nodes as rows ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``.
+
+    Args:
+      batch: a `GraphBatch`.
+      scores: (N,) node outputs.
+    Returns:
+      (M, 5) int64 rows and (M,) float scores, in node order.
+    """
+    is_match = np.asarray(batch.is_match)
+    pair = np.asarray(batch.pair)[is_match]
+    cam, skel = np.asarray(batch.node_camera), np.asarray(batch.node_skeleton)
+    frame = node_graph(batch)[is_match]
+    rows = np.stack([frame, cam[pair[:, 0]], skel[pair[:, 0]], cam[pair[:, 1]], skel[pair[:, 1]]], axis=1)
+    return rows.astype(np.int64), np.asarray(scores)[is_match]
+
+
+# --------------------------------------------------------------------------- training samples
+
+
+@dataclasses.dataclass(frozen=True)
+class SkeletonPool:
+    """Single-person frames of R recordings, ready to be composed into training graphs.
+
+    Host-side numpy; T = total frames of all recordings, P = the largest view's skeleton count.
+    """
+
+    features: np.ndarray  # (T, C, P, K*10) float32 per-skeleton features
+    valid: np.ndarray  # (T, C, P) bool, the skeleton exists
+    main: np.ndarray  # (T, C, P) bool, the main skeleton of its view (the recording's person)
+    starts: np.ndarray  # (R,) first pooled frame of each recording
+    lengths: np.ndarray  # (R,) frames of each recording
+
+    @property
+    def num_recordings(self) -> int:
+        return len(self.starts)
+
+
+def make_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
+    """Pools single-person recordings for `compose_samples`.
+
+    Args:
+      rig: the inference cameras C_i; every recording must have them (by name; others are
+        dropped, order follows the rig).
+      recordings: R >= 1 single-person recordings.
+    Raises:
+      InputError when a recording lacks a camera or has no frames, or keypoint counts differ.
+    """
+    if not recordings:
+        raise InputError("no recordings to train the matcher on", field="recordings")
+    feats, valid, main, lengths = [], [], [], []
+    K = None
+    for r, rec in enumerate(recordings):
+        missing = [c for c in rig.names if c not in rec.cameras]
+        if missing:
+            raise InputError(f"recording {r} lacks cameras {missing}", camera=missing[0], field="cameras")
+        if K is not None and rec.num_keypoints != K:
+            raise InputError(f"recording {r} has {rec.num_keypoints} keypoints, others {K}", field="layout")
+        K = rec.num_keypoints
+        idx = np.array([rec.cameras.index(c) for c in rig.names])
+        det = rec.detections
+        xy = np.asarray(det.xy, np.float32)[:, idx]
+        score = np.asarray(det.score, np.float32)[:, idx]
+        count = np.asarray(det.count)[:, idx]
+        ok = np.arange(score.shape[2])[None, None] < count[..., None]  # (F, C, P)
+        n_kp = np.where(ok, (score > 0).sum(-1), -1)
+        # The view's main skeleton: the one with most keypoints (ties: the first listed).
+        best = n_kp.argmax(-1)
+        is_main = (np.arange(score.shape[2])[None, None] == best[..., None]) & ok
+        feats.append(detection_features(rig, xy, score))
+        valid.append(ok)
+        main.append(is_main)
+        lengths.append(rec.num_frames)
+    P = max(f.shape[2] for f in feats)
+    pad = lambda a: np.pad(a, [(0, 0), (0, 0), (0, P - a.shape[2])] + [(0, 0)] * (a.ndim - 3))  # noqa: E731
+    lengths = np.asarray(lengths, np.int64)
+    if np.any(lengths == 0):
+        raise InputError("a recording has no frames", field="recordings")
+    return SkeletonPool(
+        features=np.concatenate([pad(f) for f in feats]),
+        valid=np.concatenate([pad(v) for v in valid]),
+        main=np.concatenate([pad(m) for m in main]),
+        starts=np.concatenate([[0], np.cumsum(lengths)[:-1]]),
+        lengths=lengths,
+    )
+
+
+def compose_samples(
+    pool: SkeletonPool,
+    rng: np.random.Generator,
+    num_samples: int,
+    *,
+    max_people: int = 8,
+    subset_probability: float = 0.5,
+    min_views: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Multi-person training frames from single-person ones (DESIGN.md §1.2), vectorised.
+
+    Each sample takes ``n`` frames of ``n`` different recordings, ``n`` uniform in
+    ``1..min(R, max_people)`` (the paper draws up to R; capping it keeps graphs the size of the
+    test scenes, 1-8 people). With probability ``subset_probability`` only a random subset of the
+    views is kept, of size uniform in ``min_views..C`` (view-subset augmentation: the network sees
+    people missing from some views).
+
+    Returns:
+      features (S, C, Q, K*10), valid (S, C, Q), identity (S, C, Q) with Q = n_max * P; identity
+      is the sample's person slot for main skeletons and -1 for false detections.
+    """
+    R = pool.num_recordings
+    n_max = max(1, min(R, max_people))
+    S = num_samples
+    _, C, P, KF = pool.features.shape
+    n = rng.integers(1, n_max + 1, S)  # (S,)
+    recs = np.argsort(rng.random((S, R)), axis=1)[:, :n_max]  # distinct recordings per sample
+    frame = pool.starts[recs] + (rng.random((S, n_max)) * pool.lengths[recs]).astype(np.int64)
+    active = np.arange(n_max)[None] < n[:, None]  # (S, n_max)
+
+    # Views kept: all, or a random subset of min_views..C of them.
+    k_views = np.minimum(C, min_views)
+    size = rng.integers(k_views, C + 1, S)
+    size = np.where(rng.random(S) < subset_probability, size, C)
+    rank = np.argsort(np.argsort(rng.random((S, C)), axis=1), axis=1)
+    kept = rank < size[:, None]  # (S, C)
+
+    t = frame.reshape(-1)
+    to_views = lambda a: np.moveaxis(a.reshape((S, n_max) + a.shape[1:]), 1, 2)  # noqa: E731
+    feats = to_views(pool.features[t]).reshape(S, C, n_max * P, KF)
+    valid = to_views(pool.valid[t]) & active[:, None, :, None] & kept[:, :, None, None]
+    main = to_views(pool.main[t])
+    slot = np.broadcast_to(np.arange(n_max)[None, None, :, None], main.shape)
+    identity = np.where(main, slot, -1)
+    return feats, valid.reshape(S, C, n_max * P), identity.reshape(S, C, n_max * P)
+
+
+def sample_batches(
+    pool: SkeletonPool,
+    rng: np.random.Generator,
+    num_batches: int,
+    graphs_per_batch: int,
+    **compose_kwargs,
+) -> list[GraphBatch]:
+    """``num_batches`` padded training batches of ``graphs_per_batch`` composed frames each."""
+    feats, valid, identity = compose_samples(pool, rng, num_batches * graphs_per_batch, **compose_kwargs)
+    out = []
+    for b in range(num_batches):
+        sl = slice(b * graphs_per_batch, (b + 1) * graphs_per_batch)
+        out.append(build_graphs(feats[sl], valid[sl], identity[sl]))
+    return out

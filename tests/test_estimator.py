@@ -1,0 +1,158 @@
+"""The 3D estimator end to end on tiny data: training fits, checkpoints restore, inference batches."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mvpose_jax.data.synthetic import SyntheticConfig, generate_single_person_recordings
+from mvpose_jax.features import main_skeletons
+from mvpose_jax.inference import predict_people
+from mvpose_jax.models import MLPConfig, PoseMLP, count_params
+from mvpose_jax.train import (
+    EstimatorConfig,
+    TrainConfig,
+    load_estimator,
+    random_view_subsets,
+    train_estimator,
+)
+
+from flax import nnx
+
+
+@pytest.fixture(scope="module")
+def clean_samples():
+    from mvpose_jax.data.calibration import load_preset
+
+    rig = load_preset("panoptic5")
+    cfg = SyntheticConfig().replace(detector=SyntheticConfig().detector.clean())
+    recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=16, seed=0, config=cfg)
+    ms = [main_skeletons(np.asarray(r.detections.xy), np.asarray(r.detections.score)) for r in recs]
+    return rig, np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms])
+
+
+def test_small_paper_style_mlp_fits_a_small_set(clean_samples, tmp_path):
+    rig, xy, score = clean_samples
+    cfg = EstimatorConfig(
+        num_augment=0, mlp=MLPConfig(widths=(128, 128)),  # the paper's absolute output
+        train=TrainConfig(learning_rate=3e-3, cosine_decay=True, max_steps=1500, batch_size=64,
+                          eval_every=100, patience=100),
+    )  # fmt: skip
+    est, res = train_estimator(rig, xy, score, xy, score, cfg, checkpoint_dir=tmp_path / "ckpt", progress=False)
+    first, best = res.history[0]["val_px_per_keypoint"], min(h["val_px_per_keypoint"] for h in res.history)
+    assert first > 20.0 and best < 5.0, (first, best)
+    # The best checkpoint restores to the same predictions.
+    restored = load_estimator(tmp_path / "ckpt", rig)
+    a = predict_people(est, xy[:10], score[:10])
+    b = predict_people(restored, xy[:10], score[:10])
+    np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+def test_padding_does_not_change_predictions(clean_samples):
+    rig, xy, score = clean_samples
+    cfg = EstimatorConfig(mlp=MLPConfig(widths=(32,), output="residual"),
+                          train=TrainConfig(max_steps=2, batch_size=8))  # fmt: skip
+    est, _ = train_estimator(rig, xy, score, xy, score, cfg, progress=False)
+    alone = predict_people(est, xy[:1], score[:1])
+    many = predict_people(est, xy[:40], score[:40])  # another padding bucket
+    np.testing.assert_allclose(many[:1], alone, atol=1e-5)
+    assert np.all(np.isfinite(many))
+
+
+def test_residual_output_starts_at_the_triangulation(clean_samples):
+    from mvpose_jax.inference import triangulate_people
+
+    rig, xy, score = clean_samples
+    model_cfg = MLPConfig(widths=(16,), output="residual")
+    cfg = EstimatorConfig(mlp=model_cfg, train=TrainConfig(learning_rate=0.0, max_steps=1, batch_size=8))
+    est, _ = train_estimator(rig, xy, score, xy, score, cfg, progress=False)
+    ours = predict_people(est, xy[:12], score[:12])
+    tri, ok = triangulate_people(rig, xy[:12], score[:12])
+    np.testing.assert_allclose(ours[ok], tri[ok], atol=1e-4)
+
+
+def test_random_view_subsets_are_nonempty_proper_subsets():
+    available = jnp.asarray(np.random.default_rng(0).uniform(size=(200, 5)) > 0.3)
+    masks, ok = random_view_subsets(jax.random.key(0), available, 4)
+    masks, ok, available = np.asarray(masks), np.asarray(ok), np.asarray(available)
+    n = available.sum(-1)
+    assert np.all(ok == (n >= 2)[None])
+    k = masks.sum(-1)
+    assert np.all(~masks | available[None])  # only available views
+    assert np.all((k >= 1) & (k < n[None]) | ~ok)  # non-empty and proper where possible
+    # Every size from 1 to n - 1 occurs.
+    five = n == 5
+    assert set(np.unique(k[:, five])) == {1, 2, 3, 4}
+
+
+def test_mlp_accepts_any_leading_batch():
+    model = PoseMLP(3, 18, dataclasses.replace(MLPConfig.quick(), output="anchored"), rngs=nnx.Rngs(0))
+    x = jnp.zeros((2, 5, 3, 18, 14))
+    assert model(x).shape == (2, 5, 18, 3)
+
+
+
+@pytest.mark.parametrize("widths, millions", [
+    ((3072, 3072, 2048, 2048, 1024, 1024, 1024), 28.06),  # the paper's widths
+    ((3072, 3072, 2048, 2048, 1024, 1024, 1024, 1024), 29.11),  # the original code's (DESIGN §5)
+])  # fmt: skip
+def test_paper_size_mlp_parameter_count(widths, millions):
+    model = nnx.eval_shape(lambda: PoseMLP(5, 18, MLPConfig(widths=widths), rngs=nnx.Rngs(0)))
+    _, params = nnx.split(model, nnx.Param)
+    sizes = (5 * 18 * 14,) + widths + (18 * 3,)
+    expected = sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:]))
+    assert count_params(params) == expected
+    assert expected / 1e6 == pytest.approx(millions, abs=0.01)
+
+
+def test_resumed_training_ends_where_an_uninterrupted_run_does(clean_samples, tmp_path):
+    rig, xy, score = clean_samples
+
+    def run(steps, folder, resume=False):
+        cfg = EstimatorConfig(mlp=MLPConfig(widths=(32,), output="residual"), num_augment=2,
+                              train=TrainConfig(learning_rate=1e-3, max_steps=steps, batch_size=16,
+                                                patience=100))  # fmt: skip
+        return train_estimator(rig, xy, score, xy[:8], score[:8], cfg, checkpoint_dir=folder,
+                               progress=False, resume=resume)  # fmt: skip
+
+    whole, _ = run(12, tmp_path / "a")  # 3 epochs of 4 steps
+    run(8, tmp_path / "b")  # "killed" after 2 epochs ...
+    resumed, fit = run(12, tmp_path / "b", resume=True)  # ... and resumed
+    assert fit.steps == 12
+    from mvpose_jax.train import Checkpoints, init_train_state, make_optimizer
+    latest = []
+    for folder in ("a", "b"):
+        ck = Checkpoints(tmp_path / folder)
+        model = PoseMLP(5, 18, MLPConfig(widths=(32,), output="residual"), rngs=nnx.Rngs(0))
+        _, _, state = init_train_state(model, make_optimizer(TrainConfig()))
+        latest.append(ck.restore(jax.eval_shape(lambda: state), "latest")[0])
+        ck.close()
+    for a, b in zip(jax.tree.leaves(latest[0].params), jax.tree.leaves(latest[1].params), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    # Another config in the same folder is refused, not silently restarted.
+    cfg = EstimatorConfig(mlp=MLPConfig(widths=(64,), output="residual"), train=TrainConfig(max_steps=4))
+    from mvpose_jax.errors import InputError
+    with pytest.raises(InputError, match="another config"):
+        train_estimator(rig, xy, score, xy[:8], score[:8], cfg, checkpoint_dir=tmp_path / "b",
+                        progress=False, resume=True)  # fmt: skip
+
+
+def test_train_estimator_command(tmp_path, capsys):
+    from mvpose_jax import cli
+
+    assert cli.main(["generate", "--rig", "panoptic5", "--single-person-recordings", "2", "--frames", "20",
+                     "--out", str(tmp_path / "train")]) == 0  # fmt: skip
+    argv = ["train-estimator", "--rig", "panoptic5", "--train", str(tmp_path / "train"), "--out",
+            str(tmp_path / "ckpt"), "--infer-cameras", "trackera", "trackerb", "--steps", "6",
+            "--batch-size", "16"]  # fmt: skip
+    assert cli.main(argv) == 0
+    assert "checkpoints in" in capsys.readouterr().out
+    assert cli.main(argv + ["--resume"]) == 0  # nothing left to do: resumes at the end
+    assert cli.main(argv[:-2] + ["--batch-size", "8", "--resume"]) == 2  # another config: refused
+    assert "another config" in capsys.readouterr().err
+    assert cli.main(["train-estimator", "--rig", "panoptic5", "--train", str(tmp_path / "nope"),
+                     "--out", str(tmp_path / "c2")]) == 2  # fmt: skip

@@ -1,0 +1,233 @@
+"""Skeleton matching: the GAT, its training, proposals, clustering metrics, the geometric baseline."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+from flax import nnx
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mvpose_jax.graphs import Budget, build_graphs, dense_node_features, graph_budget
+from mvpose_jax.inference import (
+    _match_scores,
+    geometric_match_table,
+    propose_people,
+    union_find_exclusive,
+)
+from mvpose_jax.metrics import clustering_scores, detection_clusters, matching_scores
+from mvpose_jax.models import GATConfig, MatchingGAT
+from mvpose_jax.train import (
+    MatcherConfig,
+    init_train_state,
+    make_optimizer,
+    make_train_step,
+    matcher_loss_fn,
+    train_matcher,
+)
+
+C, K = 3, 4
+TINY = GATConfig(widths=(8, 8, 1), heads=(2, 2, 1))
+
+
+def _random_frames(rng, F, P=3, p_valid=0.6):
+    feats = rng.normal(size=(F, C, P, K * 10)).astype(np.float32)
+    valid = rng.random((F, C, P)) < p_valid
+    identity = np.where(rng.random((F, C, P)) < 0.8, rng.integers(0, 3, (F, C, P)), -1)
+    return feats, valid, identity
+
+
+@pytest.fixture(scope="module")
+def model():
+    return MatchingGAT(C, K, GATConfig(), rngs=nnx.Rngs(0))
+
+
+def test_factorised_first_layer_equals_dense_gat(model):
+    b = build_graphs(*_random_frames(np.random.default_rng(0), 4))
+    fast = np.asarray(jax.jit(lambda m, x: m(x))(model, b))
+    dense = np.asarray(jax.jit(lambda m, x, g: m.dense_forward(x, g))(model, dense_node_features(b), b.graphs))
+    np.testing.assert_allclose(fast[b.node_mask], dense[b.node_mask], atol=1e-5)
+
+
+def test_padding_never_changes_real_scores(model):
+    feats, valid, identity = _random_frames(np.random.default_rng(1), 3)
+    small = build_graphs(feats, valid, identity)
+    big = build_graphs(feats, valid, identity, num_graphs=9,
+                       budget=Budget(small.graphs.nodes.shape[0] * 4, 128, small.graphs.nodes.shape[0] * 20, 10))  # fmt: skip
+    f = jax.jit(lambda m, x: m(x))
+    a, b = np.asarray(f(model, small)), np.asarray(f(model, big))
+    n = int(small.node_mask.sum())
+    assert np.isfinite(a).all() and np.isfinite(b).all()
+    np.testing.assert_allclose(a[:n], b[:n], atol=1e-6)
+
+
+def test_gat_config_validates():
+    with pytest.raises(ValueError):
+        GATConfig(widths=(40, 1), heads=(3, 1))
+    with pytest.raises(ValueError):
+        GATConfig(widths=(40, 2), heads=(10, 1))
+
+
+def _train_state(config=TINY, lr=3e-3, seed=0):
+    m = MatchingGAT(C, K, config, rngs=nnx.Rngs(seed))
+    tx = make_optimizer(dataclasses.replace(MatcherConfig().train, learning_rate=lr))
+    graphdef, rest, state = init_train_state(m, tx)
+    return graphdef, rest, state, make_train_step(graphdef, rest, tx, matcher_loss_fn)
+
+
+def test_tiny_model_overfits_tiny_dataset():
+    # Identity is written into the features, so a perfect matcher exists.
+    rng = np.random.default_rng(2)
+    feats, valid, identity = _random_frames(rng, 6)
+    feats[..., :3] = np.eye(3, dtype=np.float32)[np.maximum(identity, 0)] * (identity >= 0)[..., None]
+    batch = jax.device_put(build_graphs(feats, valid, identity))
+    _, _, state, step = _train_state(GATConfig(widths=(16, 16, 1), heads=(2, 2, 1)), lr=1e-2)
+    key = jax.random.key(0)
+    losses = []
+    for _ in range(300):
+        state, metrics = step(state, batch, key)
+        losses.append(float(metrics["loss"]))
+    assert np.isfinite(losses).all()
+    assert losses[-1] < losses[0] / 10, (losses[0], losses[-1])
+
+
+def test_no_recompilation_beyond_buckets():
+    graphdef, rest, state, step = _train_state()
+    params = state.params
+    rng = np.random.default_rng(3)
+    budgets = set()
+    before = _match_scores._cache_size()
+    for _ in range(40):
+        F = 5
+        P = int(rng.integers(1, 4))  # frames of any size, padded to buckets
+        feats, valid, identity = _random_frames(rng, F, P=P, p_valid=rng.uniform(0.2, 1.0))
+        b = build_graphs(feats, valid, identity, num_graphs=F)
+        budgets.add((b.graphs.nodes.shape[0], b.det_features.shape[0]))
+        _match_scores(graphdef, rest, params, b)
+    assert _match_scores._cache_size() - before <= len(budgets) <= 6
+
+
+def test_train_matcher_quick_runs_and_checkpoints(ring_rig, tmp_path):
+    from mvpose_jax.data.synthetic import generate_single_person_recordings
+    from mvpose_jax.train import load_matcher
+
+    recs = generate_single_person_recordings(ring_rig, num_recordings=4, num_frames=5, seed=1)
+    cfg = MatcherConfig.quick()
+    cfg = dataclasses.replace(cfg, gat=TINY, samples_per_epoch=30, num_dev_samples=15,
+                              train=dataclasses.replace(cfg.train, max_epochs=2, eval_every=1))  # fmt: skip
+    matcher, fit = train_matcher(ring_rig, recs[:3], recs[3:], cfg, checkpoint_dir=tmp_path, progress=False)
+    assert fit.steps == 4 and np.isfinite(fit.best_val_loss)
+    again = load_matcher(tmp_path, ring_rig, cfg, num_keypoints=recs[0].num_keypoints)
+    for a, b in zip(jax.tree.leaves(matcher.params), jax.tree.leaves(again.params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+# --------------------------------------------------------------------------- proposals
+
+
+def test_proposals_join_best_first_and_respect_cameras():
+    count = np.array([[2, 2, 1]])  # one frame, 3 cameras
+    rows = np.array([
+        [0, 0, 0, 1, 0],  # a: 0.9
+        [0, 0, 0, 1, 1],  # would put two camera-1 skeletons in a's person: refused
+        [0, 0, 1, 1, 1],  # b: 0.8
+        [0, 1, 0, 2, 0],  # a gets camera 2
+        [0, 0, 1, 2, 0],  # refused: camera 2 taken
+    ])  # fmt: skip
+    scores = np.array([0.9, 0.85, 0.8, 0.7, 0.95])
+    p = propose_people(rows, scores, count)
+    # The best pair (0,1)-(2,0) goes first: b = {(0,1), (2,0)}, then (0,0)-(1,0), then (1,1) joins b.
+    ident = p.identity[0]
+    assert ident[0, 1] == ident[2, 0] == ident[1, 1]
+    assert ident[0, 0] == ident[1, 0] != ident[0, 1]
+    assert len(p.people[0]) == 2
+    for person in p.people[0]:
+        assert (person >= 0).sum() >= 2
+
+
+def test_proposals_threshold_min_views_and_single_camera():
+    count = np.array([[1, 1], [2, 0]])
+    rows = np.array([[0, 0, 0, 1, 0]])
+    assert (propose_people(rows, np.array([0.4]), count).identity[0] == -1).all()
+    assert (propose_people(rows, np.array([0.6]), count).identity[0, :, 0] == 0).all()
+    single = propose_people(np.zeros((0, 5), int), np.zeros(0), np.array([[3], [0]]))
+    assert single.identity[0, 0].tolist() == [0, 1, 2] and len(single.people[1]) == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 4), st.integers(2, 4), st.integers(1, 4), st.integers(0, 2**31 - 1))
+def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, seed):
+    rng = np.random.default_rng(seed)
+    count = rng.integers(0, P + 1, (F, cams))
+    f, ca, pa, cb, pb = np.meshgrid(np.arange(F), np.arange(cams), np.arange(P), np.arange(cams), np.arange(P),
+                                    indexing="ij")  # fmt: skip
+    rows = np.stack([a.ravel() for a in (f, ca, pa, cb, pb)], 1)
+    rows = rows[(rows[:, 1] < rows[:, 3]) & (rows[:, 2] < count[rows[:, 0], rows[:, 1]])
+                & (rows[:, 4] < count[rows[:, 0], rows[:, 3]])]  # fmt: skip
+    p = propose_people(rows, rng.random(len(rows)), count, num_skeletons=P, min_views=2)
+    for fr in range(F):
+        ident = p.identity[fr]
+        for person in np.unique(ident[ident >= 0]):
+            per_cam = (ident == person).sum(axis=1)
+            assert per_cam.max() == 1 and per_cam.sum() >= 2
+        assert len(p.people[fr]) == len(np.unique(ident[ident >= 0]))
+        for g, person in enumerate(p.people[fr]):
+            for c, sk in enumerate(person):
+                assert (sk < 0) or ident[c, sk] == g
+
+
+def test_union_find_exclusive_plain():
+    roots = union_find_exclusive(4, [0, 1, 2], [1, 2, 3], np.array([0, 1, 0, 2]))
+    assert roots.tolist() == [0, 0, 2, 2]  # 1-2 refused (camera 0 twice), 2-3 joined
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def test_clustering_scores_equal_sklearn():
+    from sklearn import metrics as sk
+
+    rng = np.random.default_rng(4)
+    for i in range(200):
+        n = int(rng.integers(0, 40))
+        a = rng.integers(0, int(rng.integers(1, 8)), n)
+        b = a.copy() if i % 4 == 0 else rng.integers(0, int(rng.integers(1, 8)), n)
+        b[rng.random(n) < 0.1] = 50
+        ours = clustering_scores(a, b)
+        h, c, v = sk.homogeneity_completeness_v_measure(a, b)
+        assert ours["ari"] == pytest.approx(sk.adjusted_rand_score(a, b), abs=1e-12)
+        assert (ours["homogeneity"], ours["completeness"], ours["v_measure"]) == pytest.approx((h, c, v), abs=1e-12)
+
+
+def test_detection_clusters_make_singletons_and_frame_unique_labels():
+    identity = np.array([[[0, -1], [0, 1]], [[0, -1], [-1, -1]]])  # (F=2, C=2, P=2)
+    count = np.array([[2, 2], [1, 1]])
+    labels = detection_clusters(identity, count)
+    assert len(labels) == 6
+    assert labels[0] == labels[2] and len(set(labels.tolist())) == 5  # frame 1's person 0 differs
+    perfect = matching_scores(identity, identity, count)
+    assert perfect["ari"] == 1.0 and perfect["v_measure"] == 1.0
+
+
+# --------------------------------------------------------------------------- geometric baseline
+
+
+def test_geometric_baseline_groups_true_people(ring_rig):
+    from mvpose_jax.data.synthetic import generate_recording
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=4, seed=3)
+    rows, scores = geometric_match_table(ring_rig, rec.detections)
+    ident = rec.identity
+    same = (ident[rows[:, 0], rows[:, 1], rows[:, 2]] == ident[rows[:, 0], rows[:, 3], rows[:, 4]]) & (
+        ident[rows[:, 0], rows[:, 1], rows[:, 2]] >= 0)  # fmt: skip
+    assert scores[same].mean() > 0.5 > scores[~same].mean()
+    p = propose_people(rows, scores, rec.detections.count, num_skeletons=ident.shape[2])
+    assert matching_scores(ident, p.identity, np.asarray(rec.detections.count))["ari"] > 0.9
+
+
+def test_budget_of_a_batch_is_a_bucket():
+    b = graph_budget(3, 3, 1)
+    assert (b.nodes, b.dets) == (64, 16)
