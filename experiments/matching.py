@@ -73,7 +73,7 @@ def scale(quick: bool) -> Scale:
     # cheap). Many short recordings (150 people of 100 frames) rather than a few long ones: with
     # 16 people the GAT overfit their bodies and paths.
     train = dataclasses.replace(MATCHER_TRAIN, learning_rate=1e-3, max_epochs=40)
-    matcher = MatcherConfig(gat=GATConfig(), train=train, final_lr_fraction=0.05)
+    matcher = MatcherConfig(gat=GATConfig(), train=dataclasses.replace(train, final_lr_fraction=0.05))
     return Scale(150, 100, 20, 50, 50, matcher)
 
 

@@ -98,18 +98,24 @@ def _recordings_in(path: str, layout: str | None) -> list:
     return [load_recording(f, layout=layout) for f in files]
 
 
-def _train_matcher_arguments(p: argparse.ArgumentParser) -> None:
+def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None = None) -> None:
+    """Options every training command shares: rig, data, output folder, layout and seed."""
     add_rig_argument(p, default=None)
     p.add_argument("--train", required=True, help="single-person recordings: a file or a folder of them")
-    p.add_argument("--dev", required=True, help="single-person validation recordings: a file or folder")
+    p.add_argument("--dev", required=dev_help is None,
+                   help=dev_help or "single-person validation recordings: a file or folder")  # fmt: skip
     p.add_argument("--out", required=True, help="folder for the best and latest checkpoints")
-    p.add_argument("--cameras", nargs="+", help="inference cameras C_i (default: every camera of the rig)")
     p.add_argument("--layout", default=None, help="keypoint layout to convert the recordings to")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def _train_matcher_arguments(p: argparse.ArgumentParser) -> None:
+    add_training_arguments(p)
+    p.add_argument("--cameras", nargs="+", help="inference cameras C_i (default: every camera of the rig)")
     p.add_argument("--quick", action="store_true", help="small network and short epochs")
     p.add_argument("--max-epochs", type=int, help="override the epoch limit")
     p.add_argument("--learning-rate", type=float, help="override Adam's step size (paper 1e-4)")
     p.add_argument("--max-people", type=int, help="most recordings composed into one frame (default 8)")
-    p.add_argument("--seed", type=int, default=0)
 
 
 @command(
@@ -142,13 +148,9 @@ def _train_matcher(args: argparse.Namespace) -> int:
 
 
 def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
-    add_rig_argument(p, default=None)
-    p.add_argument("--train", required=True, help="single-person recordings: a file or a folder of them")
-    p.add_argument("--dev", help="validation recordings (default: the last 10%% of --train's frames)")
-    p.add_argument("--out", required=True, help="folder for the best and latest checkpoints")
+    add_training_arguments(p, dev_help="validation recordings (default: the last 10%% of --train's frames)")
     p.add_argument("--train-cameras", nargs="+", help="training cameras C_t (default: every camera of the rig)")
     p.add_argument("--infer-cameras", nargs="+", help="inference cameras C_i, a subset of C_t (default: C_t)")
-    p.add_argument("--layout", default=None, help="keypoint layout to convert the recordings to")
     p.add_argument("--paper-size", action="store_true", help="the paper's widths (3072 ... 1024); default: quick")
     p.add_argument("--output", choices=("absolute", "anchored", "residual"), default="residual",
                    help="what the MLP predicts: absolute = the paper's; residual = offsets from the "
@@ -163,7 +165,6 @@ def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--patience", type=int, default=20, help="validations without improvement before stopping")
     p.add_argument("--resume", action="store_true",
                    help="continue from the latest checkpoint in --out (same settings; --steps may grow)")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0)
 
 
 @command(
@@ -210,7 +211,7 @@ def _train_estimator(args: argparse.Namespace) -> int:
         loss_power=args.loss_power,
         train=TrainConfig(learning_rate=args.learning_rate, batch_size=args.batch_size,
                           max_steps=args.steps, patience=args.patience, seed=args.seed,
-                          cosine_decay=not args.constant_lr),
+                          final_lr_fraction=1.0 if args.constant_lr else 0.01),
     )  # fmt: skip
     _, fit = train_estimator(rig.select(list(train_cams)), xy, score, dev_xy, dev_score, config,
                              checkpoint_dir=args.out, resume=args.resume)  # fmt: skip

@@ -57,7 +57,8 @@ class TrainConfig:
       eval_every: validate every this many epochs.
       patience: stop after this many validations without improvement (paper 20).
       seed: seeds initialisation, shuffling and augmentation.
-      cosine_decay: decay the learning rate to 1% over ``max_steps`` (the paper: constant).
+      final_lr_fraction: 1.0 keeps the step size constant (the paper); below 1 it decays on a
+        cosine to this fraction of ``learning_rate`` at the last step (shorter CPU runs).
     """
 
     learning_rate: float = 1e-4
@@ -68,14 +69,16 @@ class TrainConfig:
     eval_every: int = 1
     patience: int = 20
     seed: int = 0
-    cosine_decay: bool = False
+    final_lr_fraction: float = 1.0
 
 
-def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
-    """Adam with global-norm clipping; with ``cosine_decay`` and ``max_steps``, a cosine schedule."""
+def make_optimizer(config: TrainConfig, steps_per_epoch: int = 1) -> optax.GradientTransformation:
+    """Adam with global-norm clipping; below ``final_lr_fraction`` 1, a cosine decay over the run
+    (``max_steps``, else ``max_epochs * steps_per_epoch``)."""
     lr = config.learning_rate
-    if config.cosine_decay and config.max_steps:
-        lr = optax.cosine_decay_schedule(config.learning_rate, config.max_steps, alpha=0.01)
+    if config.final_lr_fraction < 1.0:
+        total = config.max_steps or config.max_epochs * steps_per_epoch
+        lr = optax.cosine_decay_schedule(config.learning_rate, total, alpha=config.final_lr_fraction)
     return optax.chain(optax.clip_by_global_norm(config.clip_norm), optax.adam(lr))
 
 
@@ -482,17 +485,17 @@ def train_estimator(
     train_data = batches_of(train_xy, train_score)
     dev_data = batches_of(dev_xy, dev_score)
 
+    n_train = len(train_xy)
+    batch = min(tcfg.batch_size, n_train)
+    steps_per_epoch = math.ceil(n_train / batch)
     model = PoseMLP(len(infer_idx), K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
-    tx = make_optimizer(tcfg)
+    tx = make_optimizer(tcfg, steps_per_epoch)
     graphdef, rest, state = init_train_state(model, tx)
     loss_fn = estimator_loss_fn(rig_train, rig_infer, config.num_augment, config.loss_power)
     step = make_train_step(graphdef, rest, tx, loss_fn)
     eval_loss = jax.jit(
         functools.partial(_estimator_eval, graphdef, rest, rig_train, rig_infer, config.loss_power)
     )
-
-    n_train = len(train_xy)
-    batch = min(tcfg.batch_size, n_train)
 
     def epoch_batches(epoch):
         for idx in shuffled_batches(n_train, batch, tcfg.seed, epoch):
@@ -510,7 +513,7 @@ def train_estimator(
         if resume and checkpoints is not None:
             state, best_state, best = resume_state(checkpoints, state, run_config)
         result = fit(
-            state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=math.ceil(n_train / batch),
+            state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
             checkpoints=checkpoints, run_config=run_config, desc="estimator", progress=progress,
             best_val_loss=best, best_state=best_state,
         )  # fmt: skip
@@ -604,8 +607,6 @@ class MatcherConfig:
       num_dev_samples: composed validation frames, drawn once from the dev recordings.
       subset_probability: share of samples that keep only a random subset of the views.
       min_views: the smallest view subset kept by augmentation.
-      final_lr_fraction: 1.0 keeps the step size constant (the paper); below 1 it follows a cosine
-        decay to this fraction of ``train.learning_rate`` at the last step (shorter CPU runs).
     """
 
     cameras: tuple[str, ...] | None = None
@@ -616,7 +617,6 @@ class MatcherConfig:
     num_dev_samples: int = 300
     subset_probability: float = 0.5
     min_views: int = 2
-    final_lr_fraction: float = 1.0
 
     @property
     def steps_per_epoch(self) -> int:
@@ -681,7 +681,7 @@ def train_matcher(
 
     K = train_recordings[0].num_keypoints
     model = MatchingGAT(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
-    tx = matcher_optimizer(config)
+    tx = make_optimizer(config.train, config.steps_per_epoch)
     graphdef, rest, state = init_train_state(model, tx)
     step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
     eval_batch = jax.jit(functools.partial(_matcher_eval, graphdef, rest))
@@ -716,23 +716,13 @@ def load_matcher(directory: str | Path, rig: Rig, config: MatcherConfig, num_key
     """Restores a matcher saved by `train_matcher` (``config`` must be the one it was trained with)."""
     rig_infer = rig.select(list(config.cameras or rig.names))
     model = MatchingGAT(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
-    graphdef, rest, state = init_train_state(model, matcher_optimizer(config))
+    graphdef, rest, state = init_train_state(model, make_optimizer(config.train, config.steps_per_epoch))
     checkpoints = Checkpoints(directory)
     try:
         state, _ = checkpoints.restore(jax.eval_shape(lambda: state), which)
     finally:
         checkpoints.close()
     return Matcher(graphdef, rest, state.params, rig_infer, config)
-
-
-def matcher_optimizer(config: MatcherConfig) -> optax.GradientTransformation:
-    """`make_optimizer`, with the optional cosine decay of ``config.final_lr_fraction``."""
-    tcfg = config.train
-    if config.final_lr_fraction >= 1.0:
-        return make_optimizer(tcfg)
-    total = tcfg.max_steps or tcfg.max_epochs * config.steps_per_epoch
-    schedule = optax.cosine_decay_schedule(tcfg.learning_rate, total, alpha=config.final_lr_fraction)
-    return optax.chain(optax.clip_by_global_norm(tcfg.clip_norm), optax.adam(schedule))
 
 
 def _matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:

@@ -39,7 +39,7 @@ def test_small_paper_style_mlp_fits_a_small_set(clean_samples, tmp_path):
     rig, xy, score = clean_samples
     cfg = EstimatorConfig(
         num_augment=0, mlp=MLPConfig(widths=(128, 128)),  # the paper's absolute output
-        train=TrainConfig(learning_rate=3e-3, cosine_decay=True, max_steps=1500, batch_size=64,
+        train=TrainConfig(learning_rate=3e-3, final_lr_fraction=0.01, max_steps=1500, batch_size=64,
                           eval_every=100, patience=100),
     )  # fmt: skip
     est, res = train_estimator(rig, xy, score, xy, score, cfg, checkpoint_dir=tmp_path / "ckpt", progress=False)
