@@ -9,18 +9,21 @@ of shapes, not one per frame.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, rig_centre_and_radius
+from mvpose_jax.cameras import Rig, rig_centre_and_radius, undistort_points
+from mvpose_jax.errors import InputError
 from mvpose_jax.features import assemble_features, estimator_inputs
+from mvpose_jax.graphs import GraphBatch, build_graphs, detection_features, match_table
 from mvpose_jax.models import to_world
-from mvpose_jax.skeletons import Poses3D
-from mvpose_jax.train import Estimator
-from mvpose_jax.triangulate import triangulate_pairwise_centroid, triangulate_points
+from mvpose_jax.skeletons import Detections, Poses3D
+from mvpose_jax.train import Estimator, Matcher
+from mvpose_jax.triangulate import camera_pairs, triangulate_pairwise_centroid, triangulate_points
 
 MIN_BUCKET = 16
 
@@ -133,14 +136,6 @@ def _confidence(score: np.ndarray) -> np.ndarray:
 # A "match table" is the common currency of the learned and the geometric matcher: rows
 # ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` (M, 5) and their scores (M,).
 
-from typing import NamedTuple  # noqa: E402
-
-from mvpose_jax.cameras import undistort_points  # noqa: E402
-from mvpose_jax.graphs import GraphBatch, build_graphs, detection_features, match_table  # noqa: E402
-from mvpose_jax.errors import InputError  # noqa: E402
-from mvpose_jax.skeletons import Detections  # noqa: E402
-from mvpose_jax.train import Matcher  # noqa: E402
-from mvpose_jax.triangulate import camera_pairs  # noqa: E402
 
 FRAMES_PER_CALL = 32
 

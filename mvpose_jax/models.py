@@ -12,9 +12,11 @@ import math
 
 import jax
 import jax.numpy as jnp
+import jraph
 from flax import nnx
 
 from mvpose_jax.features import NUM_ESTIMATOR_FEATURES
+from mvpose_jax.graphs import DETECTION, MATCH, GraphBatch
 
 PAPER_MLP_WIDTHS = (3072, 3072, 2048, 2048, 1024, 1024, 1024)
 
@@ -137,9 +139,6 @@ def count_params(params) -> int:
 # =========================================================================== skeleton matching GAT
 # (DESIGN.md §1.2; graphs come from `mvpose_jax.graphs`.)
 
-import jraph  # noqa: E402  (the matching section's own imports)
-
-from mvpose_jax.graphs import DETECTION, MATCH, GraphBatch  # noqa: E402
 
 PAPER_GAT_WIDTHS = (40, 40, 40, 30, 1)
 PAPER_GAT_HEADS = (10, 10, 8, 5, 1)

@@ -30,10 +30,12 @@ import optax
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
+from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
-from mvpose_jax.losses import masked_mean, reprojection_error_l1
-from mvpose_jax.models import MLPConfig, PoseMLP, to_world
+from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches
+from mvpose_jax.losses import masked_mean, match_mse, reprojection_error_l1
+from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP, to_world
 
 
 class TrainState(NamedTuple):
@@ -581,10 +583,6 @@ def _jsonable(value):
 # =========================================================================== skeleton matching
 # (DESIGN.md §1.2) Self-supervised: labels come from composing single-person recordings.
 
-from mvpose_jax.data.recording import Recording  # noqa: E402
-from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches  # noqa: E402
-from mvpose_jax.losses import match_mse  # noqa: E402
-from mvpose_jax.models import GATConfig, MatchingGAT  # noqa: E402
 
 # The paper's matcher optimisation: Adam 1e-4, 15 graphs per batch, validation every 5 epochs,
 # early stop after 5 checks without improvement. (Gradient clipping at 10 is ours; it only acts
