@@ -7,6 +7,7 @@ Bad input ends with a one-line error naming the file, frame, camera and field (e
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -238,6 +239,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MvposeError as e:
         print(f"mvpose-jax {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader went away (`mvpose-jax rig | head`): not our error; silence the final flush.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":
