@@ -78,7 +78,10 @@ def summary_markdown(s: dict) -> str:
         f"false positives; each person is detected in {s['people_detected_per_view_percent']}% of views, "
         f"with {s['keypoints_detected_per_true_skeleton']} of 18 keypoints on average.",
         "",
-        "Triangulation baseline on the true person groupings (the learned models come with later issues):",
+        "Triangulation baseline on the true person groupings (the end-to-end run with the learned",
+        "models joins this job with the pipeline; `python -m experiments.estimator` and",
+        "`python -m experiments.matching` train and measure each stage today). AP and recall count a",
+        "pose missing a keypoint as wrong; MPJPE is over the reconstructed keypoints.",
         "",
         "| variant | method | MPJPE (mm) | mAP | mR | PCP | completeness (%) |",
         "|---|---|---|---|---|---|---|",
