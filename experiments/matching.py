@@ -128,6 +128,14 @@ def run_setup(name: str, sc: Scale, seed: int, progress: bool, quick: bool) -> d
         ms = 1000 * (time.perf_counter() - t0) / F
         scores_ = matching_scores(truth, proposals.identity, np.asarray(det.count))
         out[method] = {**{k: round(v, 5) for k, v in scores_.items()}, "ms_per_frame": round(ms, 3)}
+        # Diagnostic only (chosen on the test set, so never a reported result): how the proposal
+        # threshold trades joining against splitting.
+        out[method]["ari_by_threshold"] = {
+            str(th): round(matching_scores(truth, propose_people(rows, scores, det.count, num_skeletons=P,
+                                                                 threshold=th).identity,
+                                           np.asarray(det.count))["ari"], 5)
+            for th in (0.2, 0.3, 0.4, 0.5, 0.6)
+        }  # fmt: skip
     return out
 
 
