@@ -50,13 +50,17 @@ def predict_people(estimator: Estimator, xy: np.ndarray, score: np.ndarray) -> n
     Returns:
       (N, K, 3) metres: every keypoint, seen or not.
     """
-    n = len(xy)
-    size = bucket_size(n)
-    pad = [(0, size - n)] + [(0, 0)] * (np.ndim(xy) - 1)
-    xy_p = jnp.asarray(np.pad(np.asarray(xy, np.float32), pad))
-    score_p = jnp.asarray(np.pad(np.asarray(score, np.float32), pad[:-1]))
+    xy_p, score_p = _pad_people(xy, score)
     out = _predict(estimator.graphdef, estimator.rest, estimator.params, estimator.rig_infer, xy_p, score_p)
-    return np.asarray(out)[:n]
+    return np.asarray(out)[: len(xy)]
+
+
+def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[jax.Array, jax.Array]:
+    """(N, C, K, 2) / (N, C, K) zero-padded to `bucket_size(N)` people, as float32 device arrays."""
+    n = len(xy)
+    pad = [(0, bucket_size(n) - n)] + [(0, 0)] * (np.ndim(xy) - 1)
+    return (jnp.asarray(np.pad(np.asarray(xy, np.float32), pad)),
+            jnp.asarray(np.pad(np.asarray(score, np.float32), pad[:-1])))  # fmt: skip
 
 
 def triangulate_people(
@@ -72,13 +76,9 @@ def triangulate_people(
       xyz (N, K, 3) and keypoint_valid (N, K): which keypoints two or more views reconstructed.
     """
     fn = {"centroid": triangulate_pairwise_centroid, "dlt": triangulate_points}[method]
-    n = len(xy)
-    size = bucket_size(n)
-    pad = [(0, size - n)] + [(0, 0)] * (np.ndim(xy) - 1)
-    xy_c = jnp.moveaxis(jnp.asarray(np.pad(np.asarray(xy, np.float32), pad)), 1, 0)
-    score_c = jnp.moveaxis(jnp.asarray(np.pad(np.asarray(score, np.float32), pad[:-1])), 1, 0)
-    xyz, ok = fn(rig, xy_c, score_c)
-    return np.asarray(xyz)[:n], np.asarray(ok)[:n]
+    xy_p, score_p = _pad_people(xy, score)
+    xyz, ok = fn(rig, jnp.moveaxis(xy_p, 1, 0), jnp.moveaxis(score_p, 1, 0))
+    return np.asarray(xyz)[: len(xy)], np.asarray(ok)[: len(xy)]
 
 
 def poses_from_people(
@@ -101,12 +101,10 @@ def estimate_grouped(
       (poses, confidence (F, G): the mean detection score of the person's keypoints).
     """
     F, G, C, K = score.shape
-    views = (score > 0).any(axis=-1).sum(axis=-1)  # (F, G)
-    exists = views >= min(min_views, C)
-    flat_xy, flat_score = xy[exists], score[exists]
+    exists = _present(score, min_views)
     out = np.zeros((F, G, K, 3), np.float32)
     if exists.any():
-        out[exists] = predict_people(estimator, flat_xy, flat_score)
+        out[exists] = predict_people(estimator, xy[exists], score[exists])
     poses = poses_from_people(out, np.ones((F, G, K), bool), exists)
     return poses, _confidence(score)
 
@@ -116,14 +114,19 @@ def triangulate_grouped(
 ) -> tuple[Poses3D, np.ndarray]:
     """The triangulation baseline for grouped people (same grouping as `estimate_grouped`)."""
     F, G, C, K = score.shape
-    views = (score > 0).any(axis=-1).sum(axis=-1)
-    exists = views >= min(min_views, C)
+    exists = _present(score, min_views)
     out = np.zeros((F, G, K, 3), np.float32)
     kv = np.zeros((F, G, K), bool)
     if exists.any():
         out[exists], kv[exists] = triangulate_people(rig, xy[exists], score[exists], method)
     exists = exists & kv.any(axis=-1)
     return poses_from_people(out, kv, exists), _confidence(score)
+
+
+def _present(score: np.ndarray, min_views: int) -> np.ndarray:
+    """(F, G) people with a skeleton in at least ``min_views`` views (all, with fewer cameras)."""
+    views = (score > 0).any(axis=-1).sum(axis=-1)
+    return views >= min(min_views, score.shape[-2])
 
 
 def _confidence(score: np.ndarray) -> np.ndarray:
