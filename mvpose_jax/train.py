@@ -700,7 +700,8 @@ def train_matcher(
     try:
         result = fit(
             state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
-            checkpoints=checkpoints, run_config=_jsonable(dataclasses.asdict(config)), desc="matcher",
+            checkpoints=checkpoints, run_config={**_jsonable(dataclasses.asdict(config)), "num_keypoints": K},
+            desc="matcher",
             progress=progress,
         )  # fmt: skip
     finally:
@@ -709,9 +710,35 @@ def train_matcher(
     return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
 
 
-def load_matcher(directory: str | Path, rig: Rig, config: MatcherConfig, num_keypoints: int,
-                 which: str = "best") -> Matcher:  # fmt: skip
-    """Restores a matcher saved by `train_matcher` (``config`` must be the one it was trained with)."""
+def matcher_config_from_dict(d: dict) -> MatcherConfig:
+    """Rebuilds a `MatcherConfig` from its saved JSON form (`dataclasses.asdict`)."""
+    try:
+        gat = GATConfig(**{**d["gat"], "widths": tuple(d["gat"]["widths"]), "heads": tuple(d["gat"]["heads"])})
+        fields = {f.name for f in dataclasses.fields(MatcherConfig)} - {"cameras", "gat", "train"}
+        return MatcherConfig(cameras=None if d["cameras"] is None else tuple(d["cameras"]), gat=gat,
+                             train=TrainConfig(**d["train"]), **{k: d[k] for k in fields if k in d})  # fmt: skip
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"not a matcher config ({e})", field="config") from None
+
+
+def load_matcher(directory: str | Path, rig: Rig, config: MatcherConfig | None = None,
+                 num_keypoints: int | None = None, which: str = "best") -> Matcher:  # fmt: skip
+    """Restores a matcher saved by `train_matcher`.
+
+    ``config`` and ``num_keypoints`` default to those saved with the checkpoint (checkpoints of
+    older runs lack the keypoint count and need it passed).
+    """
+    if config is None or num_keypoints is None:
+        checkpoints = Checkpoints(directory)
+        try:
+            saved = checkpoints.read_config(which)
+        finally:
+            checkpoints.close()
+        config = config or matcher_config_from_dict(saved)
+        if num_keypoints is None:
+            if "num_keypoints" not in saved:
+                raise InputError("checkpoint config lacks num_keypoints; pass it", file=directory, field="config")
+            num_keypoints = int(saved["num_keypoints"])
     rig_infer = rig.select(list(config.cameras or rig.names))
     model = MatchingGAT(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
     graphdef, rest, state = init_train_state(model, make_optimizer(config.train, config.steps_per_epoch))
