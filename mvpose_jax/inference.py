@@ -9,6 +9,8 @@ of shapes, not one per frame.
 from __future__ import annotations
 
 import functools
+import time
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import jax
@@ -84,8 +86,15 @@ def triangulate_people(
 def poses_from_people(
     xyz: np.ndarray, keypoint_valid: np.ndarray, exists: np.ndarray
 ) -> Poses3D:
-    """Packs per-person results (F, G, K, 3) / (F, G, K) / (F, G) into `Poses3D` (numpy)."""
-    kv = keypoint_valid & exists[..., None]
+    """Packs per-person results (F, G, K, 3) / (F, G, K) / (F, G) into `Poses3D` (numpy).
+
+    The one gate every 3D result leaves through: a non-finite keypoint (degenerate geometry) is
+    flagged invalid and zeroed, and a person left with no valid keypoint does not exist, so no
+    NaN or inf ever leaves inference.
+    """
+    xyz = np.asarray(xyz)
+    kv = keypoint_valid & exists[..., None] & np.isfinite(xyz).all(axis=-1)
+    exists = exists & kv.any(axis=-1)
     return Poses3D(np.where(kv[..., None], xyz, 0.0).astype(np.float32), exists.astype(bool), kv.astype(bool))
 
 
@@ -385,3 +394,191 @@ def propose_geometric(rig: Rig, detections: Detections, *, threshold: float = 0.
     return propose_people(rows, scores, np.asarray(detections.count), num_skeletons=np.shape(detections.score)[2],
                           threshold=threshold, min_views=min_views)  # fmt: skip
 
+
+
+# =========================================================================== the pipeline
+# Detections of many frames -> match scores -> proposals -> per-person inputs -> 3D poses.
+# Frames go through in chunks: every stage is batched over a chunk (padded, so a long recording
+# compiles a handful of shapes), and memory is bounded by the chunk, not the recording.
+
+
+class PipelineResult(NamedTuple):
+    """3D people of F frames and the detections each was built from.
+
+    poses: `Poses3D` with xyz (F, G, K, 3) metres, valid (F, G), keypoint_valid (F, G, K); G is
+      the most people in any frame (padded; ``valid`` says which exist).
+    confidence: (F, G) mean detection score of each person's keypoints.
+    members: (F, G, C) int32: each person's skeleton index in each proposal camera, -1 none.
+    identity: (F, C, P) int32: the person of each detected skeleton, -1 none.
+    cameras: the proposal cameras (the C axis of ``members`` and ``identity``).
+    seconds: wall time of each stage over all frames, {"proposals": s, "poses": s}.
+    """
+
+    poses: Poses3D
+    confidence: np.ndarray
+    members: np.ndarray
+    identity: np.ndarray
+    cameras: tuple[str, ...]
+    seconds: dict[str, float]
+
+
+def group_people(xy: np.ndarray, score: np.ndarray, members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gathers each proposed person's skeletons: xy (F, C, P, K, 2), score (F, C, P, K) and
+    members (F, G, C) -> xy (F, G, C, K, 2), score (F, G, C, K) (zeros where a person has no
+    skeleton in a camera)."""
+    F, C, P, K = np.shape(score)
+    f = np.arange(F)[:, None, None]
+    c = np.arange(C)[None, None, :]
+    p = np.maximum(members, 0)
+    have = members >= 0
+    return (np.where(have[..., None, None], np.asarray(xy)[f, c, p], 0.0).astype(np.float32),
+            np.where(have[..., None], np.asarray(score)[f, c, p], 0.0).astype(np.float32))  # fmt: skip
+
+
+def poses_of_members(
+    rig: Rig,
+    detections: Detections,
+    members: np.ndarray,
+    *,
+    estimator: Estimator | None = None,
+    method: str = "dlt",
+    min_views: int = 2,
+) -> tuple[Poses3D, np.ndarray]:
+    """The 3D stage on given person groupings (proposals, or any other).
+
+    Args:
+      rig: the C cameras of the detections and of ``members``.
+      detections: xy (F, C, P, K, 2), score (F, C, P, K).
+      members: (F, G, C) each person's skeleton index per camera, -1 none.
+      estimator: 3D from it, on its inference cameras (found by name in ``rig``); None:
+        triangulation (``method`` "dlt" or "centroid") of keypoints seen in 2+ views.
+      min_views: a person needs skeletons in this many (inference) views.
+    Returns:
+      (`Poses3D` (F, G, ...), confidence (F, G)).
+    """
+    p_xy, p_score = group_people(detections.xy, detections.score, members)
+    if estimator is None:
+        return triangulate_grouped(rig, p_xy, p_score, method, min_views)
+    idx = _camera_columns(rig.names, estimator.rig_infer.names, "the estimator's inference")
+    return estimate_grouped(estimator, p_xy[:, :, idx], p_score[:, :, idx], min_views)
+
+
+def _camera_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
+    missing = [c for c in wanted if c not in names]
+    if missing:
+        raise InputError(f"{what} cameras {missing} are not among the detections' cameras {list(names)}",
+                         field="cameras")  # fmt: skip
+    return [list(names).index(c) for c in wanted]
+
+
+def stream_pipeline(
+    rig: Rig,
+    detections: Detections,
+    *,
+    matcher: Matcher | None = None,
+    estimator: Estimator | None = None,
+    method: str = "dlt",
+    threshold: float = 0.5,
+    min_views: int = 2,
+    half_score_px: float = 30.0,
+    chunk_frames: int = 256,
+    progress: bool = False,
+) -> Iterator[tuple[int, PipelineResult]]:
+    """The pipeline over a recording, one chunk of frames at a time: yields (first frame, result).
+
+    Args:
+      rig: the cameras of the detections, in their order (``rig.names``).
+      detections: xy (F, C, P, K, 2) pixels, score (F, C, P, K), count (F, C).
+      matcher: proposals from this learned matcher, on its cameras (``matcher.rig.names``); None:
+        the geometric matcher (symmetric epipolar distance, ``half_score_px``) on every camera.
+      estimator: 3D from this estimator, on its inference cameras (a subset of the proposal
+        cameras); None: triangulation of every keypoint seen in 2+ views (``method`` "dlt" or
+        "centroid", the paper's pairwise centroid).
+      threshold, min_views: the proposal step (`propose_people`).
+      chunk_frames: frames per chunk (memory is bounded by it).
+    """
+    from tqdm.auto import tqdm
+
+    xy = np.asarray(detections.xy, np.float32)
+    score = np.asarray(detections.score, np.float32)
+    count = np.asarray(detections.count)
+    if xy.shape[1] != rig.num_cameras:
+        raise InputError(f"detections have {xy.shape[1]} cameras, the rig {rig.num_cameras}", field="cameras")
+    prop_cams = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
+    prop_idx = _camera_columns(rig.names, prop_cams, "the matcher's")
+    prop_rig = rig.select(list(prop_cams))
+    if estimator is not None:
+        _camera_columns(prop_cams, estimator.rig_infer.names, "the estimator's inference")
+    elif method not in ("dlt", "centroid"):
+        raise ValueError(f"method must be 'dlt' or 'centroid', not {method!r}")
+    F = len(count)
+    bar = tqdm(total=F, desc="pipeline", unit="frame", disable=not progress, dynamic_ncols=True)
+    try:
+        for start in range(0, F, chunk_frames):
+            stop = min(F, start + chunk_frames)
+            det = Detections(xy[start:stop, prop_idx], score[start:stop, prop_idx], count[start:stop, prop_idx])
+            t0 = time.perf_counter()
+            if matcher is not None:
+                proposals = propose_with_matcher(matcher, det, threshold=threshold, min_views=min_views)
+            else:
+                proposals = propose_geometric(prop_rig, det, threshold=threshold, min_views=min_views,
+                                              half_score_px=half_score_px)  # fmt: skip
+            members = _members_table(proposals, stop - start, len(prop_cams))
+            t1 = time.perf_counter()
+            poses, conf = poses_of_members(prop_rig, det, members, estimator=estimator, method=method,
+                                           min_views=min_views)  # fmt: skip
+            t2 = time.perf_counter()
+            # A person is kept only where the 3D stage produced one; its members say so too.
+            members = np.where(poses.valid[..., None], members, -1).astype(np.int32)
+            identity = _identity_from_members(members, det.score.shape[:3])
+            yield start, PipelineResult(poses, conf, members, identity, prop_cams,
+                                        {"proposals": t1 - t0, "poses": t2 - t1})  # fmt: skip
+            bar.update(stop - start)
+    finally:
+        bar.close()
+
+
+def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
+    """`stream_pipeline` over a whole recording, its chunks joined (people padded to the most in
+    any frame). Takes the same arguments."""
+    parts = [r for _, r in stream_pipeline(rig, detections, **kwargs)]
+    if not parts:
+        F, C, P, K = np.shape(detections.score)
+        cams = tuple(kwargs["matcher"].rig.names) if kwargs.get("matcher") is not None else tuple(rig.names)
+        return PipelineResult(Poses3D(np.zeros((0, 1, K, 3), np.float32), np.zeros((0, 1), bool),
+                                      np.zeros((0, 1, K), bool)), np.zeros((0, 1), np.float32),
+                              np.zeros((0, 1, len(cams)), np.int32), np.zeros((0, len(cams), P), np.int32),
+                              cams, {"proposals": 0.0, "poses": 0.0})  # fmt: skip
+    return concat_results(parts)
+
+
+def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
+    """Joins consecutive chunks' results along the frame axis (people padded to the largest G)."""
+    G = max(1, max(r.poses.valid.shape[1] for r in parts))
+
+    def pad(a, fill=0):
+        a = np.asarray(a)
+        return np.pad(a, [(0, 0), (0, G - a.shape[1])] + [(0, 0)] * (a.ndim - 2), constant_values=fill)
+
+    cat = lambda get, fill=0: np.concatenate([pad(get(r), fill) for r in parts])  # noqa: E731
+    poses = Poses3D(cat(lambda r: r.poses.xyz), cat(lambda r: r.poses.valid), cat(lambda r: r.poses.keypoint_valid))
+    seconds = {k: float(sum(r.seconds[k] for r in parts)) for k in parts[0].seconds}
+    return PipelineResult(poses, cat(lambda r: r.confidence), cat(lambda r: r.members, -1),
+                          np.concatenate([r.identity for r in parts]), parts[0].cameras, seconds)  # fmt: skip
+
+
+def _members_table(proposals: Proposals, num_frames: int, num_cameras: int) -> np.ndarray:
+    """`Proposals.people` (per frame, ragged) as one (F, G, C) table, -1 padded."""
+    G = max([1] + [len(p) for p in proposals.people])
+    table = np.full((num_frames, G, num_cameras), -1, np.int32)
+    for f, people in enumerate(proposals.people):
+        table[f, : len(people)] = people
+    return table
+
+
+def _identity_from_members(members: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """(F, G, C) members -> (F, C, P) person of each skeleton (-1 none)."""
+    identity = np.full(shape, -1, np.int32)
+    f, g, c = np.nonzero(members >= 0)
+    identity[f, c, members[f, g, c]] = g
+    return identity
