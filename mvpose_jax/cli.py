@@ -223,6 +223,242 @@ def _train_estimator(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- infer / evaluate / render
+
+
+def _load_detections(args: argparse.Namespace, rig):
+    """The recording of ``--detections`` (any format; an OpenPose folder too) on the rig's cameras."""
+    from mvpose_jax.data import load_recording
+    from mvpose_jax.data.formats import select_cameras
+
+    kwargs = {}
+    if getattr(args, "missing_frames", None):
+        kwargs["missing_frames"] = args.missing_frames
+    rec = load_recording(args.detections, layout=args.layout, rig=rig, **kwargs)
+    if getattr(args, "cameras", None):
+        rec = select_cameras(rec, args.cameras)
+    return rec, rig.select(list(rec.cameras))
+
+
+def _detection_arguments(p: argparse.ArgumentParser) -> None:
+    add_rig_argument(p, default=None)
+    p.add_argument("--detections", required=True,
+                   help="2D detections: native JSON, the original repository's JSON, .npz, or an OpenPose "
+                   "folder (one subfolder per camera of per-frame *_keypoints.json, BODY_25 or COCO)")  # fmt: skip
+    p.add_argument("--layout", default=None,
+                   help="keypoint layout to work in (default: the file's; coco18 for OpenPose and the original format)")
+    p.add_argument("--missing-frames", choices=("error", "empty"), default=None,
+                   help="OpenPose folders: a frame missing in some cameras is an error (default) or empty there")
+
+
+def _infer_arguments(p: argparse.ArgumentParser) -> None:
+    _detection_arguments(p)
+    p.add_argument("--cameras", nargs="+", help="use only these cameras of the recording (default: all)")
+    p.add_argument("--matcher", help="folder of a trained matcher (train-matcher --out); default: the geometric "
+                   "matcher (symmetric epipolar distance) on every camera")  # fmt: skip
+    p.add_argument("--estimator", help="folder of a trained estimator (train-estimator --out); default: "
+                   "triangulation of the keypoints seen in 2+ views")  # fmt: skip
+    p.add_argument("--method", choices=("dlt", "centroid"), default="dlt",
+                   help="triangulation without --estimator: score-weighted DLT, or the paper's pairwise centroid")
+    p.add_argument("--threshold", type=float, default=0.5, help="proposals: least match score to join two skeletons")
+    p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
+    p.add_argument("--half-score-px", type=float, default=30.0,
+                   help="geometric matcher: epipolar distance (px) that scores 0.5")
+    p.add_argument("--chunk-frames", type=int, default=256, help="frames per batch (bounds memory)")
+    p.add_argument("--out", required=True, help="output folder: poses.json and poses.npz")
+
+
+@command(
+    "infer",
+    "3D poses from a calibration and 2D detections: matching, proposals, estimator or triangulation.",
+    _infer_arguments,
+)
+def _infer(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.data.poses import PoseResults, save_poses
+    from mvpose_jax.inference import run_pipeline
+    from mvpose_jax.train import load_estimator, load_matcher
+
+    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
+    rec, rig = _load_detections(args, rig_all)
+    matcher = load_matcher(args.matcher, rig) if args.matcher else None
+    estimator = load_estimator(args.estimator, rig) if args.estimator else None
+    if args.chunk_frames < 1:
+        raise InputError("must be at least 1", field="--chunk-frames")
+    res = run_pipeline(rig, rec.detections, matcher=matcher, estimator=estimator, method=args.method,
+                       threshold=args.threshold, min_views=args.min_views, half_score_px=args.half_score_px,
+                       chunk_frames=args.chunk_frames, progress=True)  # fmt: skip
+    out = PoseResults(res.poses, res.confidence, res.members, res.identity, res.cameras, rec.layout, rec.timestamps)
+    npz_path, json_path = save_poses(out, args.out)
+    F = len(res.confidence)
+    people = int(np.asarray(res.poses.valid).sum())
+    print(f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame); proposals "
+          f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
+          f"ms/frame; wrote {json_path} and {npz_path}")  # fmt: skip
+    return 0
+
+
+def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
+    _detection_arguments(p)
+    p.add_argument("--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer")
+    p.add_argument("--out", help="also write the metrics to this JSON file")
+
+
+@command(
+    "evaluate",
+    "Score 3D poses: MPJPE, AP, recall, PCP and matching against ground truth when the recording has "
+    "it; reprojection error per camera always.",
+    _evaluate_arguments,
+)
+def _evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.data.files import atomic_write_text
+    from mvpose_jax.data.poses import load_poses
+    from mvpose_jax.inference import group_people
+    from mvpose_jax.metrics import matching_scores, pose_metrics, reprojection_errors
+
+    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
+    poses = load_poses(args.poses)
+    args.cameras = list(poses.cameras)
+    rec, rig = _load_detections(args, rig_all)
+    if rec.layout != poses.layout:
+        raise InputError(f"poses are in layout {poses.layout!r}, the detections in {rec.layout!r}; pass --layout",
+                         file=args.poses, field="layout")  # fmt: skip
+    F = rec.num_frames
+    if len(poses.confidence) != F or poses.identity.shape[2] > np.shape(rec.detections.score)[2]:
+        raise InputError(f"poses have {len(poses.confidence)} frames and {poses.identity.shape[2]} skeletons per "
+                         f"view; the detections {F} and {np.shape(rec.detections.score)[2]}",
+                         file=args.poses, field="frames")  # fmt: skip
+    out = {"frames": F, "people": int(poses.poses.valid.sum())}
+    if rec.ground_truth is not None:
+        out["pose"] = pose_metrics(poses.poses, rec.ground_truth, layout=rec.layout, confidence=poses.confidence)
+    if rec.identity is not None:
+        P = np.shape(rec.detections.score)[2]
+        ident = np.pad(poses.identity, [(0, 0), (0, 0), (0, P - poses.identity.shape[2])], constant_values=-1)
+        out["matching"] = matching_scores(np.asarray(rec.identity), ident, np.asarray(rec.detections.count))
+    p_xy, p_sc = group_people(rec.detections.xy, rec.detections.score, poses.members)
+    v = np.asarray(poses.poses.valid)
+    out["reprojection_px"] = reprojection_errors(rig, poses.poses.xyz[v], poses.poses.keypoint_valid[v], p_xy[v], p_sc[v])
+    lines = [f"{F} frames, {out['people']} people"]
+    if "pose" in out:
+        m = out["pose"]
+        lines.append(f"3D vs ground truth: MPJPE {m['mpjpe_mm']:.2f} mm, mAP {m['map']:.2f}, mean recall "
+                     f"{m['mean_recall']:.2f}, PCP {m['pcp']:.2f}, completeness {m['completeness']:.2f} %")  # fmt: skip
+    if "matching" in out:
+        m = out["matching"]
+        lines.append(f"matching vs true identities: ARI {m['ari']:.4f}, H {m['homogeneity']:.4f}, "
+                     f"C {m['completeness']:.4f}, Vm {m['v_measure']:.4f}")  # fmt: skip
+    lines.append("reprojection error (px, mean / median / keypoints):")
+    for cam, e in out["reprojection_px"].items():
+        lines.append(f"  {cam:>12s}  {e['mean']:8.2f} / {e['median']:8.2f} / {int(e['count'])}")
+    print("\n".join(lines))
+    if args.out:
+        atomic_write_text(args.out, json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+def _render_arguments(p: argparse.ArgumentParser) -> None:
+    _detection_arguments(p)
+    p.add_argument("--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer")
+    p.add_argument("--out", required=True, help="output folder (per-frame PNGs, figures) or an .mp4 file")
+    p.add_argument("--frames", type=int, nargs="+", help="frames to draw (default: every --every-th frame)")
+    p.add_argument("--every", type=int, default=1, help="draw every N-th frame (default 1)")
+    p.add_argument("--images", help="folder of the camera images (the recording's image names, relative to it); "
+                   "default: a white canvas")  # fmt: skip
+    p.add_argument("--scale", type=float, default=0.5, help="size of each camera view (default 0.5)")
+    p.add_argument("--fps", type=float, default=25.0, help="frame rate of an .mp4")
+    p.add_argument("--figures-3d", action="store_true", help="also a 3D skeleton figure per frame (folder output)")
+
+
+@command(
+    "render",
+    "Draw 3D poses over each camera's view (detections thin, reprojected people thick, one colour "
+    "per person) as images or an mp4, and 3D skeleton figures.",
+    _render_arguments,
+)
+def _render(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.data.poses import load_poses
+    from mvpose_jax.render import VideoWriter, draw_view, save_figure, skeleton_figure, tile, write_image
+
+    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
+    poses = load_poses(args.poses)
+    args.cameras = list(poses.cameras)
+    rec, rig = _load_detections(args, rig_all)
+    F = rec.num_frames
+    if len(poses.confidence) != F:
+        raise InputError(f"poses have {len(poses.confidence)} frames, the detections {F}", file=args.poses,
+                         field="frames")  # fmt: skip
+    if args.every < 1 or args.scale <= 0:
+        raise InputError("--every must be >= 1 and --scale > 0", field="--every/--scale")
+    frames = args.frames if args.frames else list(range(0, F, args.every))
+    bad = [f for f in frames if not 0 <= f < F]
+    if bad:
+        raise InputError(f"frames {bad} are outside 0..{F - 1}", frame=bad[0], field="--frames")
+    out = Path(args.out)
+    video = out.suffix.lower() == ".mp4"
+    xy, score = np.asarray(rec.detections.xy), np.asarray(rec.detections.score)
+    count = np.asarray(rec.detections.count)
+    P = poses.identity.shape[2]
+
+    def image_of(f, c):
+        if not args.images or rec.image_names is None:
+            return None
+        path = Path(args.images) / str(rec.image_names[f, c])
+        img = cv2.imread(str(path))
+        if img is None:
+            raise InputError("cannot read this image", file=path, frame=f, camera=rec.cameras[c])
+        return img
+
+    def picture(f):
+        v = poses.poses.valid[f]
+        views = []
+        for c in range(len(rec.cameras)):
+            n = int(count[f, c])
+            ident = poses.identity[f, c, :n] if n <= P else np.full(n, -1)
+            xyz = np.where(v[:, None, None], poses.poses.xyz[f], np.nan)
+            views.append(draw_view(rig, c, rec.layout, image=image_of(f, c), detections=(xy[f, c, :n], score[f, c, :n]),
+                                   identity=ident, xyz=xyz, keypoint_valid=poses.poses.keypoint_valid[f] & v[:, None],
+                                   scale=args.scale))  # fmt: skip
+        img = tile(views)
+        cv2.putText(img, f"frame {f}", (8, img.shape[0] - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (40, 40, 40), 1, cv2.LINE_AA)
+        return img
+
+    written = 0
+    if video:
+        with VideoWriter(out, args.fps) as writer:
+            for f in tqdm(frames, desc="render", unit="frame"):
+                writer.write(picture(f))
+                written += 1
+        print(f"wrote {written} frames to {out}")
+        return 0
+    for f in tqdm(frames, desc="render", unit="frame"):
+        write_image(out / f"frame_{f:06d}.png", picture(f))
+        if args.figures_3d:
+            v = poses.poses.valid[f]
+            panels = {"ours": (poses.poses.xyz[f][v], poses.poses.keypoint_valid[f][v])}
+            if rec.ground_truth is not None:
+                gv = np.asarray(rec.ground_truth.valid[f])
+                panels = {"ground truth": (np.asarray(rec.ground_truth.xyz[f])[gv],
+                                           np.asarray(rec.ground_truth.keypoint_valid[f])[gv]), **panels}  # fmt: skip
+            save_figure(skeleton_figure(panels, rec.layout, rig=rig, title=f"frame {f}"), out / f"frame_{f:06d}_3d.png")
+        written += 1
+    print(f"wrote {written} frames to {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mvpose-jax", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

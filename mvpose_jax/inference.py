@@ -20,7 +20,7 @@ from flax import nnx
 
 from mvpose_jax.cameras import Rig, rig_centre_and_radius, undistort_points
 from mvpose_jax.errors import InputError
-from mvpose_jax.features import assemble_features, estimator_inputs
+from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estimator_inputs
 from mvpose_jax.graphs import GraphBatch, build_graphs, detection_features, match_table
 from mvpose_jax.models import to_world
 from mvpose_jax.skeletons import Detections, Poses3D
@@ -507,6 +507,11 @@ def stream_pipeline(
     prop_cams = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
     prop_idx = _camera_columns(rig.names, prop_cams, "the matcher's")
     prop_rig = rig.select(list(prop_cams))
+    K = xy.shape[3]
+    for what, model, k_of in (("matcher", matcher, _matcher_keypoints), ("estimator", estimator, _estimator_keypoints)):
+        if model is not None and k_of(model) != K:
+            raise InputError(f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
+                             "(convert the layout)", field="keypoints")  # fmt: skip
     if estimator is not None:
         _camera_columns(prop_cams, estimator.rig_infer.names, "the estimator's inference")
     elif method not in ("dlt", "centroid"):
@@ -565,6 +570,15 @@ def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
     seconds = {k: float(sum(r.seconds[k] for r in parts)) for k in parts[0].seconds}
     return PipelineResult(poses, cat(lambda r: r.confidence), cat(lambda r: r.members, -1),
                           np.concatenate([r.identity for r in parts]), parts[0].cameras, seconds)  # fmt: skip
+
+
+def _estimator_keypoints(estimator: Estimator) -> int:
+    return nnx.merge(estimator.graphdef, estimator.params, estimator.rest).num_keypoints
+
+
+def _matcher_keypoints(matcher: Matcher) -> int:
+    model = nnx.merge(matcher.graphdef, matcher.params, matcher.rest)
+    return (model.in_dim - 2) // (matcher.rig.num_cameras * NUM_KEYPOINT_FEATURES)
 
 
 def _members_table(proposals: Proposals, num_frames: int, num_cameras: int) -> np.ndarray:
