@@ -77,9 +77,10 @@ def draw_view(
     thin = max(1, round(2 * scale))
 
     def draw(pts, seen, colour, width, radius):
-        pts = np.round(pts * [sx, sy]).astype(np.int64)
-        # Points far outside the image would overflow OpenCV's int coordinates.
+        pts = np.asarray(pts, np.float64) * [sx, sy]
+        # Points far outside the image (or not finite) would overflow OpenCV's int coordinates.
         seen = seen & (np.abs(pts) < 1 << 20).all(-1)
+        pts = np.round(np.where(seen[:, None], pts, 0.0)).astype(np.int64)
         for a, b in lay.bones:
             if seen[a] and seen[b]:
                 cv2.line(canvas, tuple(map(int, pts[a])), tuple(map(int, pts[b])), colour, width, cv2.LINE_AA)

@@ -1,0 +1,129 @@
+"""The user-facing commands infer, evaluate and render, on every detection format."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from mvpose_jax.cli import main
+from mvpose_jax.data import load_recording, save_openpose, save_recording
+from mvpose_jax.data.calibration import load_rig, save_rig
+from mvpose_jax.data.poses import load_poses
+from mvpose_jax.data.synthetic import generate_recording
+
+
+@pytest.fixture(scope="module")
+def recording():
+    return generate_recording(load_rig("panoptic5"), num_people=2, num_frames=4, seed=11)
+
+
+@pytest.fixture(scope="module")
+def files(recording, tmp_path_factory):
+    """The recording in every input format the tools read."""
+    root = tmp_path_factory.mktemp("formats")
+    paths = {
+        "native": root / "scene.json",
+        "npz": root / "scene.npz",
+        "original": root / "scene_original.json",
+        "openpose": root / "openpose",
+    }
+    save_recording(recording, paths["native"])
+    save_recording(recording, paths["npz"])
+    save_recording(recording, paths["original"], format="original")
+    save_openpose(recording, paths["openpose"])
+    return paths
+
+
+@pytest.mark.parametrize("fmt", ["native", "npz", "original", "openpose"])
+def test_infer_reads_every_format(files, recording, fmt, tmp_path, capsys):
+    out = tmp_path / "poses"
+    assert main(["infer", "--rig", "panoptic5", "--detections", str(files[fmt]), "--out", str(out)]) == 0
+    assert "frames" in capsys.readouterr().out
+    res = load_poses(out / "poses.npz")
+    doc = json.loads((out / "poses.json").read_text())
+    F = recording.num_frames
+    assert doc["format"] == "mvpose-jax.poses" and len(doc["frames"]) == F
+    assert res.poses.xyz.shape[0] == F and res.poses.valid.any()
+    # The JSON and the npz say the same.
+    from_json = load_poses(out / "poses.json")
+    np.testing.assert_array_equal(from_json.poses.valid[:, : res.poses.valid.shape[1]], res.poses.valid)
+    np.testing.assert_allclose(from_json.poses.xyz[:, : res.poses.valid.shape[1]], res.poses.xyz, atol=1e-4)
+    assert sum(len(f["people"]) for f in doc["frames"]) == int(res.poses.valid.sum())
+    person = next(p for f in doc["frames"] for p in f["people"])
+    assert set(person["skeletons"]) <= set(recording.cameras) and len(person["keypoints"]) == 18
+
+
+def test_infer_with_a_calibration_file_and_evaluate(files, recording, tmp_path, capsys):
+    calib = tmp_path / "rig.json"
+    save_rig(load_rig("panoptic5"), calib)
+    out = tmp_path / "poses"
+    assert main(["infer", "--rig", str(calib), "--detections", str(files["native"]), "--out", str(out),
+                 "--method", "centroid"]) == 0  # fmt: skip
+    metrics = tmp_path / "metrics.json"
+    assert main(["evaluate", "--rig", str(calib), "--detections", str(files["native"]), "--poses", str(out),
+                 "--out", str(metrics)]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    assert "MPJPE" in text and "ARI" in text and "trackera" in text
+    m = json.loads(metrics.read_text())
+    assert 0 < m["pose"]["mpjpe_mm"] < 60
+    assert m["matching"]["ari"] > 0.9
+    assert all(v["count"] > 0 for v in m["reprojection_px"].values())
+
+
+def test_evaluate_without_ground_truth_gives_reprojection_only(files, recording, tmp_path, capsys):
+    bare = tmp_path / "bare.json"
+    rec = load_recording(files["native"])
+    import dataclasses
+
+    save_recording(dataclasses.replace(rec, ground_truth=None, identity=None, projected=None), bare)
+    out = tmp_path / "poses"
+    assert main(["infer", "--rig", "panoptic5", "--detections", str(bare), "--out", str(out)]) == 0
+    assert main(["evaluate", "--rig", "panoptic5", "--detections", str(bare), "--poses", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "reprojection error" in text and "MPJPE" not in text
+
+
+def test_render_writes_images_video_and_3d_figures(files, tmp_path, capsys):
+    out = tmp_path / "poses"
+    assert main(["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out", str(out)]) == 0
+    pics = tmp_path / "render"
+    assert main(["render", "--rig", "panoptic5", "--detections", str(files["npz"]), "--poses", str(out),
+                 "--frames", "0", "2", "--figures-3d", "--out", str(pics)]) == 0  # fmt: skip
+    names = sorted(p.name for p in pics.iterdir())
+    assert names == ["frame_000000.png", "frame_000000_3d.png", "frame_000002.png", "frame_000002_3d.png"]
+    img = cv2.imread(str(pics / "frame_000000.png"))
+    assert img is not None and img.shape[0] > 100 and (img < 200).any(), "something was drawn"
+    video = tmp_path / "poses.mp4"
+    assert main(["render", "--rig", "panoptic5", "--detections", str(files["npz"]), "--poses", str(out),
+                 "--out", str(video)]) == 0  # fmt: skip
+    cap = cv2.VideoCapture(str(video))
+    frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    cap.release()
+    assert frames == 4
+
+
+def test_bad_input_is_one_clear_line(files, tmp_path, capsys):
+    out = tmp_path / "poses"
+    assert main(["infer", "--rig", "panoptic5", "--detections", str(tmp_path / "missing.json"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "missing.json" in err and "Traceback" not in err
+    assert not out.exists()
+    assert main(["render", "--rig", "panoptic5", "--detections", str(files["npz"]), "--poses", str(tmp_path),
+                 "--out", str(tmp_path / "r")]) == 2  # fmt: skip
+    assert "poses.npz" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["infer", "evaluate", "render", "train-matcher", "train-estimator", "generate", "rig"])
+def test_every_command_explains_every_option(name, capsys):
+    with pytest.raises(SystemExit):
+        main([name, "--help"])
+    text = capsys.readouterr().out
+    import re
+
+    options = set(re.findall(r"(--[a-z0-9-]+)", text.split("options:")[1]))
+    for opt in options - {"--help"}:
+        # every option is followed by some help text somewhere after its first mention
+        assert re.search(re.escape(opt) + r"[^\n]*\n?\s+\S", text), opt
