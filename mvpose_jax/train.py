@@ -5,6 +5,19 @@ Shape of every model's training (STYLE.md §4): an explicit `TrainState` pytree;
 ``eval_every`` epochs, stops after ``patience`` checks without improvement, keeps the best
 parameters, and checkpoints best and latest with orbax (the only orbax import in the package).
 
+Data parallelism (``TrainConfig.num_devices``, `parallel`): the batch is split along a ``"data"``
+mesh axis, parameters and optimiser state are replicated. The estimator's batch has a leading
+sample axis and is split as it is. A matcher batch is many graphs concatenated (edges index
+global nodes, so its node axis cannot be cut anywhere): it is split by whole graphs into one
+padded batch per device (`split_graph_batch`), stacked on a leading device axis, and the
+per-device loss is vmapped (`stacked_loss_fn`); the loss is the masked mean over every device's
+items, the same number as on the whole batch.
+
+Resuming (`fit`, `Checkpoints`, `resume_state`): the latest state is checkpointed every
+``checkpoint_every_steps`` steps and at each validation, with the loop's own state (`FitProgress`:
+data-stream position, best validation loss, early-stopping counter, history), so a killed run
+resumed from its folder ends with the parameters an uninterrupted run ends with.
+
 The 3D estimator's training (DESIGN.md §1.3) is `train_estimator`: inputs from the inference
 cameras C_i, reprojection loss over all training cameras C_t, view-subset augmentation inside the
 step (each seed sample gets ``num_augment`` derived samples with random non-empty proper subsets
@@ -33,9 +46,10 @@ from mvpose_jax.cameras import Rig, rig_centre_and_radius
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
-from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches
+from mvpose_jax.graphs import GraphBatch, graph_budget, make_pool, sample_batches
 from mvpose_jax.losses import masked_mean, match_mse, reprojection_error_l1
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP, to_world
+from mvpose_jax.parallel import make_data_mesh, mesh_size, replicate, replicated, shard_batch
 
 
 class TrainState(NamedTuple):
@@ -61,6 +75,17 @@ class TrainConfig:
       seed: seeds initialisation, shuffling and augmentation.
       final_lr_fraction: 1.0 keeps the step size constant (the paper); below 1 it decays on a
         cosine to this fraction of ``learning_rate`` at the last step (shorter CPU runs).
+      num_devices: None (default): one device, no mesh. n >= 1: data-parallel over the first n
+        devices (of every process, `parallel.make_data_mesh`): the batch is split over them,
+        parameters and optimiser state are replicated. The estimator needs ``batch_size``
+        divisible by n; the matcher splits its graphs as evenly as they go.
+      checkpoint_every_steps: with a checkpoint folder, also save the latest state every this
+        many steps (besides each validation), so a killed run loses at most this many steps;
+        0: only at validations.
+      max_to_keep: latest checkpoints kept (older ones are deleted after a newer one is written).
+
+    ``num_devices``, ``checkpoint_every_steps`` and ``max_to_keep`` change how a run is executed,
+    not what it computes: a resumed run may change them (and its length), nothing else.
     """
 
     learning_rate: float = 1e-4
@@ -72,6 +97,9 @@ class TrainConfig:
     patience: int = 20
     seed: int = 0
     final_lr_fraction: float = 1.0
+    num_devices: int | None = None
+    checkpoint_every_steps: int = 500
+    max_to_keep: int = 3
 
 
 def make_optimizer(config: TrainConfig, steps_per_epoch: int = 1) -> optax.GradientTransformation:
@@ -92,15 +120,22 @@ def init_train_state(model: nnx.Module, tx: optax.GradientTransformation):
     return graphdef, rest, jax.device_put(state)
 
 
-def make_train_step(graphdef, rest, tx, loss_fn: Callable):
-    """A jitted ``(state, batch) -> (state, metrics)``.
+def make_train_step(graphdef, rest, tx, loss_fn: Callable, *, mesh: jax.sharding.Mesh | None = None):
+    """A jitted ``(state, batch, key) -> (state, metrics)``.
 
     ``loss_fn(model, batch, key) -> (per_item, mask, metrics)``: unreduced losses and their mask;
     the step reduces them with `masked_mean`. ``key`` is folded from the step, so a resumed run
     draws the same randomness as an uninterrupted one.
-    """
 
-    @functools.partial(jax.jit, donate_argnums=0)
+    With a ``mesh`` (`parallel.make_data_mesh`), pass a replicated state and a batch split along
+    the data axis (`parallel.replicate`, `parallel.shard_batch`): the compiler partitions the
+    step from those shardings (each device its block, one all-reduce of the gradients). The new
+    state and the metrics come back replicated, so the next call has the same input shardings
+    and the step compiles once.
+    """
+    out_shardings = None if mesh is None else replicated(mesh)
+
+    @functools.partial(jax.jit, donate_argnums=0, out_shardings=out_shardings)
     def train_step(state: TrainState, batch, base_key):
         key = jax.random.fold_in(base_key, state.step)
 
@@ -118,81 +153,156 @@ def make_train_step(graphdef, rest, tx, loss_fn: Callable):
     return train_step
 
 
+def stacked_loss_fn(loss_fn: Callable) -> Callable:
+    """Lifts ``loss_fn(model, batch, key)`` to S batches stacked on a leading axis (one per device).
+
+    The per-item losses and masks come back (S, ...), so the step's `masked_mean` runs over the
+    items of every shard: the loss of the whole global batch, whatever the split. Shard s draws
+    its randomness from ``fold_in(key, s)``. Each scalar metric is averaged over shards weighted
+    by their masked-in item counts (exact for metrics that are masked means over the loss mask,
+    such as the matcher's accuracy).
+    """
+
+    def lifted(model, batch, key):
+        num = jax.tree.leaves(batch)[0].shape[0]
+        per_item, mask, aux = jax.vmap(lambda b, s: loss_fn(model, b, jax.random.fold_in(key, s)))(
+            batch, jnp.arange(num)
+        )
+        weight = mask.reshape(num, -1).sum(axis=1).astype(jnp.float32)  # (S,)
+        aux = {k: jnp.sum(v * weight) / jnp.maximum(jnp.sum(weight), 1.0) for k, v in aux.items()}
+        return per_item, mask, aux
+
+    return lifted
+
+
 # --------------------------------------------------------------------------- checkpoints
 
 
 class Checkpoints:
     """Best and latest checkpoints of a run (orbax), each with the run's config as JSON.
 
-    ``directory/best`` keeps the state with the lowest validation loss, ``directory/latest`` the
-    newest; both are written atomically by orbax (temporary folder, then rename).
+    ``directory/best`` keeps the state with the lowest validation loss; ``directory/latest`` the
+    ``max_to_keep`` newest states, each with the fit loop's own state (`FitProgress`, item
+    ``fit``) so that a run continues exactly. Every checkpoint is written atomically by orbax (a
+    temporary folder, renamed when complete): a run killed while saving leaves the previous
+    checkpoints intact. Reading a damaged or mismatched checkpoint raises `InputError`.
     """
 
-    def __init__(self, directory: str | Path):
+    def __init__(self, directory: str | Path, *, max_to_keep: int = 3):
         import orbax.checkpoint as ocp
 
         self._ocp = ocp
         self.directory = Path(directory).absolute()
         opts = dict(enable_async_checkpointing=False)
+        # Handlers named up front (not only item names): the state's array metadata can then be
+        # read before a restore, to refuse another model's checkpoint without reading its arrays.
+        handlers = lambda *json_items: {"state": ocp.StandardCheckpointHandler(),  # noqa: E731
+                                        **{k: ocp.JsonCheckpointHandler() for k in json_items}}  # fmt: skip
         self.best = ocp.CheckpointManager(
             self.directory / "best",
             options=ocp.CheckpointManagerOptions(
                 max_to_keep=1, best_fn=lambda m: m["val_loss"], best_mode="min", **opts
             ),
-            item_names=("state", "config"),
+            item_handlers=handlers("config"),
         )
         self.latest = ocp.CheckpointManager(
             self.directory / "latest",
-            options=ocp.CheckpointManagerOptions(max_to_keep=1, **opts),
-            item_names=("state", "config"),
+            options=ocp.CheckpointManagerOptions(max_to_keep=max(1, max_to_keep), **opts),
+            item_handlers=handlers("config", "fit"),
         )
 
-    def _args(self, state, config):
+    def _args(self, state, config, progress=None):
         ocp = self._ocp
-        return ocp.args.Composite(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config))
+        items = dict(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config))
+        if progress is not None:
+            items["fit"] = ocp.args.JsonSave(progress)
+        return ocp.args.Composite(**items)
 
-    def save_latest(self, state: TrainState, config: dict) -> None:
-        self.latest.save(int(state.step), args=self._args(state, config), force=True)
+    def save_latest(self, state: TrainState, config: dict, progress: dict | None = None) -> None:
+        """Saves ``state`` (and the fit loop's ``progress``, `FitProgress.to_json`) as the newest."""
+        step = int(state.step)
+        if step in self.latest.all_steps():
+            self.latest.delete(step)  # the newer call knows more (e.g. the validation it just ran)
+        self.latest.save(step, args=self._args(state, config, progress), force=True)
 
     def save_best(self, state: TrainState, config: dict, val_loss: float) -> None:
-        self.best.save(
-            int(state.step), args=self._args(state, config), metrics={"val_loss": float(val_loss)}, force=True
-        )
+        step = int(state.step)
+        if step in self.best.all_steps():
+            return  # a resumed run passing the step again: the same state (runs are deterministic)
+        self.best.save(step, args=self._args(state, config), metrics={"val_loss": float(val_loss)}, force=True)
 
-    def restore(self, abstract_state: TrainState, which: str = "best") -> tuple[TrainState, dict]:
-        """Restores ``which`` ("best" or "latest") against an abstract target."""
+    def restore(
+        self, abstract_state: TrainState, which: str = "best", step: int | None = None
+    ) -> tuple[TrainState, dict]:
+        """Restores ``which`` ("best" or "latest"; its newest, or ``step``) against an abstract target.
+
+        Raises:
+          InputError when there is no such checkpoint, it holds another model (shapes differ) or
+          it cannot be read (damaged files).
+        """
         ocp = self._ocp
-        manager = self.best if which == "best" else self.latest
-        step = manager.best_step() if which == "best" else manager.latest_step()
-        if step is None:
-            raise InputError(f"no {which} checkpoint", file=self.directory / which)
-        try:
-            out = manager.restore(
-                step,
-                args=ocp.args.Composite(
-                    state=ocp.args.StandardRestore(abstract_state), config=ocp.args.JsonRestore()
-                ),
-            )
-        except (ValueError, KeyError, TypeError, FileNotFoundError) as e:
-            raise InputError(
-                f"checkpoint does not match this model or is damaged ({type(e).__name__}: {e})",
-                file=self.directory / which / str(step),
-            ) from None
-        return jax.device_put(out.state), dict(out.config)
+        manager, step = self._step(which, step)
+        self._check_shapes(manager, step, which, abstract_state)
+        args = ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state), config=ocp.args.JsonRestore())
+        out = self._read(manager, step, which, args)
+        state = out.state
+        if all(getattr(a, "sharding", None) is None for a in jax.tree.leaves(abstract_state)):
+            state = jax.device_put(state)  # committed, like `init_train_state` (no recompile)
+        return state, dict(out.config)
 
-    def read_config(self, which: str = "best") -> dict:
+    def read_config(self, which: str = "best", step: int | None = None) -> dict:
         """The run config saved with the ``which`` checkpoint (to rebuild the model first)."""
-        ocp = self._ocp
-        manager = self.best if which == "best" else self.latest
-        step = manager.best_step() if which == "best" else manager.latest_step()
-        if step is None:
-            raise InputError(f"no {which} checkpoint", file=self.directory / which)
-        out = manager.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+        manager, step = self._step(which, step)
+        out = self._read(manager, step, which, self._ocp.args.Composite(config=self._ocp.args.JsonRestore()))
         return dict(out.config)
+
+    def read_progress(self, step: int | None = None) -> dict | None:
+        """The fit loop's state saved with a latest checkpoint (None: a checkpoint without one)."""
+        manager, step = self._step("latest", step)
+        if not (self.directory / "latest" / str(step) / "fit").exists():
+            return None
+        out = self._read(manager, step, "latest", self._ocp.args.Composite(fit=self._ocp.args.JsonRestore()))
+        return dict(out.fit)
 
     def close(self) -> None:
         self.best.close()
         self.latest.close()
+
+    def _step(self, which: str, step: int | None):
+        manager = self.best if which == "best" else self.latest
+        if step is None:
+            step = manager.best_step() if which == "best" else manager.latest_step()
+        if step is None:
+            raise InputError(f"no {which} checkpoint", file=self.directory / which)
+        return manager, step
+
+    def _check_shapes(self, manager, step: int, which: str, abstract_state) -> None:
+        try:
+            meta = manager.item_metadata(step)["state"]
+            saved = {_path_names(p): tuple(m.shape) for p, m in jax.tree_util.tree_flatten_with_path(meta)[0]
+                     if hasattr(m, "shape")}  # fmt: skip
+        except Exception:  # unreadable metadata: the restore itself reports the damage
+            return
+        wanted = {_path_names(p): tuple(a.shape) for p, a in jax.tree_util.tree_flatten_with_path(abstract_state)[0]}
+        if not saved or saved == wanted:
+            return
+        diff = [f"{'.'.join(k)}: checkpoint {saved.get(k, 'absent')}, model {wanted.get(k, 'absent')}"
+                for k in sorted(set(saved) | set(wanted), key=lambda k: (k[0] != "params", k))  # params first
+                if saved.get(k) != wanted.get(k)]  # fmt: skip
+        raise InputError(f"checkpoint holds another model ({'; '.join(diff[:3])}{'; ...' if len(diff) > 3 else ''})",
+                         file=self.directory / which / str(step))  # fmt: skip
+
+    def _read(self, manager, step: int, which: str, args):
+        try:
+            return manager.restore(step, args=args)
+        except Exception as e:  # orbax and tensorstore raise bare Exception on damaged files
+            detail = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else ''}"
+            if "not compatible with the stored shape" in str(e):
+                reason = "checkpoint holds another model (array shapes differ; "
+            else:
+                reason = "checkpoint is damaged or unreadable ("
+                reason += "" if which == "best" else "delete this step's folder to use the one before; "
+            raise InputError(f"{reason}{detail})", file=self.directory / which / str(step)) from e
 
 
 # --------------------------------------------------------------------------- the fit loop
@@ -209,6 +319,60 @@ class FitResult:
     steps: int
 
 
+@dataclasses.dataclass(frozen=True)
+class FitProgress:
+    """The fit loop's own state, saved (as JSON) with every latest checkpoint.
+
+    With the `TrainState` (step, parameters, optimiser state) it is everything a run needs to go
+    on exactly as if never stopped: batches are deterministic from (seed, epoch) and skipped up
+    to ``index``; the step's randomness is folded from the step.
+
+    Attributes:
+      step: the train state's step when saved (a consistency check).
+      epoch, index: the data-stream position of the NEXT batch (epoch, index within the epoch).
+      seed: ``TrainConfig.seed``, the seed of the data stream and of the step's randomness.
+      best_val_loss: the lowest validation loss so far (inf: none yet).
+      best_step: the step of that validation (its state is the ``best`` checkpoint).
+      bad_checks: validations since the last improvement (early stopping).
+      history: one record per validation so far.
+      train_metrics: per-step training metrics of the current epoch so far (they are averaged
+        into the next validation record).
+      seconds: training time so far.
+    """
+
+    step: int
+    epoch: int
+    index: int
+    seed: int
+    best_val_loss: float = math.inf
+    best_step: int | None = None
+    bad_checks: int = 0
+    history: tuple[dict[str, float], ...] = ()
+    train_metrics: tuple[dict[str, float], ...] = ()
+    seconds: float = 0.0
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["best_val_loss"] = None if math.isinf(self.best_val_loss) else self.best_val_loss  # JSON has no inf
+        d["history"], d["train_metrics"] = list(self.history), list(self.train_metrics)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> FitProgress:
+        """Raises `InputError` on a malformed record (a damaged checkpoint)."""
+        try:
+            best = d["best_val_loss"]
+            return cls(
+                step=int(d["step"]), epoch=int(d["epoch"]), index=int(d["index"]), seed=int(d["seed"]),
+                best_val_loss=math.inf if best is None else float(best),
+                best_step=None if d["best_step"] is None else int(d["best_step"]),
+                bad_checks=int(d["bad_checks"]), history=tuple(dict(h) for h in d["history"]),
+                train_metrics=tuple(dict(m) for m in d["train_metrics"]), seconds=float(d["seconds"]),
+            )  # fmt: skip
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(f"checkpoint's fit state is malformed ({type(e).__name__}: {e})", field="fit") from None
+
+
 def fit(
     state: TrainState,
     train_step: Callable,
@@ -223,6 +387,7 @@ def fit(
     progress: bool = True,
     best_val_loss: float = math.inf,
     best_state: TrainState | None = None,
+    resume_from: FitProgress | None = None,
 ) -> FitResult:
     """Trains until ``max_epochs``/``max_steps`` or early stopping; returns the best state.
 
@@ -231,14 +396,17 @@ def fit(
       train_step: a jitted ``(state, batch, key) -> (state, metrics)`` (`make_train_step`).
       epoch_batches: ``epoch -> iterable of batches`` (deterministic given the epoch).
       evaluate: ``state -> {"val_loss": ..., ...}`` on held-out data.
-      steps_per_epoch: for the progress bar.
-      checkpoints: where to save best and latest (optional).
+      steps_per_epoch: batches per epoch.
+      checkpoints: where to save best and latest (optional): latest every
+        ``config.checkpoint_every_steps`` steps and at each validation, best on improvement.
       run_config: JSON-able config saved with every checkpoint.
       best_val_loss, best_state: the best so far (when resuming; default: none yet).
+      resume_from: the loop state saved with the checkpoint ``state`` comes from (`resume_state`):
+        the run goes on exactly as if never interrupted. Without it, a state whose step is not 0
+        continues at the batch its step implies, with a fresh history and patience.
 
-    A state whose step is not 0 (a restored checkpoint) continues where it stopped: the epoch's
-    batches are deterministic and the step's randomness is folded from the step, so the run
-    goes on as if never interrupted (early-stopping patience restarts from zero).
+    Raises:
+      InputError when ``resume_from`` belongs to another step than ``state``.
     """
     from tqdm.auto import tqdm
 
@@ -246,25 +414,48 @@ def fit(
     max_steps = config.max_steps or config.max_epochs * steps_per_epoch
     total = min(max_steps, config.max_epochs * steps_per_epoch)
     best_state = jax.tree.map(jnp.copy, state if best_state is None else best_state)
-    best, bad_checks, history = best_val_loss, 0, []
     step = int(state.step)
-    first_epoch, skip = divmod(step, steps_per_epoch)
-    start = time.perf_counter()
+    if resume_from is None:
+        resume_from = FitProgress(step, *divmod(step, steps_per_epoch), seed=config.seed, best_val_loss=best_val_loss)
+    if resume_from.step != step or resume_from.seed != config.seed:
+        raise InputError(f"fit state of step {resume_from.step} (seed {resume_from.seed}) does not go with a train "
+                         f"state of step {step} (seed {config.seed})", field="fit")  # fmt: skip
+    first_epoch, skip = resume_from.epoch, resume_from.index
+    best, best_step, bad_checks = best_val_loss, resume_from.best_step, resume_from.bad_checks
+    history = [dict(h) for h in resume_from.history]
+    every = config.checkpoint_every_steps
+    last_saved = step  # the starting point is on disk already (or trivial)
+    start = time.perf_counter() - resume_from.seconds
+
+    def progress_at(epoch: int, index: int, train_metrics: list) -> dict:
+        # Floats, in place: later saves and the epoch's mean need no further transfers.
+        train_metrics[:] = [{k: float(v) for k, v in m.items()} for m in train_metrics]
+        return FitProgress(step, epoch, index, config.seed, best, best_step, bad_checks, tuple(history),
+                           tuple(train_metrics), time.perf_counter() - start).to_json()  # fmt: skip
+
     bar = tqdm(total=total, initial=min(step, total), desc=desc, unit="step", disable=not progress,
                dynamic_ncols=True)  # fmt: skip
     try:
         for epoch in range(first_epoch, config.max_epochs):
-            if step >= max_steps:
-                break
-            train_metrics = []
+            if step >= max_steps or bad_checks >= config.patience:
+                break  # (a resumed run that had stopped early stays stopped)
+            train_metrics = [dict(m) for m in resume_from.train_metrics] if epoch == first_epoch else []
+            next_index, exhausted = 0, True
             for i, batch in enumerate(epoch_batches(epoch)):
                 if epoch == first_epoch and i < skip:
                     continue  # done before the interruption
+                if checkpoints is not None and every and step % every == 0 and step != last_saved:
+                    # Saved before running batch i, never between a step and its epoch's
+                    # validation: every checkpoint is a point the loop can resume from as is.
+                    checkpoints.save_latest(state, run_config or {}, progress_at(epoch, i, train_metrics))
+                    last_saved = step
                 state, metrics = train_step(state, batch, base_key)
                 train_metrics.append(metrics)
                 step += 1
+                next_index = i + 1
                 bar.update(1)
                 if step >= max_steps:
+                    exhausted = False
                     break
             stop = step >= max_steps
             if train_metrics and ((epoch + 1) % config.eval_every == 0 or stop):
@@ -275,14 +466,18 @@ def fit(
                 history.append(record)
                 improved = record["val_loss"] < best
                 if improved:
-                    best, bad_checks = record["val_loss"], 0
+                    best, best_step, bad_checks = record["val_loss"], step, 0
                     best_state = jax.tree.map(jnp.copy, state)
                     if checkpoints is not None:
+                        # Best before latest: a kill between the two leaves a latest from before
+                        # this step, and the resumed run reaches (and improves at) it again.
                         checkpoints.save_best(state, run_config or {}, best)
                 else:
                     bad_checks += 1
                 if checkpoints is not None:
-                    checkpoints.save_latest(state, run_config or {})
+                    position = (epoch + 1, 0) if exhausted else (epoch, next_index)
+                    checkpoints.save_latest(state, run_config or {}, progress_at(*position, train_metrics))
+                    last_saved = step
                 bar.set_postfix(loss=f"{record['train_loss']:.4g}", val=f"{record['val_loss']:.4g}",
                                 best=f"{best:.4g}")  # fmt: skip
                 if bad_checks >= config.patience:
@@ -294,36 +489,79 @@ def fit(
     return FitResult(best_state, best, history, time.perf_counter() - start, step)
 
 
-def resume_state(
-    checkpoints: Checkpoints, state: TrainState, run_config: dict
-) -> tuple[TrainState, TrainState, float]:
-    """(latest state, best state, best validation loss) of an interrupted run, or the fresh
-    ``state`` (twice) and inf when the folder has no checkpoint yet.
+class Resumed(NamedTuple):
+    """What `resume_state` hands to `fit`."""
+
+    state: TrainState  # the latest state (or the fresh one)
+    best_state: TrainState  # the best so far (or the latest / fresh one when there is none)
+    best_val_loss: float  # inf: no validation yet
+    progress: FitProgress | None  # the loop state (None: fresh, or a checkpoint without one)
+
+
+def resume_state(checkpoints: Checkpoints, state: TrainState, run_config: dict) -> Resumed:
+    """The latest state of an interrupted run with its loop state and best state, or the fresh
+    ``state`` when the folder has no checkpoint yet.
+
+    ``state`` may be replicated over a mesh: the restored states come back with its shardings.
 
     Raises:
       InputError when the checkpoint was written by a run with another config (a different
-      model or data would make "resuming" a silent restart of something else). Only the
-      length of training (max_steps, max_epochs) may change, to extend a run.
+      model or data would make "resuming" a silent restart of something else), or cannot be
+      read (damaged). Only the length of training (max_steps, max_epochs) and how it is executed
+      (num_devices, checkpoint cadence) may change.
     """
-    if checkpoints.latest.latest_step() is None:
-        return state, state, math.inf
+    step = checkpoints.latest.latest_step()
+    if step is None:
+        return Resumed(state, state, math.inf, None)
     saved = _without_length(checkpoints.read_config("latest"))
     wanted = _without_length(run_config)
     if saved != wanted:
         diff = sorted(k for k in set(saved) | set(wanted) if saved.get(k) != wanted.get(k))
-        raise InputError(f"checkpoint was written with another config (differs in {diff}); "
+        train = sorted(k for k in set(saved.get("train", {})) | set(wanted.get("train", {}))
+                       if saved.get("train", {}).get(k) != wanted.get("train", {}).get(k))  # fmt: skip
+        where = diff if diff != ["train"] else [f"train.{k}" for k in train]
+        raise InputError(f"checkpoint was written with another config (differs in {where}); "
                          "use another folder or the same settings", file=checkpoints.directory)  # fmt: skip
-    abstract = jax.eval_shape(lambda: state)
-    latest, _ = checkpoints.restore(abstract, "latest")
-    if checkpoints.best.best_step() is None:
-        return latest, latest, math.inf
-    best, _ = checkpoints.restore(abstract, "best")
-    return latest, best, float(checkpoints.best.metrics(checkpoints.best.best_step())["val_loss"])
+    abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=_sharding_of(a)), state)
+    latest, _ = checkpoints.restore(abstract, "latest", step)
+    raw = checkpoints.read_progress(step)
+    if raw is None:  # a checkpoint of an older version: position from the step, fresh patience
+        if checkpoints.best.best_step() is None:
+            return Resumed(latest, latest, math.inf, None)
+        best, _ = checkpoints.restore(abstract, "best")
+        return Resumed(latest, best, float(checkpoints.best.metrics(checkpoints.best.best_step())["val_loss"]), None)
+    try:
+        progress = FitProgress.from_json(raw)
+    except InputError as e:
+        raise e.at(file=checkpoints.directory / "latest" / str(step)) from None
+    if progress.best_step is not None and progress.best_step in checkpoints.best.all_steps():
+        best, _ = checkpoints.restore(abstract, "best", progress.best_step)
+    else:
+        # No validation yet, or the run was killed between saving a new best and the latest:
+        # the best on disk is then newer than the latest, and the resumed run reaches that step
+        # (and improves at it) again before it can end, so the latest is only a placeholder.
+        best = jax.tree.map(jnp.copy, latest)
+    return Resumed(latest, best, progress.best_val_loss, progress)
+
+
+def _path_names(path) -> tuple[str, ...]:
+    """A pytree path as plain names (attribute, key or index), comparable across containers."""
+    return tuple(str(getattr(k, "name", getattr(k, "key", getattr(k, "idx", k)))) for k in path)
+
+
+def _sharding_of(a):
+    sharding = getattr(a, "sharding", None)
+    # Only mesh shardings travel to the restore target: a single-device array restores as today.
+    return sharding if isinstance(sharding, jax.sharding.NamedSharding) else None
+
+
+# Keys of TrainConfig that say how a run is executed, not what it computes.
+_EXECUTION_KEYS = ("max_steps", "max_epochs", "num_devices", "checkpoint_every_steps", "max_to_keep")
 
 
 def _without_length(config: dict) -> dict:
     config = json.loads(json.dumps(_jsonable(config)))  # tuples -> lists, as saved
-    for key in ("max_steps", "max_epochs"):
+    for key in _EXECUTION_KEYS:
         config.get("train", {}).pop(key, None)
     return config
 
@@ -464,9 +702,13 @@ def train_estimator(
         order of ``config.train_cameras``; train_score, dev_score: (N, C_t, K).
       config: `EstimatorConfig`.
       checkpoint_dir: where best and latest checkpoints go (optional).
-      resume: continue from the latest checkpoint in ``checkpoint_dir`` (same config required).
+      resume: continue from the latest checkpoint in ``checkpoint_dir`` (same config required),
+        exactly where it stopped.
     Returns:
       (the best `Estimator`, the `FitResult`).
+    Raises:
+      InputError on cameras missing from the rig, a batch size that does not split over
+      ``config.train.num_devices``, or (resuming) a checkpoint of another config or a damaged one.
     """
     train_names = config.train_cameras or rig.names
     infer_names = config.infer_cameras or train_names
@@ -490,34 +732,43 @@ def train_estimator(
     n_train = len(train_xy)
     batch = min(tcfg.batch_size, n_train)
     steps_per_epoch = math.ceil(n_train / batch)
+    mesh = _mesh(tcfg)
+    if mesh is not None and batch % mesh_size(mesh):
+        raise InputError(f"batch size {batch} does not split over {mesh_size(mesh)} devices; use a multiple of "
+                         f"{mesh_size(mesh)}", field="batch_size")  # fmt: skip
     model = PoseMLP(len(infer_idx), K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
     tx = make_optimizer(tcfg, steps_per_epoch)
     graphdef, rest, state = init_train_state(model, tx)
     loss_fn = estimator_loss_fn(rig_train, rig_infer, config.num_augment, config.loss_power)
-    step = make_train_step(graphdef, rest, tx, loss_fn)
+    step = make_train_step(graphdef, rest, tx, loss_fn, mesh=mesh)
     eval_loss = jax.jit(
         functools.partial(_estimator_eval, graphdef, rest, rig_train, rig_infer, config.loss_power)
     )
+    if mesh is not None:
+        state = replicate(mesh, state)
+        dev_data = replicate(mesh, dev_data)  # evaluated whole on each device (it is small)
 
     def epoch_batches(epoch):
         for idx in shuffled_batches(n_train, batch, tcfg.seed, epoch):
-            yield jax.tree.map(lambda a: a[idx], train_data)
+            samples = jax.tree.map(lambda a: a[idx], train_data)
+            # The global batch (the same on every host), split over the devices.
+            yield samples if mesh is None else shard_batch(mesh, samples)
 
     def evaluate(state):
         return {k: float(v) for k, v in eval_loss(state.params, dev_data).items()}
 
-    checkpoints = Checkpoints(checkpoint_dir) if checkpoint_dir is not None else None
+    checkpoints = _checkpoints(checkpoint_dir, tcfg)
     run_config = _jsonable(dataclasses.asdict(config))
     # What restoring needs beyond the config: the resolved cameras and the keypoint count.
     run_config.update(train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K))
     try:
-        best_state, best = None, math.inf
+        resumed = Resumed(state, None, math.inf, None)
         if resume and checkpoints is not None:
-            state, best_state, best = resume_state(checkpoints, state, run_config)
+            resumed = resume_state(checkpoints, state, run_config)
         result = fit(
-            state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
+            resumed.state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
             checkpoints=checkpoints, run_config=run_config, desc="estimator", progress=progress,
-            best_val_loss=best, best_state=best_state,
+            best_val_loss=resumed.best_val_loss, best_state=resumed.best_state, resume_from=resumed.progress,
         )  # fmt: skip
     finally:
         if checkpoints is not None:
@@ -570,6 +821,20 @@ def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, da
     ok = data.available.any(-1)
     n_kp = jnp.maximum((data.score > 0).sum(axis=(1, 2)), 1)
     return {"val_loss": masked_mean(err**loss_power, ok), "val_px_per_keypoint": masked_mean(err / n_kp, ok)}
+
+
+def _mesh(config: TrainConfig) -> jax.sharding.Mesh | None:
+    """The data-parallel mesh of ``config.num_devices`` (None: one device, no mesh)."""
+    if config.num_devices is None:
+        return None
+    try:
+        return make_data_mesh(config.num_devices)
+    except ValueError as e:
+        raise InputError(str(e), field="num_devices") from None
+
+
+def _checkpoints(directory: str | Path | None, config: TrainConfig) -> Checkpoints | None:
+    return None if directory is None else Checkpoints(directory, max_to_keep=config.max_to_keep)
 
 
 def _jsonable(value):
@@ -655,14 +920,19 @@ def train_matcher(
     *,
     checkpoint_dir: str | Path | None = None,
     progress: bool = True,
+    resume: bool = False,
 ) -> tuple[Matcher, FitResult]:
     """Trains a skeleton matcher from single-person recordings alone (no association labels).
+
+    With ``config.train.num_devices``, each step's graphs are split by whole graphs over the
+    devices (`split_graph_batch`), the same samples in the same order as on one device.
 
     Args:
       rig: a rig holding (at least) the inference cameras.
       train_recordings, dev_recordings: single-person recordings (each needs the cameras).
       config: `MatcherConfig`.
       checkpoint_dir: where best and latest checkpoints go (optional).
+      resume: continue from the latest checkpoint in ``checkpoint_dir`` (same config required).
     Returns:
       (the best `Matcher`, the `FitResult`).
     """
@@ -681,14 +951,23 @@ def train_matcher(
     model = MatchingGAT(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
     tx = make_optimizer(config.train, config.steps_per_epoch)
     graphdef, rest, state = init_train_state(model, tx)
-    step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
-    eval_batch = jax.jit(functools.partial(_matcher_eval, graphdef, rest))
+    mesh = _mesh(tcfg)
+    if mesh is None:
+        step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
+        eval_batch = jax.jit(functools.partial(_matcher_eval, graphdef, rest))
+    else:
+        step = make_train_step(graphdef, rest, tx, stacked_loss_fn(matcher_loss_fn), mesh=mesh)
+        eval_batch = jax.jit(functools.partial(_stacked_matcher_eval, graphdef, rest))
+        state = replicate(mesh, state)
+        dev_batches = [shard_batch(mesh, split_graph_batch(b, mesh_size(mesh))[0]) for b in dev_batches]
 
     def epoch_batches(epoch):
         rng = np.random.default_rng([tcfg.seed, epoch])
         # Built lazily: the host builds batch i+1 while the device runs step i (async dispatch).
         for _ in range(steps_per_epoch):
-            yield sample_batches(train_pool, rng, 1, per_batch, **compose)[0]
+            batch = sample_batches(train_pool, rng, 1, per_batch, **compose)[0]
+            # The global batch (the same on every host), one padded block of graphs per device.
+            yield batch if mesh is None else shard_batch(mesh, split_graph_batch(batch, mesh_size(mesh))[0])
 
     def evaluate(state):
         sums = [eval_batch(state.params, b) for b in dev_batches]
@@ -696,18 +975,113 @@ def train_matcher(
         n = max(total["count"], 1.0)
         return {"val_loss": total["sq_error"] / n, "val_accuracy": total["correct"] / n}
 
-    checkpoints = Checkpoints(checkpoint_dir) if checkpoint_dir is not None else None
+    checkpoints = _checkpoints(checkpoint_dir, tcfg)
+    run_config = {**_jsonable(dataclasses.asdict(config)), "num_keypoints": K}
     try:
+        resumed = Resumed(state, None, math.inf, None)
+        if resume and checkpoints is not None:
+            resumed = resume_state(checkpoints, state, run_config)
         result = fit(
-            state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
-            checkpoints=checkpoints, run_config={**_jsonable(dataclasses.asdict(config)), "num_keypoints": K},
-            desc="matcher",
-            progress=progress,
+            resumed.state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
+            checkpoints=checkpoints, run_config=run_config, desc="matcher", progress=progress,
+            best_val_loss=resumed.best_val_loss, best_state=resumed.best_state, resume_from=resumed.progress,
         )  # fmt: skip
     finally:
         if checkpoints is not None:
             checkpoints.close()
     return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def stacked_match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
+    """The matcher's node scores for S graph batches stacked on a leading axis (one per device).
+
+    Args:
+      batch: a `GraphBatch` whose every leaf has a leading (S,) axis (`split_graph_batch`),
+        split over the devices along it (`parallel.shard_batch`).
+    Returns:
+      (S, N) scores, split like ``batch``.
+    """
+    return jax.vmap(lambda b: nnx.merge(graphdef, params, rest)(b))(batch)
+
+
+def split_graph_batch(batch: GraphBatch, num_shards: int) -> tuple[GraphBatch, np.ndarray]:
+    """Splits a padded graph batch by whole graphs into ``num_shards`` batches of one budget, stacked.
+
+    A graph batch cannot be cut along its node axis (edges, detection rows and pairs hold global
+    node ids), so each shard gets whole graphs: the F real graphs in order, ceil(F / S) per shard
+    (the last shards may hold fewer, or none), re-indexed from 0 and padded as
+    `graphs.build_graphs` pads (one padding graph holding every padding node and edge, then empty
+    graphs) to the largest shard's power-of-two budget. The GAT never mixes graphs and padding
+    never changes real nodes' outputs, so every real node scores as in the whole batch. One shard
+    is the batch itself when it was built with as many graphs as frames (training batches).
+    Host-side numpy.
+
+    Args:
+      batch: a `GraphBatch` (numpy or jax arrays).
+      num_shards: S >= 1, usually the device count.
+    Returns:
+      (the shards as one `GraphBatch` whose leaves have a leading (S,) axis; origin (S, N_s)
+      int64: each shard node's id in ``batch``, -1 for padding).
+    """
+    b = jax.tree.map(np.asarray, batch)
+    g = b.graphs
+    n_node, n_edge = g.n_node.astype(np.int64), g.n_edge.astype(np.int64)
+    nonempty = np.nonzero(n_node)[0]
+    # jraph's rule: the last non-empty graph is the padding graph (it holds >= 1 padding node);
+    # it and the empty graphs after it are padding, every graph before it is real.
+    F = int(nonempty[-1]) if len(nonempty) else 0
+    per = max(1, math.ceil(F / num_shards))
+    node_start = np.concatenate([[0], np.cumsum(n_node)])
+    edge_start = np.concatenate([[0], np.cumsum(n_edge)])
+    real_dets = int(np.asarray(b.det_mask).sum())
+    det_node = b.det_node[:real_dets]  # real rows come first, in node order
+
+    ranges = []
+    for s in range(num_shards):
+        g0, g1 = min(F, s * per), min(F, (s + 1) * per)
+        n0, n1 = int(node_start[g0]), int(node_start[g1])
+        d0, d1 = (int(i) for i in np.searchsorted(det_node, [n0, n1]))
+        ranges.append((g0, g1, n0, n1, int(edge_start[g0]), int(edge_start[g1]), d0, d1))
+    max_nodes = max(r[3] - r[2] for r in ranges)
+    max_dets = max(r[7] - r[6] for r in ranges)
+    budget = graph_budget(max_dets, max_nodes - max_dets, per)
+    N, E, D, G = budget.nodes, budget.edges, budget.dets, budget.graphs
+
+    shards, origin = [], np.full((num_shards, N), -1, np.int64)
+    for s, (g0, g1, n0, n1, e0, e1, d0, d1) in enumerate(ranges):
+        n, e, d, k = n1 - n0, e1 - e0, d1 - d0, g1 - g0
+        pad_node = n  # the first padding node: padding edges and rows point at it (as in jraph)
+
+        def fill(a, size, value, count, start, shift=0):
+            out = np.full((size,) + a.shape[1:], value, a.dtype)
+            out[:count] = a[start : start + count] - shift
+            return out
+
+        counts = lambda a, total, used: np.concatenate([a[g0:g1], [total - used], np.zeros(G - k - 1, a.dtype)])  # noqa: E731
+        graphs = g._replace(
+            nodes=fill(g.nodes, N, 0, n, n0),
+            senders=fill(g.senders, E, pad_node, e, e0, n0),
+            receivers=fill(g.receivers, E, pad_node, e, e0, n0),
+            n_node=counts(g.n_node, N, n).astype(g.n_node.dtype),
+            n_edge=counts(g.n_edge, E, e).astype(g.n_edge.dtype),
+        )
+        pair = fill(b.pair, N, -1, n, n0)
+        pair[:n] = np.where(b.pair[n0:n1] >= 0, b.pair[n0:n1] - n0, -1)
+        shards.append(GraphBatch(
+            graphs=graphs,
+            det_features=fill(b.det_features, D, 0, d, d0),
+            det_node=fill(b.det_node, D, pad_node, d, d0, n0),
+            det_mask=np.arange(D) < d,
+            node_mask=np.arange(N) < n,
+            is_match=fill(b.is_match, N, False, n, n0),
+            label=fill(b.label, N, 0, n, n0),
+            pair=pair,
+            node_camera=fill(b.node_camera, N, -1, n, n0),
+            node_skeleton=fill(b.node_skeleton, N, -1, n, n0),
+        ))  # fmt: skip
+        origin[s, :n] = np.arange(n0, n1)
+    return jax.tree.map(lambda *a: np.stack(a), *shards), origin
 
 
 def matcher_config_from_dict(d: dict) -> MatcherConfig:
@@ -756,3 +1130,8 @@ def _matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Ar
     correct = ((scores > 0.5) == (batch.label > 0.5)).astype(jnp.float32)
     return {"sq_error": jnp.sum(match_mse(scores, batch.label) * mask), "correct": jnp.sum(correct * mask),
             "count": jnp.sum(mask)}  # fmt: skip
+
+
+def _stacked_matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:
+    sums = jax.vmap(lambda b: _matcher_eval(graphdef, rest, params, b))(batch)  # (S,) each
+    return {k: jnp.sum(v) for k, v in sums.items()}
