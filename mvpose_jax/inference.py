@@ -43,18 +43,31 @@ def _predict(graphdef, rest, params, rig: Rig, xy, score):
     return to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
 
 
-def predict_people(estimator: Estimator, xy: np.ndarray, score: np.ndarray) -> np.ndarray:
+def predict_people(
+    estimator: Estimator, xy: np.ndarray, score: np.ndarray, *, mesh: jax.sharding.Mesh | None = None
+) -> np.ndarray:
     """3D keypoints of N people from their views in the estimator's inference cameras.
 
     Args:
       estimator: a trained `Estimator`.
       xy: (N, C_i, K, 2) pixels; score: (N, C_i, K), 0 = missing.
+      mesh: optional data mesh (`parallel.make_data_mesh`): people are split over its devices
+        (padded to a multiple of the device count), parameters replicated.
     Returns:
       (N, K, 3) metres: every keypoint, seen or not.
     """
     xy_p, score_p = _pad_people(xy, score)
-    out = _predict(estimator.graphdef, estimator.rest, estimator.params, estimator.rig_infer, xy_p, score_p)
-    return np.asarray(out)[: len(xy)]
+    if mesh is None:
+        out = _predict(estimator.graphdef, estimator.rest, estimator.params, estimator.rig_infer, xy_p, score_p)
+        return np.asarray(out)[: len(xy)]
+    # Local imports: this function is the only place inference needs the mesh helpers.
+    from mvpose_jax.parallel import mesh_size, pad_leading, replicate, shard_batch, to_host
+
+    n = mesh_size(mesh)
+    xy_p, score_p = shard_batch(mesh, (pad_leading(xy_p, n), pad_leading(score_p, n)))  # (B, ...) split
+    out = _predict(estimator.graphdef, estimator.rest, replicate(mesh, estimator.params), estimator.rig_infer,
+                   xy_p, score_p)  # fmt: skip
+    return to_host(out)[: len(xy)]
 
 
 def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[jax.Array, jax.Array]:
@@ -157,9 +170,26 @@ def _match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
     return nnx.merge(graphdef, params, rest)(batch)
 
 
-def match_scores(matcher: Matcher, batch: GraphBatch) -> np.ndarray:
-    """The matcher's (N,) node scores for a padded batch of graphs (one jit call)."""
-    return np.asarray(_match_scores(matcher.graphdef, matcher.rest, matcher.params, batch))
+def match_scores(matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh | None = None) -> np.ndarray:
+    """The matcher's (N,) node scores for a padded batch of graphs (one jit call).
+
+    With a data ``mesh`` (`parallel.make_data_mesh`) the graphs are split, whole, over its
+    devices (`train.split_graph_batch`: one padded block per device, graphs padded to a multiple
+    of the device count) and the scores put back in ``batch``'s node order; padding nodes score 0.
+    """
+    if mesh is None:
+        return np.asarray(_match_scores(matcher.graphdef, matcher.rest, matcher.params, batch))
+    # Local imports: this function is the only place inference needs the mesh helpers.
+    from mvpose_jax.parallel import mesh_size, replicate, shard_batch, to_host
+    from mvpose_jax.train import split_graph_batch, stacked_match_scores
+
+    stacked, origin = split_graph_batch(batch, mesh_size(mesh))  # (S, ...), origin (S, N_s)
+    out = stacked_match_scores(matcher.graphdef, matcher.rest, replicate(mesh, matcher.params),
+                               shard_batch(mesh, stacked))  # fmt: skip
+    scores = np.zeros(np.shape(batch.node_mask), np.float32)
+    real = origin >= 0
+    scores[origin[real]] = to_host(out)[real]
+    return scores
 
 
 def gat_match_table(
