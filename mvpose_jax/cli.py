@@ -100,7 +100,14 @@ def _recordings_in(path: str, layout: str | None) -> list:
 
 
 def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None = None) -> None:
-    """Options every training command shares: rig, data, output folder, layout and seed."""
+    """Options every training command shares: rig, data, output folder, layout and seed; devices
+    (data parallelism, several hosts) and the checkpoint cadence."""
+
+    def devices(value: str) -> str | int:
+        if value == "all" or (value.isdigit() and int(value) >= 1):
+            return value if value == "all" else int(value)
+        raise argparse.ArgumentTypeError(f"expected a device count >= 1 or 'all', got {value!r}")
+
     add_rig_argument(p, default=None)
     p.add_argument("--train", required=True, help="single-person recordings: a file or a folder of them")
     p.add_argument("--dev", required=dev_help is None,
@@ -108,6 +115,16 @@ def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None =
     p.add_argument("--out", required=True, help="folder for the best and latest checkpoints")
     p.add_argument("--layout", default=None, help="keypoint layout to convert the recordings to")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--devices", type=devices, default=None, metavar="N|all",
+                   help="data-parallel training over N devices (all: every device of every host): each "
+                   "batch is split over them, parameters are replicated; default: one device")  # fmt: skip
+    p.add_argument("--checkpoint-every", type=int, default=500, metavar="STEPS",
+                   help="also save the latest state every this many steps (0: only at validations)")  # fmt: skip
+    p.add_argument("--coordinator-address", metavar="HOST:PORT",
+                   help="several hosts: process 0's address (every host runs the same command; or set "
+                   "JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID)")  # fmt: skip
+    p.add_argument("--num-processes", type=int, help="several hosts: how many processes take part")
+    p.add_argument("--process-id", type=int, help="several hosts: this process's index, 0 .. N-1")
 
 
 def _train_matcher_arguments(p: argparse.ArgumentParser) -> None:
@@ -128,12 +145,16 @@ def _train_matcher(args: argparse.Namespace) -> int:
     import dataclasses
 
     from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
     from mvpose_jax.train import MatcherConfig, train_matcher
 
+    # Before anything touches a device: a multi-host run must join its coordinator first.
+    initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
     rig = load_rig(args.rig, translation_scale=args.translation_scale)
     config = MatcherConfig.quick() if args.quick else MatcherConfig()
     train = dataclasses.replace(
-        config.train, seed=args.seed,
+        config.train, seed=args.seed, num_devices=resolve_num_devices(args.devices),
+        checkpoint_every_steps=args.checkpoint_every,
         **{k: v for k, v in (("max_epochs", args.max_epochs), ("learning_rate", args.learning_rate)) if v is not None},
     )  # fmt: skip
     config = dataclasses.replace(
@@ -179,8 +200,11 @@ def _train_estimator(args: argparse.Namespace) -> int:
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.features import main_skeletons
     from mvpose_jax.models import MLPConfig
+    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
     from mvpose_jax.train import EstimatorConfig, TrainConfig, train_estimator
 
+    # Before anything touches a device: a multi-host run must join its coordinator first.
+    initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
     rig = load_rig(args.rig, translation_scale=args.translation_scale)
     train_cams = tuple(args.train_cameras or rig.names)
     infer_cams = tuple(args.infer_cameras or train_cams)
@@ -212,7 +236,8 @@ def _train_estimator(args: argparse.Namespace) -> int:
         loss_power=args.loss_power,
         train=TrainConfig(learning_rate=args.learning_rate, batch_size=args.batch_size,
                           max_steps=args.steps, patience=args.patience, seed=args.seed,
-                          final_lr_fraction=1.0 if args.constant_lr else 0.01),
+                          final_lr_fraction=1.0 if args.constant_lr else 0.01,
+                          num_devices=resolve_num_devices(args.devices), checkpoint_every_steps=args.checkpoint_every),
     )  # fmt: skip
     _, fit = train_estimator(rig.select(list(train_cams)), xy, score, dev_xy, dev_score, config,
                              checkpoint_dir=args.out, resume=args.resume)  # fmt: skip
