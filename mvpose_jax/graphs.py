@@ -104,11 +104,17 @@ def detection_features(rig: Rig, xy: np.ndarray, score: np.ndarray) -> np.ndarra
     Returns:
       (F, C, P, K*10) float32 numpy.
     """
-    F, C, P, K = np.shape(score)
-    xy_c = jnp.moveaxis(jnp.asarray(xy, jnp.float32), 1, 0)
-    score_c = jnp.moveaxis(jnp.asarray(score, jnp.float32), 1, 0)
-    feats = np.asarray(keypoint_features(rig, xy_c, score_c))  # (C, F, P, K, 10)
-    return np.ascontiguousarray(np.moveaxis(feats, 0, 1).reshape(F, C, P, K * NUM_KEYPOINT_FEATURES))
+    # One jit call with the axis moves inside: run eagerly, each move was a dispatch of its own,
+    # and together they cost more than the features of a frame.
+    # np.array: a writable copy, as before (np.asarray of a jax.Array is read-only).
+    return np.array(_detection_features(rig, np.asarray(xy, np.float32), np.asarray(score, np.float32)))
+
+
+@jax.jit
+def _detection_features(rig: Rig, xy: jax.Array, score: jax.Array) -> jax.Array:
+    F, C, P, K = score.shape
+    feats = keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))  # (C, F, P, K, 10)
+    return jnp.moveaxis(feats, 0, 1).reshape(F, C, P, K * NUM_KEYPOINT_FEATURES)
 
 
 def build_graphs(
