@@ -7,6 +7,10 @@ Layouts:
   * ``coco18`` (default): COCO's 17 keypoints plus the neck as index 17, the original repository's.
   * ``coco17``: COCO's 17 keypoints.
   * ``body25``: OpenPose's BODY_25.
+  * ``openpose_coco18``: OpenPose's COCO model: the same 18 keypoints as ``coco18`` in OpenPose's
+    order (0 nose, 1 neck, 2-4 right arm, 5-7 left arm, 8-10 right leg, 11-13 left leg, 14 r_eye,
+    15 l_eye, 16 r_ear, 17 l_ear). OpenPose JSON files hold this order; `convert_keypoints` maps it
+    to ``coco18`` by name.
 
 The number of keypoints is always read from a layout (``layout.num_keypoints``), never assumed.
 """
@@ -112,14 +116,20 @@ COCO17 = _layout(
         ("r_shoulder", "r_hip"), ("l_ear", "l_shoulder"), ("r_ear", "r_shoulder"),
     ),
 )  # fmt: skip
-COCO18 = _layout(
-    "coco18",
-    _COCO17 + ("neck",),
-    _LIMBS
-    + (
-        ("neck", "nose"), ("neck", "l_shoulder"), ("neck", "r_shoulder"), ("neck", "l_hip"),
-        ("neck", "r_hip"), ("l_hip", "r_hip"),
+_COCO18_BONES = _LIMBS + (
+    ("neck", "nose"), ("neck", "l_shoulder"), ("neck", "r_shoulder"), ("neck", "l_hip"),
+    ("neck", "r_hip"), ("l_hip", "r_hip"),
+)  # fmt: skip
+COCO18 = _layout("coco18", _COCO17 + ("neck",), _COCO18_BONES)
+# OpenPose's COCO model: coco18's keypoints in another order (see the module docstring).
+OPENPOSE_COCO18 = _layout(
+    "openpose_coco18",
+    (
+        "nose", "neck", "r_shoulder", "r_elbow", "r_wrist", "l_shoulder", "l_elbow", "l_wrist",
+        "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle", "r_eye", "l_eye", "r_ear",
+        "l_ear",
     ),
+    _COCO18_BONES,
 )  # fmt: skip
 BODY25 = _layout(
     "body25",
@@ -133,7 +143,9 @@ BODY25 = _layout(
     ),
 )  # fmt: skip
 
-LAYOUTS: dict[str, Layout] = {lay.name: lay for lay in (COCO18, COCO17, BODY25)}
+LAYOUTS: dict[str, Layout] = {
+    lay.name: lay for lay in (COCO18, COCO17, BODY25, OPENPOSE_COCO18)
+}
 DEFAULT_LAYOUT = "coco18"
 
 # Keypoints of one layout that other layouts lack, as the mean of keypoints they share.
