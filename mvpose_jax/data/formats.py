@@ -6,21 +6,28 @@ Formats (each module documents its schema):
   * ``original`` (`mvpose_jax.data.original`): the original repository's dataset JSON, a list of
     frames, so its users can bring their recordings unchanged.
   * ``npz`` (`mvpose_jax.data.npz`): the `Recording` arrays, compressed; the fastest to load.
+  * ``openpose`` (`mvpose_jax.data.openpose`): a FOLDER with one subfolder per camera, each
+    holding one OpenPose JSON file per frame (``{"people": [{"pose_keypoints_2d": [...]}]}``), as
+    OpenPose, Pose2Sim and many detectors write; detections only.
 
-`load_recording` picks the format from the suffix (``.npz``) or, for JSON, from the content (an
-object with ``"frames"`` is native, a list is original); `save_recording` picks it from the suffix
-(``.npz``; anything else is native JSON) unless ``format=`` says otherwise.
+`load_recording` picks the format from the path: a folder is OpenPose, a ``.npz`` suffix npz, and
+for JSON the content decides (an object with ``"frames"`` is native, a list is original);
+`save_recording` picks it from the suffix (``.npz``; anything else is native JSON) unless
+``format=`` says otherwise.
 
 Every reader and writer validates keypoints through ONE helper, `check_keypoints` (keypoint count,
 finite coordinates, scores in [0, 1]), and whole recordings through `check_recording`, so a bad
 value is reported the same way, naming file, frame, camera and field, whatever the format.
 Readers pad the person axis to the most people in any view (P >= 1) and set the coordinates of
-missing keypoints (score 0) to 0, the `Detections` convention; they never drop a skeleton.
+missing keypoints (score 0) to 0, the `Detections` convention; they never drop a skeleton. They
+refuse to pad a file's content to arrays hundreds of times larger than it (`check_padding`), so a
+small hostile file cannot allocate gigabytes.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -33,10 +40,17 @@ from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections, Poses3D, convert_keypoints, get_layout
 
-FORMATS = ("native", "original", "npz")
+FORMATS = ("native", "original", "npz", "openpose")
 
 # Where a row of a flat batch of skeletons comes from: row index -> (frame, camera, person).
 Locate = Callable[[int], tuple[Any, Any, Any]]
+
+# Readers pad to dense (F, C, P, K) arrays, and a small file can ask for a huge padded shape (many
+# empty frames or cameras, one view with far more people than the rest): 200 KB of native JSON can
+# ask for 161 GiB. Padded arrays larger than PADDING_FLOOR values must hold at least one value from
+# the file per PADDING_RATIO values (`check_padding`); dense recordings of any size pass.
+PADDING_FLOOR = 2**24
+PADDING_RATIO = 256
 
 
 def load_recording(
@@ -44,24 +58,70 @@ def load_recording(
     *,
     layout: str | None = None,
     cameras: Sequence[str] | None = None,
+    rig: Any = None,
+    source_layout: str | None = None,
+    missing_frames: str = "error",
 ) -> Recording:
     """Loads a recording in any supported format.
 
     Args:
-      path: a ``.npz`` file, or a JSON file in the native or the original format.
+      path: a ``.npz`` file, a JSON file in the native or the original format, or a folder of
+        OpenPose JSON files (one subfolder per camera).
       layout: keypoint layout. The original format does not record it (default ``"coco18"``); for
         the others, a layout different from the file's converts the keypoints
         (`mvpose_jax.skeletons.convert_keypoints`: derived keypoints such as the neck are built,
-        keypoints the file lacks are missing).
+        keypoints the file lacks are missing). OpenPose folders are converted to ``coco18`` when
+        it is not given.
       cameras: optional camera names to keep, in this order (the camera axis follows it).
+      rig: optional `Rig`: every camera of the recording must be one of its cameras (an OpenPose
+        folder's cameras also follow its order when ``cameras`` is not given).
+      source_layout: OpenPose folders only: the files' layout, instead of detecting it from the
+        keypoint count (`mvpose_jax.data.openpose`).
+      missing_frames: OpenPose folders only: ``"error"`` or ``"empty"``, what a frame missing in
+        some cameras means (`mvpose_jax.data.openpose.read_openpose`).
     Returns:
       The `Recording`.
     Raises:
       InputError naming the file, frame, camera and field of the first problem.
     """
-    from mvpose_jax.data import native, npz, original
+    from mvpose_jax.data import openpose
 
     path = Path(path)
+    if path.is_dir():
+        return openpose.read_openpose(
+            path,
+            layout=layout or "coco18",
+            source_layout=source_layout,
+            cameras=cameras,
+            rig=rig,
+            missing_frames=missing_frames,
+        )
+    for name, value, default in (
+        ("source_layout", source_layout, None),
+        ("missing_frames", missing_frames, "error"),
+    ):
+        if value != default:
+            raise InputError(
+                f"{name} applies to OpenPose folders only; this is a file", file=path, field=name
+            )
+    rec = _load_file(path, layout=layout, cameras=cameras)
+    if rig is not None:
+        unknown = [name for name in rec.cameras if name not in rig.names]
+        if unknown:
+            raise InputError(
+                f"cameras {unknown} are not cameras of the rig. Recording: {list(rec.cameras)}; "
+                f"rig: {list(rig.names)}",
+                file=path,
+                camera=unknown[0],
+                field="cameras",
+            )
+    return rec
+
+
+def _load_file(path: Path, *, layout: str | None, cameras: Sequence[str] | None) -> Recording:
+    """`load_recording` for the single-file formats."""
+    from mvpose_jax.data import native, npz, original
+
     if path.suffix.lower() == ".npz":
         rec = npz.read_npz(path)
     else:
@@ -92,19 +152,20 @@ def save_recording(
     rig: Any = None,
     format: str | None = None,
 ) -> None:
-    """Writes a recording atomically.
+    """Writes a recording atomically (an OpenPose folder: each of its files atomically).
 
     Args:
       recording: the `Recording` to write.
-      path: output file.
+      path: output file (the root folder for ``format="openpose"``).
       rig: optional `Rig` to embed (native format only; the others have no place for it).
-      format: ``"native"``, ``"original"`` or ``"npz"``; default ``"npz"`` for a ``.npz`` suffix and
-        ``"native"`` otherwise.
+      format: ``"native"``, ``"original"``, ``"npz"`` or ``"openpose"`` (``path`` is then a
+        folder, see `mvpose_jax.data.openpose.save_openpose`); default ``"npz"`` for a ``.npz``
+        suffix and ``"native"`` otherwise.
     Raises:
       InputError: an unknown format, a rig for a format that cannot hold it, or invalid values in
         the recording (nothing is written then).
     """
-    from mvpose_jax.data import native, npz, original
+    from mvpose_jax.data import native, npz, openpose, original
 
     if format is None:
         format = "npz" if Path(path).suffix.lower() == ".npz" else "native"
@@ -122,6 +183,8 @@ def save_recording(
         native.write_native(recording, path, rig=rig)
     elif format == "original":
         original.write_original(recording, path)
+    elif format == "openpose":
+        openpose.save_openpose(recording, path)
     else:
         npz.write_npz(recording, path)
 
@@ -324,6 +387,30 @@ def check_recording(rec: Recording, *, file: object = None) -> None:
 # --------------------------------------------------------------------------- shared building
 
 
+def check_padding(
+    shape: Sequence[int], *, content: int, file: object = None, field: str | None = None
+) -> None:
+    """Refuses padded arrays far larger than what the file holds (see PADDING_FLOOR).
+
+    Args:
+      shape: the padded shape about to be allocated.
+      content: how many values (or entries) of the file fill it.
+    Raises:
+      InputError when the array would exceed both PADDING_FLOOR values and PADDING_RATIO values
+      per value of content.
+    """
+    size = math.prod(int(n) for n in shape)
+    if size > PADDING_FLOOR and size > PADDING_RATIO * content:
+        raise InputError(
+            f"padding {content} values read from the file to shape {tuple(shape)} would allocate "
+            f"{size} values; refused: a padded array beyond {PADDING_FLOOR} values needs one value "
+            f"from the file per {PADDING_RATIO} (many empty frames or cameras, or one view with "
+            "far more people than the others, make a recording this sparse)",
+            file=file,
+            field=field,
+        )
+
+
 def pack_detections(
     xy: np.ndarray,
     score: np.ndarray,
@@ -331,6 +418,7 @@ def pack_detections(
     *,
     num_frames: int,
     num_cameras: int,
+    file: object = None,
 ) -> Detections:
     """Scatters a flat batch of checked skeletons into padded `Detections`.
 
@@ -338,15 +426,23 @@ def pack_detections(
       xy: (N, K, 2) float32 pixels; score: (N, K) float32 (0 = missing).
       index: (frame, camera, person) int arrays (N,) each: where each skeleton goes.
       num_frames, num_cameras: F and C.
+      file: the file the skeletons came from, for errors.
     Returns:
       numpy `Detections` with P = max(1, most people in a view); missing keypoints get xy = 0.
+    Raises:
+      InputError when the padded arrays would be far larger than the skeletons (`check_padding`).
     """
     f, c, p = index
-    K = xy.shape[1]
+    N, K = xy.shape[:2]
+    # Frames and cameras each take bytes in every format: they count as content of the (F, C) grid.
+    check_padding(
+        (num_frames, num_cameras), content=N + num_frames + num_cameras, file=file, field="frames"
+    )
     count = np.zeros((num_frames, num_cameras), np.int32)
     if len(f):
         np.maximum.at(count, (f, c), p.astype(np.int32) + 1)
     P = max(1, int(count.max(initial=0)))
+    check_padding((num_frames, num_cameras, P, K), content=N * K, file=file, field="detections")
     out_xy = np.zeros((num_frames, num_cameras, P, K, 2), np.float32)
     out_score = np.zeros((num_frames, num_cameras, P, K), np.float32)
     out_xy[f, c, p] = np.where(score[..., None] > 0, xy, 0.0)
@@ -418,6 +514,8 @@ def load_json(path: str | os.PathLike) -> Any:
         ) from None
     except RecursionError:
         raise InputError("JSON nested too deeply", file=path) from None
+    except ValueError as e:  # e.g. an integer beyond Python's digit limit for str -> int
+        raise InputError(f"unreadable JSON ({e})", file=path) from None
 
 
 def parse_json_string(text: str, *, bad: Callable[[str], InputError]) -> Any:
@@ -428,6 +526,8 @@ def parse_json_string(text: str, *, bad: Callable[[str], InputError]) -> Any:
         raise bad(f"malformed embedded JSON at column {e.colno}: {e.msg}") from None
     except RecursionError:
         raise bad("embedded JSON nested too deeply") from None
+    except ValueError as e:  # e.g. an integer beyond Python's digit limit for str -> int
+        raise bad(f"unreadable embedded JSON ({e})") from None
 
 
 def float_lists(values: np.ndarray, unit: float = 1.0) -> list:

@@ -1,0 +1,331 @@
+"""OpenPose per-frame JSON folders: layouts mapped to coco18, frame alignment, errors, round trip."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mvpose_jax.data import (
+    Recording,
+    load_recording,
+    read_openpose,
+    save_openpose,
+    save_recording,
+)
+from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.data.synthetic import generate_recording
+from mvpose_jax.errors import InputError
+from mvpose_jax.skeletons import Detections, get_layout
+
+COCO18 = get_layout("coco18")
+
+
+def _flat(K: int, points: dict[int, tuple[float, float, float]]) -> list[float]:
+    """pose_keypoints_2d with the given keypoints set and the rest undetected (0, 0, 0)."""
+    out = [0.0] * (3 * K)
+    for k, xyc in points.items():
+        out[3 * k : 3 * k + 3] = xyc
+    return out
+
+
+def _write_frame(path: Path, people: list[list[float]]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "version": 1.3,
+        "people": [
+            {"person_id": [-1], "pose_keypoints_2d": flat, "face_keypoints_2d": []}
+            for flat in people
+        ],
+    }
+    path.write_text(json.dumps(doc))
+
+
+# OpenPose COCO (18): 0 nose, 1 neck, 2 r_shoulder, 5 l_shoulder, 8 r_hip, 14 r_eye, 17 l_ear.
+COCO_PERSON = {
+    0: (10.0, 20.0, 0.9),
+    1: (30.0, 40.0, 0.8),
+    2: (50.0, 60.0, 0.7),
+    5: (70.0, 80.0, 0.6),
+    8: (90.0, 100.0, 0.5),
+    14: (1.0, 2.0, 0.4),
+    17: (3.0, 4.0, 0.3),
+}
+# Where each lands in the project's coco18.
+COCO_TO_OURS = {0: 0, 1: 17, 2: 6, 5: 5, 8: 12, 14: 2, 17: 3}
+# BODY_25: 1 neck, 2 r_shoulder, 8 mid_hip (no coco18 slot), 9 r_hip, 14 l_ankle, 19 l_big_toe
+# (no slot), 24 r_heel (no slot).
+BODY25_PERSON = {
+    1: (11.0, 12.0, 0.95),
+    2: (13.0, 14.0, 0.85),
+    8: (15.0, 16.0, 0.75),
+    9: (17.0, 18.0, 0.65),
+    14: (19.0, 20.0, 0.55),
+    19: (21.0, 22.0, 0.45),
+    24: (23.0, 24.0, 0.35),
+}
+BODY25_TO_OURS = {1: 17, 2: 6, 9: 12, 14: 15}
+
+
+def _tiny_folder(root: Path, K: int, person: dict) -> Path:
+    """2 cameras, 2 frames (OpenPose numbers 0 and 1, different prefixes per camera).
+
+    Frame 0: camera a sees `person` and a second person with only the nose; camera b sees
+    `person` shifted by +100 px. Frame 1: camera a sees nobody, camera b sees `person`.
+    """
+    shifted = {k: (x + 100.0, y + 100.0, c) for k, (x, y, c) in person.items()}
+    _write_frame(
+        root / "a" / "clipA_000000000000_keypoints.json",
+        [_flat(K, person), _flat(K, {0: (5.0, 6.0, 1.0)})],
+    )
+    _write_frame(root / "a" / "clipA_000000000001_keypoints.json", [])
+    _write_frame(root / "b" / "clipB_000000000000_keypoints.json", [_flat(K, shifted)])
+    _write_frame(root / "b" / "clipB_000000000001_keypoints.json", [_flat(K, person)])
+    return root
+
+
+@pytest.mark.parametrize(
+    "K, person, mapping",
+    [(18, COCO_PERSON, COCO_TO_OURS), (25, BODY25_PERSON, BODY25_TO_OURS)],
+    ids=["coco", "body25"],
+)
+def test_hand_written_folder_lands_in_coco18(tmp_path, K, person, mapping):
+    root = _tiny_folder(tmp_path / "op", K, person)
+    rec = load_recording(root)
+    assert rec.layout == "coco18" and rec.cameras == ("a", "b")
+    det = rec.detections
+    assert det.xy.shape == (2, 2, 2, 18, 2) and det.xy.dtype == np.float32
+    np.testing.assert_array_equal(det.count, [[2, 1], [0, 1]])
+    expected_xy = np.zeros((18, 2), np.float32)
+    expected_score = np.zeros(18, np.float32)
+    for src, ours in mapping.items():
+        x, y, c = person[src]
+        expected_xy[ours], expected_score[ours] = (x, y), c
+    np.testing.assert_array_equal(det.xy[0, 0, 0], expected_xy)
+    np.testing.assert_array_equal(det.score[0, 0, 0], expected_score)
+    np.testing.assert_array_equal(det.xy[1, 1, 0], expected_xy)
+    shifted = np.where(expected_score[:, None] > 0, expected_xy + 100.0, 0.0)
+    np.testing.assert_array_equal(det.xy[0, 1, 0], shifted)
+    # Exactly the mapped keypoints are present; every other slot (undetected in the file, or a
+    # keypoint coco18 has no slot for) is missing with xy 0.
+    assert set(np.flatnonzero(det.score[0, 0, 0])) == set(mapping.values())
+    np.testing.assert_array_equal(det.score[0, 0, 1], np.eye(18, dtype=np.float32)[0])
+    assert not det.score[1, 0].any() and not det.xy[1, 0].any()
+    if K == 18:
+        # Spelled out: OpenPose's neck (1) is our 17, its right shoulder (2) our 6.
+        assert COCO18.keypoints[17] == "neck" and COCO18.keypoints[6] == "r_shoulder"
+        np.testing.assert_array_equal(det.xy[0, 0, 0, 17], [30.0, 40.0])
+        np.testing.assert_array_equal(det.xy[0, 0, 0, 6], [50.0, 60.0])
+        assert det.score[0, 0, 0, 17] == np.float32(0.8)
+
+
+def test_layout_options(tmp_path):
+    body = _tiny_folder(tmp_path / "body", 25, BODY25_PERSON)
+    as_body25 = read_openpose(body, layout="body25")
+    assert as_body25.layout == "body25"
+    np.testing.assert_array_equal(
+        as_body25.detections.xy[0, 0, 0, 19], BODY25_PERSON[19][:2]
+    )  # the file's own slots
+    coco = _tiny_folder(tmp_path / "coco", 18, COCO_PERSON)
+    # 18 keypoints that already follow the project's order: no remapping.
+    as_is = load_recording(coco, source_layout="coco18")
+    np.testing.assert_array_equal(as_is.detections.xy[0, 0, 0, 1], COCO_PERSON[1][:2])
+    # coco18 -> coco17 drops the neck.
+    assert read_openpose(coco, layout="coco17").detections.score.shape[-1] == 17
+    with pytest.raises(InputError, match="layout 'body25' has 25 keypoints") as e:
+        read_openpose(coco, source_layout="body25")
+    assert e.value.camera == "a" and e.value.frame == 0
+    assert e.value.field == "people[0].pose_keypoints_2d"
+    # An unknown count names the file and suggests source_layout.
+    _write_frame(tmp_path / "odd" / "a" / "0_keypoints.json", [[1.0, 2.0, 0.5] * 20])
+    with pytest.raises(InputError, match="source_layout") as e:
+        read_openpose(tmp_path / "odd")
+    assert e.value.file.endswith("0_keypoints.json")
+    # Counts must agree across files.
+    _write_frame(tmp_path / "coco" / "b" / "clipB_000000000002_keypoints.json", [[0.0] * 75])
+    _write_frame(tmp_path / "coco" / "a" / "clipA_000000000002_keypoints.json", [])
+    with pytest.raises(InputError, match="25 keypoints") as e:
+        read_openpose(tmp_path / "coco")
+    assert (e.value.camera, e.value.frame) == ("b", 2)
+
+
+def _recording(layout: str = "coco18") -> tuple[Recording, object]:
+    rig = load_rig("panoptic5")
+    rec = generate_recording(rig, num_people=2, num_frames=3, seed=0)
+    if layout != "coco18":
+        from mvpose_jax.data.formats import convert_layout
+
+        rec = convert_layout(rec, layout)
+    return rec, rig
+
+
+def _assert_same_detections(a: Recording, b: Recording) -> None:
+    assert a.cameras == b.cameras and a.layout == b.layout
+    P = a.detections.score.shape[2]
+    np.testing.assert_array_equal(a.detections.count, b.detections.count)
+    assert P == int(np.max(b.detections.count))  # readers pad to what the files hold
+    np.testing.assert_array_equal(a.detections.score, b.detections.score[:, :, :P])
+    np.testing.assert_array_equal(a.detections.xy, b.detections.xy[:, :, :P])
+    assert a.detections.xy.dtype == np.float32 and a.detections.score.dtype == np.float32
+
+
+@pytest.mark.parametrize("layout", ["coco18", "body25", "coco17"])
+def test_round_trip(tmp_path, layout):
+    rec, rig = _recording(layout)
+    save_openpose(rec, tmp_path / "op")
+    if layout == "coco18":  # written in OpenPose's own order, which OpenPose tools expect
+        f, c = np.argwhere(rec.detections.count > 0)[0]
+        file = tmp_path / "op" / rec.cameras[c] / f"{f:012d}_keypoints.json"
+        person = json.loads(file.read_text())["people"][0]["pose_keypoints_2d"]
+        np.testing.assert_allclose(
+            person[3:5], rec.detections.xy[f, c, 0, 17], rtol=1e-6
+        )  # OpenPose index 1 = the neck
+    back = load_recording(tmp_path / "op", layout=layout, rig=rig)
+    _assert_same_detections(back, Recording(rec.detections, rec.cameras, rec.layout))
+    save_recording(rec, tmp_path / "again", format="openpose")  # the same through save_recording
+    _assert_same_detections(load_recording(tmp_path / "again", layout=layout), back)
+    # Writing again over the same folder is fine (every file is replaced) ...
+    save_openpose(rec, tmp_path / "op")
+    # ... but a folder holding other frames is refused: they would be read back as frames.
+    fewer = Recording(
+        Detections(*(np.asarray(a)[:2] for a in rec.detections)), rec.cameras, rec.layout
+    )
+    save_openpose(fewer, tmp_path / "fewer")
+    with pytest.raises(InputError, match="other frame file"):
+        save_openpose(fewer, tmp_path / "op")
+
+
+def test_frame_numbers(tmp_path):
+    """Numbers from the names align cameras (gaps are no frames); else natural sorted order."""
+    p = [[1.0, 2.0, 0.5] * 18]
+    for cam, prefix in (("a", "x"), ("b", "other_7_")):  # a digit run elsewhere in the name
+        for n in (5, 12, 100):
+            name = f"{prefix}{n:012d}_keypoints.json"
+            _write_frame(tmp_path / "num" / cam / name, p * (n % 3 + 1))
+    rec = read_openpose(tmp_path / "num")
+    np.testing.assert_array_equal(rec.detections.count, [[3, 3], [1, 1], [2, 2]])
+    for n in (2, 10, 1):
+        _write_frame(tmp_path / "plain" / "a" / f"{n}.json", p * n)
+        _write_frame(tmp_path / "plain" / "b" / f"f{n}.json", p * n)
+    rec = read_openpose(tmp_path / "plain")
+    np.testing.assert_array_equal(rec.detections.count[:, 0], [1, 2, 10])  # 2 before 10
+    # Mixing named and unnamed files would misalign cameras: refused, naming the file.
+    _write_frame(tmp_path / "num" / "b" / "extra.json", p)
+    with pytest.raises(InputError, match="no such name") as e:
+        read_openpose(tmp_path / "num")
+    assert e.value.file.endswith("extra.json") and e.value.camera == "b"
+    # Two files for one frame of one camera.
+    (tmp_path / "num" / "b" / "extra.json").unlink()
+    _write_frame(tmp_path / "num" / "b" / "y_12_keypoints.json", p)
+    with pytest.raises(InputError, match="two files for frame 12") as e:
+        read_openpose(tmp_path / "num")
+    assert (e.value.camera, e.value.frame) == ("b", 12)
+
+
+def test_missing_frames(tmp_path):
+    root = _tiny_folder(tmp_path / "op", 18, COCO_PERSON)
+    (root / "b" / "clipB_000000000001_keypoints.json").unlink()
+    with pytest.raises(InputError, match="missing_frames='empty'") as e:
+        load_recording(root)
+    assert (e.value.camera, e.value.frame, e.value.field) == ("b", 1, "frames")
+    assert "clipA_000000000001_keypoints.json" in str(e.value)  # which camera has it
+    rec = load_recording(root, missing_frames="empty")
+    np.testing.assert_array_equal(rec.detections.count, [[2, 1], [0, 0]])
+    full = load_recording(_tiny_folder(tmp_path / "full", 18, COCO_PERSON))
+    np.testing.assert_array_equal(rec.detections.xy[0], full.detections.xy[0])
+    # A camera folder with no files at all misses every frame.
+    (root / "c").mkdir()
+    with pytest.raises(InputError) as e:
+        load_recording(root, cameras=["c", "a"])
+    assert (e.value.camera, e.value.frame) == ("c", 0)
+    assert load_recording(root, missing_frames="empty").detections.count[:, 2].tolist() == [0, 0]
+    with pytest.raises(InputError, match="missing_frames"):
+        read_openpose(root, missing_frames="skip")
+
+
+def test_cameras_and_rig(tmp_path):
+    rig = load_rig("panoptic5")
+    root = tmp_path / "op"
+    for cam in ("trackerc", "trackera", "kitchen"):
+        _write_frame(root / cam / "0_keypoints.json", [])
+    with pytest.raises(InputError) as e:
+        load_recording(root, rig=rig)
+    message = str(e.value)
+    assert e.value.camera == "kitchen" and e.value.field == "cameras"
+    assert "kitchen" in message and "trackera" in message and "trackere" in message
+    rec = load_recording(root, rig=rig, cameras=["trackerc", "trackera"])
+    assert rec.cameras == ("trackerc", "trackera")
+    (root / "kitchen" / "0_keypoints.json").unlink()
+    (root / "kitchen").rmdir()
+    assert load_recording(root, rig=rig).cameras == ("trackera", "trackerc")  # the rig's order
+    assert load_recording(root).cameras == ("trackera", "trackerc")  # sorted names
+    with pytest.raises(InputError, match="no camera folder") as e:
+        load_recording(root, cameras=["trackerb"])
+    assert e.value.camera == "trackerb"
+    # The rig check applies to single-file formats too.
+    rec, _ = _recording()
+    save_recording(rec, tmp_path / "r.npz")
+    with pytest.raises(InputError, match="not cameras of the rig") as e:
+        load_recording(tmp_path / "r.npz", rig=load_rig("arplab6"))
+    assert e.value.camera == "trackere"  # arplab6 has trackera-d
+
+
+def test_bad_values_name_file_frame_camera_field(tmp_path):
+    root = _tiny_folder(tmp_path / "op", 18, COCO_PERSON)
+    target = root / "b" / "clipB_000000000001_keypoints.json"
+    doc = json.loads(target.read_text())
+    doc["people"][0]["pose_keypoints_2d"][3 * 4 + 2] = 1.5  # keypoint 4's confidence
+    target.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"outside \[0, 1\]") as e:
+        load_recording(root)
+    err = e.value
+    assert (err.file, err.frame, err.camera) == (str(target), 1, "b")
+    assert err.field == "people[0].pose_keypoints_2d[keypoint 4].c"
+    text = json.dumps(json.loads(_tiny_text(root)))
+    target.write_text(text.replace("30.0", "NaN", 1))
+    with pytest.raises(InputError, match="not finite") as e:
+        load_recording(root)
+    assert e.value.field == "people[0].pose_keypoints_2d[keypoint 1]"
+    for bad, field in (
+        ({"people": [{"pose_keypoints_2d": [1, 2]}]}, "people[0].pose_keypoints_2d"),
+        ({"people": [{"pose_keypoints_2d": [1, "2", 3]}]}, "people[0].pose_keypoints_2d[1]"),
+        ({"people": [{"face_keypoints_2d": []}]}, "people[0].pose_keypoints_2d"),
+        ({"people": [{"pose_keypoints_2d": []}]}, "people[0].pose_keypoints_2d"),
+        ({"people": {}}, "people"),
+        ({"version": 1.3}, "people"),
+        ([], None),
+    ):
+        target.write_text(json.dumps(bad))
+        with pytest.raises(InputError) as e:
+            load_recording(root)
+        assert (e.value.file, e.value.frame, e.value.camera, e.value.field) == (
+            str(target), 1, "b", field
+        )  # fmt: skip
+
+
+def _tiny_text(root: Path) -> str:
+    return (root / "a" / "clipA_000000000000_keypoints.json").read_text()
+
+
+def test_folder_mistakes(tmp_path):
+    _write_frame(tmp_path / "cam" / "0_keypoints.json", [])
+    with pytest.raises(InputError, match="folder ABOVE"):
+        load_recording(tmp_path / "cam")  # one camera's folder, not the root
+    with pytest.raises(InputError, match="no such folder"):
+        read_openpose(tmp_path / "nowhere")
+    with pytest.raises(InputError, match="not a folder"):
+        read_openpose(tmp_path / "cam" / "0_keypoints.json")
+    (tmp_path / "empty" / "a").mkdir(parents=True)
+    with pytest.raises(InputError, match="no frame files"):
+        load_recording(tmp_path / "empty")
+    rec, _ = _recording()
+    save_recording(rec, tmp_path / "r.npz")
+    with pytest.raises(InputError, match="OpenPose folders only") as e:
+        load_recording(tmp_path / "r.npz", missing_frames="empty")
+    assert e.value.field == "missing_frames"
+    bad = Recording(rec.detections, ("a/b",) + rec.cameras[1:], rec.layout)
+    with pytest.raises(InputError, match="folder name") as e:
+        save_openpose(bad, tmp_path / "out")
+    assert e.value.camera == "a/b" and not (tmp_path / "out").exists()
