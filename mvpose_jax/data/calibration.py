@@ -117,9 +117,8 @@ def rig_from_dict(data: Any, *, file: object = None) -> Rig:
         R.append(_matrix(get("R"), (3, 3), file, name, "R"))
         t.append(_vector(get("t"), (3,), file, name, "t"))
         size.append([_number(get("width"), file, name, "width"), _number(get("height"), file, name, "height")])
-    return make_rig(
-        K, _pad5(dist), R, t, size, names, data.get("up") if isinstance(data, dict) else None, file=file
-    )
+    up = data.get("up")
+    return _make_rig(K, dist, R, t, size, names, None if up is None else _up(up, file), file)
 
 
 def rig_from_panoptic(
@@ -149,7 +148,7 @@ def rig_from_panoptic(
         R.append(_matrix(get("R"), (3, 3), file, name, "R"))
         t.append(_vector(get("t"), (3,), file, name, "t") / 100.0)
         size.append(_vector(get("resolution"), (2,), file, name, "resolution"))
-    return make_rig(K, _pad5(dist), R, t, size, names, (0.0, -1.0, 0.0), file=file)
+    return _make_rig(K, dist, R, t, size, names, (0.0, -1.0, 0.0), file)
 
 
 def rig_from_toml(data: Any, *, file: object = None, translation_scale: float = 1.0) -> Rig:
@@ -161,9 +160,19 @@ def rig_from_toml(data: Any, *, file: object = None, translation_scale: float = 
         raise InputError("no camera tables (e.g. [cam_1]) found", file=file, field="cameras")
     names, K, dist, R, t, size = [], [], [], [], [], []
     for key, cam in tables:
-        name = str(cam.get("name", key))
+        name = cam.get("name", key)
+        if not isinstance(name, str) or not name:
+            raise InputError(
+                f"expected a non-empty string, got {name!r}"[:200], file=file, camera=key, field="name"
+            )
         get = lambda field: _field(cam, field, file, name)  # noqa: E731
-        if cam.get("fisheye", False):
+        fisheye = cam.get("fisheye", False)
+        if not isinstance(fisheye, bool):
+            raise InputError(
+                f"expected true or false, got {fisheye!r}"[:200],
+                file=file, camera=name, field="fisheye",
+            )  # fmt: skip
+        if fisheye:
             raise InputError("fisheye calibrations are not supported", file=file, camera=name, field="fisheye")
         names.append(name)
         size.append(_vector(get("size"), (2,), file, name, "size"))
@@ -171,7 +180,7 @@ def rig_from_toml(data: Any, *, file: object = None, translation_scale: float = 
         dist.append(_vector(get("distortions"), (4, 5), file, name, "distortions"))
         R.append(rodrigues(_vector(get("rotation"), (3,), file, name, "rotation")))
         t.append(_vector(get("translation"), (3,), file, name, "translation") * translation_scale)
-    return make_rig(K, _pad5(dist), R, t, size, names, file=file)
+    return _make_rig(K, dist, R, t, size, names, None, file)
 
 
 def rodrigues(rvec: np.ndarray) -> np.ndarray:
@@ -217,10 +226,32 @@ def _field(cam: dict, key: str, file: object, name: str) -> Any:
     return cam[key]
 
 
-def _array(value: Any, file: object, name: str, field: str) -> np.ndarray:
+def _make_rig(K, dist, R, t, size, names, up, file: object) -> Rig:
+    """`make_rig`, once every number is known to be finite in float32 (the rig's precision)."""
+    for field, values in (("K", K), ("dist", dist), ("R", R), ("t", t), ("size", size)):
+        for name, v in zip(names, values):
+            with np.errstate(over="ignore"):
+                finite = np.isfinite(np.asarray(v, np.float32)).all()
+            if not finite:
+                raise InputError(
+                    "a number is beyond float32 range", file=file, camera=name, field=field
+                )
+    return make_rig(K, _pad5(dist), R, t, size, names, up, file=file)
+
+
+def _up(value: Any, file: object) -> tuple[float, float, float]:
+    """The native format's optional world up vector: 3 finite numbers, not all zero."""
+    u = _vector(value, (3,), file, None, "up")
+    scale = np.abs(u).max()
+    if not scale > 0:
+        raise InputError("up must be a non-zero 3-vector", file=file, field="up")
+    return tuple(float(x) for x in u / scale)  # scaled first: its norm cannot overflow
+
+
+def _array(value: Any, file: object, name: str | None, field: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError("expected numbers", file=file, camera=name, field=field) from None
     if not np.all(np.isfinite(arr)):
         raise InputError("contains NaN or infinity", file=file, camera=name, field=field)
@@ -234,7 +265,9 @@ def _matrix(value: Any, shape: tuple[int, int], file: object, name: str, field: 
     return arr
 
 
-def _vector(value: Any, sizes: tuple[int, ...], file: object, name: str, field: str) -> np.ndarray:
+def _vector(
+    value: Any, sizes: tuple[int, ...], file: object, name: str | None, field: str
+) -> np.ndarray:
     arr = _array(value, file, name, field)
     if arr.ndim == 2 and arr.shape[1] == 1:  # Panoptic stores t as a column, [[x], [y], [z]]
         arr = arr[:, 0]
@@ -247,7 +280,12 @@ def _vector(value: Any, sizes: tuple[int, ...], file: object, name: str, field: 
 
 
 def _number(value: Any, file: object, name: str, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    try:
+        ok = ok and bool(np.isfinite(float(value)))
+    except OverflowError:  # an integer beyond float range
+        ok = False
+    if not ok:
         raise InputError("expected a finite number", file=file, camera=name, field=field)
     return float(value)
 

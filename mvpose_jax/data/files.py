@@ -90,6 +90,8 @@ def read_json(path: str | os.PathLike) -> Any:
         raise InputError(f"non-finite number {e.args[0]} in JSON", file=path) from None
     except RecursionError:
         raise InputError("JSON nested too deeply", file=path) from None
+    except ValueError as e:  # e.g. an integer beyond Python's digit limit for str -> int
+        raise InputError(f"unreadable JSON ({e})", file=path) from None
 
 
 def read_toml(path: str | os.PathLike) -> dict[str, Any]:
@@ -101,6 +103,10 @@ def read_toml(path: str | os.PathLike) -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"malformed TOML: {e}", file=path) from None
+    except RecursionError:
+        raise InputError("TOML nested too deeply", file=path) from None
+    except ValueError as e:  # e.g. an integer beyond Python's digit limit for str -> int
+        raise InputError(f"unreadable TOML ({e})", file=path) from None
 
 
 class _NonFinite(ValueError):

@@ -20,6 +20,7 @@ Schema (version 1). Keys not listed here are errors, so a misspelt key never los
                 "keypoints": [[x, y, score], ...],   # exactly K entries; score in [0, 1]
                 "identity": 3,              # optional: the ground-truth "id" of this person in
                                             #   this frame; -1 or absent = unknown / false positive
+                                            #   (identities and ids are integers below 2^31)
                 "projected": [[x, y], ...]  # optional: K noise-free projections of the truth;
               }                             #   all skeletons or none
             ]
@@ -63,6 +64,7 @@ from mvpose_jax.data.calibration import rig_from_dict, rig_to_dict
 from mvpose_jax.data.files import atomic_open
 from mvpose_jax.data.formats import (
     check_keypoints,
+    check_padding,
     check_recording,
     float_lists,
     is_finite_number,
@@ -83,6 +85,8 @@ _TOP_KEYS = frozenset({"format", "version", "description", "layout", "cameras", 
 _FRAME_KEYS = frozenset({"index", "timestamp", "images", "views", "ground_truth"})
 _SKELETON_KEYS = frozenset({"keypoints", "identity", "projected"})
 _GT_KEYS = frozenset({"id", "keypoints"})
+# Identities and ids are stored as int32.
+_MAX_ID = 2**31 - 1
 
 
 def read_native(path: str | os.PathLike) -> Recording:
@@ -232,8 +236,10 @@ def native_from_json(data: Any, *, file: object = None) -> Recording:
                     if key not in _GT_KEYS:
                         raise err(f"unknown key; people have {sorted(_GT_KEYS)}", f"{pfield}.{key}")
                 pid = person.get("id")
-                if not is_int(pid) or pid < 0:
-                    raise err(f"expected a non-negative integer id, got {pid!r}", f"{pfield}.id")
+                if not is_int(pid) or not 0 <= pid <= _MAX_ID:
+                    raise err(
+                        f"expected an integer id in [0, 2^31), got {pid!r}"[:200], f"{pfield}.id"
+                    )
                 if pid in ids:
                     raise err(f"duplicate id {pid}", f"{pfield}.id")
                 ids.add(pid)
@@ -269,9 +275,11 @@ def native_from_json(data: Any, *, file: object = None) -> Recording:
                 ident = sk.get("identity")
                 if ident is not None:
                     has_identity = True
-                    if not is_int(ident) or ident < -1:
+                    if not is_int(ident) or not -1 <= ident <= _MAX_ID:
                         raise err(
-                            f"expected an integer >= -1, got {ident!r}", f"{sfield}.identity", cam
+                            f"expected an integer in [-1, 2^31), got {ident!r}"[:200],
+                            f"{sfield}.identity",
+                            cam,
                         )
                 identities.append(-1 if ident is None else ident)
                 raw_keypoints.append(sk["keypoints"])
@@ -287,7 +295,7 @@ def native_from_json(data: Any, *, file: object = None) -> Recording:
     xy, score = check_keypoints(
         values[..., :2], values[..., 2], num_keypoints=K, locate=locate, file=file
     )
-    det = pack_detections(xy, score, index, num_frames=F, num_cameras=C)
+    det = pack_detections(xy, score, index, num_frames=F, num_cameras=C, file=file)
     P = det.score.shape[2]
 
     # Projections: all skeletons or none (a partial array would invent zeros for the others).
@@ -467,6 +475,7 @@ def _ground_truth(
     g_of_id = {pid: g for g, pid in enumerate(ids)}
     # G >= 1 like P: a recording with ground truth but nobody in it still has a (padding) person.
     G = max(1, len(ids))
+    check_padding((F, G, K, 3), content=len(where) * K, file=file, field="ground_truth")
     locate = lambda i: (where[i][0], None, where[i][2])  # noqa: E731
     xyz, present = _rows(raw, 3, K, allow_null=True, locate=locate, file=file, name="keypoints")
     xyz32, _ = check_keypoints(

@@ -18,13 +18,17 @@ ground-truth people)::
     projected          (F, C, P, K, 2)  float32 pixels, optional
 
 Reading never unpickles (``allow_pickle=False``): an archive with object arrays is refused, so a
-file from elsewhere cannot run code. Every member's dtype, shape and values are checked; any other
-member is an error (nothing in the file is silently ignored).
+file from elsewhere cannot run code. Each member's ``.npy`` header must describe exactly the bytes
+the member holds (checked before reading, so a header declaring a huge array allocates nothing).
+Every member's dtype, shape and values are checked; any other member is an error (nothing in the
+file is silently ignored).
 """
 
 from __future__ import annotations
 
+import math
 import os
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -195,7 +199,12 @@ def read_npz(path: str | os.PathLike) -> Recording:
 
 
 def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Every member of the archive, loaded and checked for presence; InputError on any failure."""
+    """Every member of the archive, loaded and checked for presence; InputError on any failure.
+
+    Each member's ``.npy`` header is read first and its declared shape and dtype checked against
+    the bytes the member holds, so a header declaring a huge array is refused before anything is
+    allocated, and object (pickled) arrays are refused before they are read.
+    """
     p = Path(path)
     try:
         size = p.stat().st_size
@@ -207,27 +216,37 @@ def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise InputError("is a folder, expected a file", file=path)
     if size == 0:
         raise InputError("file is empty", file=path)
-    # The file is untrusted bytes: numpy and zipfile raise many kinds of errors on corrupt input
+    # The file is untrusted bytes: zipfile and numpy raise many kinds of errors on corrupt input
     # (BadZipFile, zlib.error, EOFError, ValueError, struct.error ...); all of them mean "bad file".
     try:
-        archive = np.load(p, allow_pickle=False)
+        archive = zipfile.ZipFile(p)
     except Exception as e:  # noqa: BLE001
+        with open(p, "rb") as f:
+            magic = f.read(6)
+        if magic == b"\x93NUMPY":
+            raise InputError("a single .npy array, expected a .npz archive", file=path) from None
         raise InputError(
             f"not a readable .npz archive ({type(e).__name__}: {e})", file=path
         ) from None
-    if not isinstance(archive, np.lib.npyio.NpzFile):
-        raise InputError("a single .npy array, expected a .npz archive", file=path)
     out: dict[str, Any] = {}
     with archive:
-        for name in archive.files:
+        for info in archive.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
             if name not in _REQUIRED and name not in _OPTIONAL:
                 raise InputError(
                     f"unknown member; members are {list(_REQUIRED + _OPTIONAL)}",
                     file=path,
                     field=name,
                 )
+            if name in out:
+                raise InputError("member appears twice", file=path, field=name)
             try:
-                out[name] = archive[name]
+                with archive.open(info) as f:
+                    _check_header(f, info.file_size)
+                with archive.open(info) as f:
+                    out[name] = np.lib.format.read_array(f, allow_pickle=False)
+            except InputError as e:
+                raise e.at(file=path, field=name) from None
             except Exception as e:  # noqa: BLE001 - see above
                 raise InputError(
                     f"cannot read member ({type(e).__name__}: {e})", file=path, field=name
@@ -240,3 +259,25 @@ def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
         missing = next(name for name in _GT if name not in out)
         raise InputError(f"ground truth needs all of {list(_GT)}", file=path, field=missing)
     return out
+
+
+def _check_header(f, member_size: int) -> None:
+    """Reads a member's .npy header; its shape and dtype must describe exactly the bytes left."""
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    else:
+        raise InputError(f".npy format version {version} is not supported (1.0 and 2.0 are)")
+    if dtype.hasobject:
+        raise InputError(
+            "object arrays are refused: loading them would unpickle, which can run code"
+        )
+    declared = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
+    held = member_size - f.tell()
+    if declared != held:
+        raise InputError(
+            f"the header declares a {dtype} array of shape {shape} ({declared} bytes), but the "
+            f"member holds {held} bytes"
+        )

@@ -47,6 +47,7 @@ import numpy as np
 from mvpose_jax.data.files import atomic_open
 from mvpose_jax.data.formats import (
     check_keypoints,
+    check_padding,
     check_recording,
     float_lists,
     is_finite_number,
@@ -189,6 +190,8 @@ def original_from_json(
         raise InputError("the file has no cameras", file=file, field="cameras")
     cam_index = {name: c for c, name in enumerate(names)}
     F, C = len(data), len(names)
+    # Image names are kept per frame and camera: the grid must be justified by the entries.
+    check_padding((F, C), content=sum(len(frame) for frame in data) + C, file=file, field="frames")
 
     blocks: list[np.ndarray] = []  # (n, K, 4): x, y, visible, score
     where_f: list[int] = []
@@ -238,7 +241,9 @@ def original_from_json(
     )
     # The format's rule: a keypoint flagged not visible is missing, whatever its score says.
     score = np.where(values[..., 2] != 0, raw_score, 0.0).astype(np.float32)
-    det = pack_detections(xy, score, (f_idx, c_idx, p_idx), num_frames=F, num_cameras=C)
+    det = pack_detections(
+        xy, score, (f_idx, c_idx, p_idx), num_frames=F, num_cameras=C, file=file
+    )
 
     ground_truth = None
     if any(g is not None for g in gt_frames):
@@ -389,6 +394,8 @@ def _ground_truth(
     """Per-frame people lists -> Poses3D padded to G = max(1, most people in a frame)."""
     F = len(frames)
     G = max([1] + [len(people) for people in frames if people])
+    entries = sum(len(people) for people in frames if people)
+    check_padding((F, G, K, 3), content=entries * K, file=file, field="gt3d")
     xyz = np.zeros((F, G, K, 3), np.float64)
     kvalid = np.zeros((F, G, K), bool)
     valid = np.zeros((F, G), bool)

@@ -1,0 +1,855 @@
+"""Hostile input: every reader loads a mutated file correctly or raises the project's own error.
+
+Each strategy starts from VALID files written by the project's own writers (a small synthetic
+recording on the panoptic5 rig, as native JSON, original JSON, npz and an OpenPose folder, and
+the rig as native JSON, CMU Panoptic JSON and anipose TOML) and mutates them: truncation, flipped,
+inserted and deleted bytes (non-UTF-8 included), JSON values replaced by hostile ones (huge,
+non-finite, negative, wrong types, nested, null, digit strings beyond Python's int limit, deep
+nesting), deleted keys, lists grown far beyond their size, npz members of the wrong dtype or
+shape or with headers declaring 10^9-element arrays, and OpenPose folders with files missing,
+renamed or out of place. The only exceptions allowed out are `MvposeError`s (in practice
+`InputError`, which must name the file); a successful load must give a valid recording or rig.
+Every call runs under a time limit, so a hang fails too.
+
+Failed saves: nothing half-written at the target (no file, or the old one), no temporary files.
+No code path unpickles: an AST scan of the package source.
+
+Hypothesis runs derandomized with a modest number of examples; set MVPOSE_HOSTILE_EXAMPLES to
+search longer.
+"""
+
+from __future__ import annotations
+
+import ast
+import contextlib
+import json
+import math
+import os
+import shutil
+import signal
+import tomllib
+import zipfile
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+
+import cv2
+import hypothesis.strategies as st
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+
+import mvpose_jax
+from mvpose_jax.cameras import Rig
+from mvpose_jax.data import (
+    Recording,
+    load_recording,
+    read_native,
+    read_native_rig,
+    read_npz,
+    read_openpose,
+    read_original,
+    save_openpose,
+    save_recording,
+    write_native,
+    write_npz,
+    write_original,
+)
+from mvpose_jax.data import files as files_module
+from mvpose_jax.data.calibration import load_rig, save_rig
+from mvpose_jax.data.formats import check_recording
+from mvpose_jax.data.synthetic import generate_recording
+from mvpose_jax.errors import InputError, MvposeError
+
+EXAMPLES = int(os.environ.get("MVPOSE_HOSTILE_EXAMPLES", "50"))
+HOSTILE = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+# Seconds one reader call may take on a mutated 3-frame file before it counts as a hang.
+TIME_LIMIT = 20
+
+PANOPTIC_CAMERAS = ["00_00", "00_01", "00_02", "00_03", "00_04"]
+
+
+# --------------------------------------------------------------------------- valid files
+
+
+@pytest.fixture(scope="module")
+def valid(tmp_path_factory) -> dict:
+    """name -> bytes of each valid file; "openpose" -> {relative path: bytes}; plus the rig."""
+    rig = load_rig("panoptic5")
+    rec = generate_recording(rig, num_people=2, num_frames=3, seed=0)
+    d = tmp_path_factory.mktemp("valid")
+    write_native(rec, d / "native.json", rig=rig)
+    write_original(rec, d / "original.json")
+    write_npz(rec, d / "recording.npz")
+    save_openpose(rec, d / "openpose")
+    save_rig(rig, d / "rig.json")
+    (d / "panoptic.json").write_text(json.dumps(_panoptic_dict(rig)))
+    (d / "calib.toml").write_text(_toml_text(rig))
+    out = {
+        name: (d / file).read_bytes()
+        for name, file in (
+            ("native", "native.json"),
+            ("original", "original.json"),
+            ("npz", "recording.npz"),
+            ("calib_native", "rig.json"),
+            ("calib_panoptic", "panoptic.json"),
+            ("calib_toml", "calib.toml"),
+        )
+    }
+    root = d / "openpose"
+    out["openpose"] = {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+    out["rig"], out["recording"] = rig, rec
+    out = _Valid(out)
+    # Every valid file loads (otherwise the tests below would test nothing).
+    for name in FILE_KINDS:
+        path = d / f"check{SUFFIX[name]}"
+        path.write_bytes(out[name])
+        for reader in READERS[name]:
+            assert not isinstance(_outcome(reader, path), MvposeError), (name, reader)
+    assert not isinstance(_outcome(load_recording, root), MvposeError)
+    return out
+
+
+class _Valid(dict):
+    def __repr__(self):  # hypothesis prints fixtures with a failing example: keep it short
+        return "<valid files>"
+
+
+def _panoptic_dict(rig: Rig) -> dict:
+    """A CMU Panoptic calibration (t in cm as a column, 'distCoef', 'resolution')."""
+    return {
+        "calibDataSource": "hostile",
+        "cameras": [
+            {
+                "name": f"00_{c:02d}",
+                "type": "hd",
+                "resolution": np.asarray(rig.size[c]).astype(int).tolist(),
+                "K": np.asarray(rig.K[c], np.float64).tolist(),
+                "distCoef": np.asarray(rig.dist[c], np.float64).tolist(),
+                "R": np.asarray(rig.R[c], np.float64).tolist(),
+                "t": (np.asarray(rig.t[c], np.float64) * 100).reshape(3, 1).tolist(),
+            }
+            for c in range(rig.num_cameras)
+        ],
+    }
+
+
+def _toml_doc(rig: Rig) -> dict:
+    doc = {}
+    for c, name in enumerate(rig.names):
+        doc[f"cam_{c + 1}"] = {
+            "name": name,
+            "size": np.asarray(rig.size[c], np.float64).tolist(),
+            "matrix": np.asarray(rig.K[c], np.float64).tolist(),
+            "distortions": np.asarray(rig.dist[c], np.float64)[:4].tolist(),
+            "rotation": cv2.Rodrigues(np.asarray(rig.R[c], np.float64))[0].ravel().tolist(),
+            "translation": np.asarray(rig.t[c], np.float64).tolist(),
+            "fisheye": False,
+        }
+    doc["metadata"] = {"adjusted": False, "error": 0.0}
+    return doc
+
+
+def _toml_text(rig: Rig) -> str:
+    return _dump_toml(_toml_doc(rig))
+
+
+def _toml_value(v) -> str:
+    if v is None:  # TOML has no null; a string stands in for it
+        return '"null"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    if isinstance(v, Raw):
+        return v.text
+    raise TypeError(type(v))
+
+
+def _dump_toml(doc) -> str:
+    """A small TOML writer for the anipose structure (tables of values, inline tables below)."""
+    if not isinstance(doc, dict):  # the root replaced: write it as a value
+        return f"value = {_toml_value(doc)}\n"
+    values = [(k, v) for k, v in doc.items() if not isinstance(v, dict)]
+    lines = [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in values]
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            lines.append(f"[{json.dumps(k)}]")
+            lines += [f"{json.dumps(kk)} = {_toml_value(vv)}" for kk, vv in v.items()]
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------- readers
+
+FILE_KINDS = ("native", "original", "npz", "calib_native", "calib_panoptic", "calib_toml")
+SUFFIX = {
+    "native": ".json",
+    "original": ".json",
+    "npz": ".npz",
+    "calib_native": ".json",
+    "calib_panoptic": ".json",
+    "calib_toml": ".toml",
+}
+READERS: dict[str, list[Callable]] = {
+    "native": [load_recording, read_native, read_native_rig],
+    "original": [load_recording, read_original, partial(read_original, layout="body25")],
+    "npz": [load_recording, read_npz, partial(load_recording, layout="body25")],
+    "calib_native": [load_rig],
+    "calib_panoptic": [load_rig, partial(load_rig, cameras=PANOPTIC_CAMERAS[::-1])],
+    "calib_toml": [load_rig, partial(load_rig, translation_scale=1e-3)],
+}
+OPENPOSE_READERS: list[Callable] = [
+    load_recording,
+    partial(read_openpose, missing_frames="empty"),
+    partial(read_openpose, layout="body25", missing_frames="empty"),
+]
+
+
+class _Hang(BaseException):
+    """A BaseException, so that a reader's broad ``except Exception`` cannot mask a hang."""
+
+
+@contextlib.contextmanager
+def _time_limit(seconds: float):
+    def alarm(signum, frame):
+        raise _Hang(f"no answer within {seconds} s")
+
+    old = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def _outcome(reader: Callable, path: Path, **kwargs):
+    """Calls ``reader(path)``: returns its checked result or the MvposeError it raised.
+
+    Anything else (a TypeError deep in numpy, a MemoryError, a hang) propagates and fails the test.
+    """
+    with _time_limit(TIME_LIMIT):
+        try:
+            result = reader(path, **kwargs)
+        except MvposeError as e:
+            assert str(e)
+            if isinstance(e, InputError):
+                assert e.file is not None, f"InputError without a file: {e}"
+            return e
+    if isinstance(result, Recording):
+        check_recording(result)  # a successful load is a valid recording
+        assert result.detections.xy.dtype == np.float32
+    elif isinstance(result, Rig):
+        for field in ("K", "dist", "R", "t", "size"):
+            assert np.isfinite(np.asarray(getattr(result, field))).all(), field
+    else:
+        assert result is None and reader is read_native_rig, result
+    return result
+
+
+def _read_all(kind: str, path: Path) -> None:
+    for reader in READERS[kind]:
+        _outcome(reader, path)
+
+
+# --------------------------------------------------------------------------- byte mutations
+
+_NOT_UTF8 = st.sampled_from([b"\xff", b"\xc3", b"\xed\xa0\x80", b"\xf8\x88\x80\x80\x80", b"\x00"])
+byte_edits = st.lists(
+    st.one_of(
+        st.tuples(st.just("flip"), st.integers(0, 2**32), st.integers(1, 255)),
+        st.tuples(st.just("insert"), st.integers(0, 2**32), st.binary(min_size=1, max_size=8)),
+        st.tuples(st.just("insert"), st.integers(0, 2**32), _NOT_UTF8),
+        st.tuples(st.just("delete"), st.integers(0, 2**32), st.integers(1, 64)),
+    ),
+    max_size=4,
+)
+cuts = st.one_of(st.none(), st.integers(0, 2**32))
+
+
+def _mutate_bytes(data: bytes, edits, cut) -> bytes:
+    out = bytearray(data)
+    for op, pos, arg in edits:
+        pos = pos % (len(out) + 1)
+        if op == "flip" and out:
+            out[pos % len(out)] ^= arg
+        elif op == "insert":
+            out[pos:pos] = arg
+        elif op == "delete":
+            del out[pos : pos + arg]
+    if cut is not None:
+        out = out[: cut % (len(out) + 1)]
+    return bytes(out)
+
+
+@pytest.mark.parametrize("kind", FILE_KINDS)
+@HOSTILE
+@given(edits=byte_edits, cut=cuts)
+def test_mutated_bytes(valid, tmp_path_factory, kind, edits, cut):
+    path = _work(tmp_path_factory) / f"bytes{SUFFIX[kind]}"
+    path.write_bytes(_mutate_bytes(valid[kind], edits, cut))
+    _read_all(kind, path)
+
+
+@HOSTILE
+@given(pick=st.integers(0, 10**6), edits=byte_edits, cut=cuts)
+def test_mutated_bytes_openpose(valid, tmp_path_factory, pick, edits, cut):
+    root = _openpose_copy(valid, tmp_path_factory)
+    files = sorted(valid["openpose"])
+    target = root / files[pick % len(files)]
+    target.write_bytes(_mutate_bytes(target.read_bytes(), edits, cut))
+    for reader in OPENPOSE_READERS:
+        _outcome(reader, root)
+
+
+# --------------------------------------------------------------------------- JSON value mutations
+
+
+class Raw:
+    """JSON (or TOML) text put verbatim where a value goes: what `json.dumps` cannot write."""
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __repr__(self):
+        return f"Raw({self.text[:40]!r}{'…' if len(self.text) > 40 else ''})"
+
+
+_RAW = [
+    Raw("[" * 5000 + "]" * 5000),  # nested beyond the recursion limit
+    Raw("{" + '"a":{' * 3000 + "}" * 3001),
+    Raw("1" * 5000),  # an integer beyond Python's 4300-digit str -> int limit
+    Raw("-" + "9" * 400),
+    Raw("1e999"),
+    Raw("-Infinity"),
+    Raw("NaN"),
+    Raw("[" + ",".join(["0"] * 60000) + "]"),  # a list far longer than any count in the file
+    Raw('"' + "x" * 100000 + '"'),
+]
+_SPECIAL = st.sampled_from(
+    [None, True, False, 0, -1, 1, 2, 3, 17, 18, 25, 54, 75, 1e308, -1e308, 5e-324, 3.5e38, 1e39,
+     10**30, -(10**30), 2**31, 2**63, 2**64, -(2**63) - 1, float("nan"), float("inf"),
+     float("-inf"), "", "0", "x", "NaN", "coco18", "body25", "trackera", "é\u2028", [], {},
+     [None], [[]], [1, 2], [1, 2, 3], [0, 0, 0], [[1, 2, 3]], {"": None}]
+)  # fmt: skip
+json_leaves = st.one_of(
+    _SPECIAL,
+    st.integers(),
+    st.floats(),
+    st.text(max_size=8),
+    st.sampled_from(_RAW),
+)
+hostile_json = st.recursive(
+    json_leaves,
+    lambda children: st.lists(children, max_size=4)
+    | st.dictionaries(st.text(max_size=6), children, max_size=4),
+    max_leaves=12,
+)
+# replace: the node becomes the value; delete: the node leaves its parent; grow: a list repeats
+# its last element (up to 2000 times: people, frames, keypoints far beyond their counts).
+operations = st.one_of(
+    st.tuples(st.just("replace"), hostile_json),
+    st.tuples(st.just("delete"), st.none()),
+    st.tuples(st.just("grow"), st.integers(1, 2000)),
+)
+
+
+def _paths(node, prefix=()):
+    """Every place in a JSON document, as key paths."""
+    yield prefix
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _paths(v, prefix + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _paths(v, prefix + (i,))
+
+
+# Where to mutate: (named, index). Named picks among object fields only ("identity", "t", ...),
+# which the many keypoint numbers would otherwise drown.
+picks = st.tuples(st.booleans(), st.integers(0, 10**6))
+
+
+def _choose(paths: list, pick) -> tuple:
+    named, i = pick
+    fields = [p for p in paths if p and isinstance(p[-1], str)]
+    pool = fields if named and fields else paths
+    return pool[i % len(pool)]
+
+
+def _apply(doc, path, op, arg, raws: list):
+    """``doc`` with the operation applied at ``path``; Raw values go to ``raws`` as placeholders."""
+
+    def place(value):
+        if isinstance(value, Raw):
+            raws.append(value)
+            return f"\x00raw{len(raws) - 1}\x00"
+        if isinstance(value, list):
+            return [place(v) for v in value]
+        if isinstance(value, dict):
+            return {k: place(v) for k, v in value.items()}
+        return value
+
+    if not path:
+        return place(arg) if op == "replace" else doc
+    parent = doc
+    for key in path[:-1]:
+        parent = parent[key]
+    key = path[-1]
+    if op == "replace":
+        parent[key] = place(arg)
+    elif op == "delete":
+        del parent[key]
+    elif op == "grow" and isinstance(parent[key], list) and parent[key]:
+        parent[key].extend([parent[key][-1]] * arg)
+    return doc
+
+
+def _dump_json(doc, raws: list) -> str:
+    text = json.dumps(doc, ensure_ascii=False)
+    for i, raw in enumerate(raws):
+        text = text.replace(json.dumps(f"\x00raw{i}\x00"), raw.text)
+    return text
+
+
+def _mutate_json(text: str, pick: int, op: str, arg) -> str:
+    doc = json.loads(text)
+    paths = list(_paths(doc))
+    raws: list[Raw] = []
+    doc = _apply(doc, _choose(paths, pick), op, arg, raws)
+    return _dump_json(doc, raws)
+
+
+@pytest.mark.parametrize("kind", ["native", "original", "calib_native", "calib_panoptic"])
+@HOSTILE
+@given(pick=picks, operation=operations)
+def test_mutated_json_values(valid, tmp_path_factory, kind, pick, operation):
+    path = _work(tmp_path_factory) / f"values{SUFFIX[kind]}"
+    path.write_text(_mutate_json(valid[kind].decode(), pick, *operation), encoding="utf-8")
+    _read_all(kind, path)
+
+
+@HOSTILE
+@given(pick=st.integers(0, 10**6), inner=picks, operation=operations)
+def test_mutated_original_embedded_skeletons(valid, tmp_path_factory, pick, inner, operation):
+    """The original format nests JSON in strings: mutate inside them (and break the string)."""
+    doc = json.loads(valid["original"])
+    entries = [(f, cam) for f, frame in enumerate(doc) for cam in frame]
+    f, cam = entries[pick % len(entries)]
+    raws: list[Raw] = []
+    skeletons = json.loads(doc[f][cam][0])
+    inner_paths = list(_paths(skeletons))
+    skeletons = _apply(skeletons, _choose(inner_paths, inner), *operation, raws)
+    doc[f][cam][0] = _dump_json(skeletons, raws)
+    path = _work(tmp_path_factory) / "embedded.json"
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    _read_all("original", path)
+
+
+@HOSTILE
+@given(file=st.integers(0, 10**6), pick=picks, operation=operations)
+def test_mutated_json_values_openpose(valid, tmp_path_factory, file, pick, operation):
+    root = _openpose_copy(valid, tmp_path_factory)
+    files = sorted(valid["openpose"])
+    target = root / files[file % len(files)]
+    target.write_text(_mutate_json(target.read_text(), pick, *operation), encoding="utf-8")
+    for reader in OPENPOSE_READERS:
+        _outcome(reader, root)
+
+
+toml_leaves = st.one_of(
+    _SPECIAL.filter(lambda v: v is not None),
+    st.integers(),
+    st.floats(),
+    st.text(max_size=8),
+    st.sampled_from([Raw("[" * 2000 + "]" * 2000), Raw("1" * 5000), Raw("1e999")]),
+)
+hostile_toml = st.recursive(
+    toml_leaves,
+    lambda children: st.lists(children, max_size=4)
+    | st.dictionaries(st.text(max_size=6), children, max_size=4),
+    max_leaves=12,
+)
+
+
+@HOSTILE
+@given(
+    pick=picks,
+    operation=st.one_of(
+        st.tuples(st.just("replace"), hostile_toml),
+        st.tuples(st.just("delete"), st.none()),
+        st.tuples(st.just("grow"), st.integers(1, 2000)),
+    ),
+)
+def test_mutated_toml_values(valid, tmp_path_factory, pick, operation):
+    doc = tomllib.loads(valid["calib_toml"].decode())
+    path = _choose(list(_paths(doc)), pick)
+    op, arg = operation
+    if not path:
+        doc = arg if op == "replace" else doc
+    else:
+        parent = doc
+        for key in path[:-1]:
+            parent = parent[key]
+        if op == "replace":
+            parent[path[-1]] = arg
+        elif op == "delete":
+            del parent[path[-1]]
+        elif isinstance(parent[path[-1]], list) and parent[path[-1]]:
+            parent[path[-1]].extend([parent[path[-1]][-1]] * arg)
+    file = _work(tmp_path_factory) / "values.toml"
+    file.write_text(_dump_toml(doc), encoding="utf-8")
+    _read_all("calib_toml", file)
+
+
+# --------------------------------------------------------------------------- npz members
+
+npz_dtypes = st.sampled_from(
+    ["<f4", "<f8", ">f4", "<f2", "<i4", "<i8", "<u1", "|b1", "<U5", "|S3", "<c8", "<m8[s]", "|V4"]
+)
+shapes = st.lists(st.integers(0, 4), min_size=0, max_size=6).map(tuple)
+fill_values = st.sampled_from([0, 1, -1, 0.5, 2.0, np.nan, np.inf, -np.inf, 1e30, 2**31 - 1])
+
+
+def _npy_bytes(header: str, payload: bytes, version: tuple[int, int] = (1, 0)) -> bytes:
+    """A .npy member with an arbitrary header text (numpy's writer would refuse some)."""
+    head = header.encode("latin1")
+    size = 2 if version == (1, 0) else 4
+    pad = -(10 + size - 2 + len(head) + 1) % 64
+    head = head + b" " * pad + b"\n"
+    return b"\x93NUMPY" + bytes(version) + len(head).to_bytes(size, "little") + head + payload
+
+
+_HEADERS = [
+    # A declared 10^9-element (and larger) array holding a few bytes: must not be allocated.
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (1000000000,), }",
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (1000, 1000, 1000, 18, 2), }",
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (3, 5, 2, 18, 2), }",  # too few bytes
+    "{'descr': '<i4', 'fortran_order': False, 'shape': (99999999999999999999,), }",
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (-1, 5), }",
+    "{'descr': '<U1000000000', 'fortran_order': False, 'shape': (5,), }",
+    "{'descr': '|O', 'fortran_order': False, 'shape': (5,), }",
+    "{'descr': '<f4', 'fortran_order': True, 'shape': (3, 5, 2, 18, 2), }",
+    "{'descr': 'nonsense', 'fortran_order': False, 'shape': (1,), }",
+    "{'descr': '<f4', 'shape': (1,), }",
+    "[1, 2, 3]",
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (1,), 'extra': __import__('os'), }",
+    "{" * 3000,
+]
+
+
+@HOSTILE
+@given(
+    member=st.sampled_from(
+        ["version", "layout", "cameras", "xy", "score", "count", "identity", "gt_xyz", "gt_valid",
+         "gt_keypoint_valid", "timestamps", "image_names", "projected", "extra"]
+    ),  # fmt: skip
+    action=st.one_of(
+        st.tuples(st.just("array"), npz_dtypes, shapes),
+        st.tuples(st.just("reshape"), st.integers(0, 5), st.integers(0, 10**6)),
+        st.tuples(st.just("header"), st.sampled_from(_HEADERS), st.binary(max_size=64)),
+        st.tuples(st.just("object"), st.none(), st.none()),
+        st.tuples(st.just("delete"), st.none(), st.none()),
+    ),
+    fill=fill_values,
+)
+def test_mutated_npz_members(valid, tmp_path_factory, member, action, fill):
+    src = _work(tmp_path_factory) / "valid.npz"
+    src.write_bytes(valid["npz"])
+    with np.load(src, allow_pickle=False) as archive:
+        arrays = {name: archive[name] for name in archive.files}
+    raw_members: dict[str, bytes] = {}
+    kind, a, b = action
+    if kind == "array":
+        arr = np.zeros(b, dtype=a)
+        with np.errstate(all="ignore"), contextlib.suppress(ValueError, TypeError, OverflowError):
+            arr[...] = fill if arr.dtype.kind in "fc" else int(fill) if np.isfinite(fill) else 0
+        arrays[member] = arr
+    elif kind == "reshape" and member in arrays:
+        # The right dtype, one axis of the wrong length.
+        arr = arrays[member]
+        shape = list(arr.shape) or [1]
+        shape[a % len(shape)] = b % 7
+        arrays[member] = np.resize(arr, shape) if arr.size else np.zeros(shape, arr.dtype)
+    elif kind == "header":
+        arrays.pop(member, None)
+        raw_members[member] = _npy_bytes(a, b)
+    elif kind == "object":
+        arrays[member] = np.array([{"x": 1}, None], dtype=object)
+    elif kind == "delete":
+        arrays.pop(member, None)
+    path = _work(tmp_path_factory) / "members.npz"
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)  # object arrays are pickled here: the reader must refuse them
+    if raw_members:
+        with zipfile.ZipFile(path, "a") as z:
+            for name, data in raw_members.items():
+                z.writestr(f"{name}.npy", data)
+    _read_all("npz", path)
+
+
+def test_npz_declared_sizes_are_not_allocated(valid, tmp_path_factory):
+    """A header declaring a huge array is refused from its size, before any allocation."""
+    for header in _HEADERS[:4]:
+        src = _work(tmp_path_factory) / "valid.npz"
+        src.write_bytes(valid["npz"])
+        with np.load(src, allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in archive.files if name != "xy"}
+        path = _work(tmp_path_factory) / "huge.npz"
+        np.savez(path, **arrays)
+        with zipfile.ZipFile(path, "a") as z:
+            z.writestr("xy.npy", _npy_bytes(header, b"\0" * 16))
+        e = _outcome(read_npz, path)
+        assert isinstance(e, InputError) and e.field == "xy", e
+        assert "MemoryError" not in str(e)
+
+
+def test_sparse_files_cannot_ask_for_huge_arrays(tmp_path):
+    """Padding is dense: a few hundred KB of JSON could ask for 161 GiB (20000 empty frames x 200
+    cameras x one view of 300 people). Refused before allocating, naming the file."""
+    kp = [[1.0, 2.0, 0.5]] * 18
+    crowded = {"views": {"c0": [{"keypoints": kp}] * 300}}
+    cameras = [f"c{i}" for i in range(200)]
+    cases = {
+        "people.json": {"cameras": cameras, "frames": [crowded] + [{}] * 19999},
+        "frames.json": {"cameras": [f"c{i}" for i in range(2000)], "frames": [{}] * 20000},
+        "gt.json": {
+            "cameras": ["c0"],
+            "frames": [{"ground_truth": [{"id": i} for i in range(1000)]}] + [{}] * 19999,
+        },
+        "original.json": [{f"c{i}": ["[]", 0.0, ""] for i in range(2000)}]
+        + [{"c0": ["[]", 0.0, ""]}] * 20000,
+    }
+    for name, doc in cases.items():
+        path = tmp_path / name
+        path.write_text(json.dumps(doc))
+        e = _outcome(load_recording, path)
+        assert isinstance(e, InputError) and "would allocate" in str(e), (name, e)
+
+
+# --------------------------------------------------------------------------- OpenPose folders
+
+folder_edits = st.lists(
+    st.one_of(
+        st.tuples(st.just("remove"), st.integers(0, 10**6), st.none()),
+        st.tuples(
+            st.just("rename"),
+            st.integers(0, 10**6),
+            st.sampled_from(
+                ["x.json", "frame.json", "000000000007_keypoints.json", "a_b_keypoints.json",
+                 "9" * 30 + "_keypoints.json", "000000000001_keypoints.json", ".hidden.json",
+                 "0_keypoints.JSON", "notes.txt"]
+            ),  # fmt: skip
+        ),
+        st.tuples(
+            st.just("stray"), st.integers(0, 10**6), st.sampled_from(["file", "dir", "root"])
+        ),
+        st.tuples(st.just("empty_camera"), st.integers(0, 10**6), st.none()),
+        st.tuples(st.just("dir_for_file"), st.integers(0, 10**6), st.none()),
+    ),
+    min_size=1,
+    max_size=3,
+)
+
+
+@HOSTILE
+@given(edits=folder_edits)
+def test_mutated_openpose_folders(valid, tmp_path_factory, edits):
+    root = _openpose_copy(valid, tmp_path_factory)
+    for op, pick, arg in edits:
+        with contextlib.suppress(OSError):  # an edit the folder cannot take is skipped
+            _edit_folder(root, op, pick, arg)
+    rig = valid["rig"]
+    for reader in OPENPOSE_READERS + [
+        partial(load_recording, rig=rig),
+        partial(load_recording, rig=rig.select(["trackera", "trackerb"])),
+        partial(read_openpose, cameras=["trackerc", "trackera"], missing_frames="empty"),
+    ]:
+        _outcome(reader, root)
+
+
+def _edit_folder(root: Path, op: str, pick: int, arg) -> None:
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    cams = sorted(p for p in root.iterdir() if p.is_dir())
+    if op == "remove" and files:
+        files[pick % len(files)].unlink()
+    elif op == "rename" and files:
+        f = files[pick % len(files)]
+        f.rename(f.parent / arg)
+    elif op == "stray":
+        where = root if arg == "root" or not cams else cams[pick % len(cams)]
+        if arg == "dir":
+            (where / "sub.json").mkdir(exist_ok=True)
+        else:
+            (where / "stray.json").write_text('{"people": []}')
+    elif op == "empty_camera" and cams:
+        shutil.rmtree(cams[pick % len(cams)])
+        cams[pick % len(cams)].mkdir()
+    elif op == "dir_for_file" and files:
+        files[pick % len(files)].unlink()
+        files[pick % len(files)].mkdir()
+
+
+# --------------------------------------------------------------------------- failed saves
+
+
+@pytest.mark.parametrize("fmt", ["native", "original", "npz", "openpose"])
+@pytest.mark.parametrize("failure", ["serialise", "disk_full"])
+def test_failed_save_leaves_no_partial_file(valid, tmp_path, monkeypatch, fmt, failure):
+    """An exception midway through a save leaves the old file (or none) and no temporary file.
+
+    OpenPose folders are written file by file: each file present afterwards is complete.
+    """
+    from mvpose_jax.data import native, npz, openpose, original
+
+    rec = valid["recording"]
+    if failure == "serialise":
+        # Raised from inside the format's own serialisation, after part of the output is written.
+        calls = {"n": 0}
+        real_dumps = json.dumps
+
+        def dumps(*args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] >= 2:
+                raise RuntimeError("boom inside serialisation")
+            return real_dumps(*args, **kwargs)
+
+        def savez_half(f, **arrays):
+            f.write(b"PK\x03\x04 half an archive")
+            raise RuntimeError("boom inside serialisation")
+
+        module = {"native": native, "original": original, "openpose": openpose}.get(fmt)
+        if module is None:
+            monkeypatch.setattr(npz.np, "savez_compressed", savez_half)
+        else:
+            monkeypatch.setattr(module.json, "dumps", dumps)
+        expected = RuntimeError
+    else:
+        # The disk fills up: a file's writes fail after 50 bytes.
+        real_fdopen = os.fdopen
+
+        class Full:
+            def __init__(self, f):
+                self._f, self._left = f, 50
+
+            def write(self, data):
+                if len(data) > self._left:
+                    self._f.write(data[: self._left])
+                    raise OSError(28, "No space left on device")
+                self._left -= len(data)
+                return self._f.write(data)
+
+            def __getattr__(self, name):
+                return getattr(self._f, name)
+
+            def __enter__(self):
+                return self
+
+            def __exit__(self, *exc):
+                return self._f.__exit__(*exc)
+
+        monkeypatch.setattr(files_module.os, "fdopen", lambda *a, **k: Full(real_fdopen(*a, **k)))
+        expected = OSError
+
+    if fmt == "openpose":
+        target = tmp_path / "op"
+        with pytest.raises(expected):
+            save_recording(rec, target, format=fmt)
+        written = [p for p in target.rglob("*") if p.is_file()]
+        for p in written:
+            assert json.loads(p.read_text())["people"] is not None, p
+        if failure == "serialise":  # the first file was written whole, the second not at all
+            assert len(written) == 1
+    else:
+        new = tmp_path / f"new.{'npz' if fmt == 'npz' else 'json'}"
+        old = tmp_path / f"old.{'npz' if fmt == 'npz' else 'json'}"
+        old.write_bytes(b"old contents")
+        for path in (new, old):
+            with pytest.raises(expected):
+                save_recording(rec, path, format=fmt)
+        assert not new.exists()
+        assert old.read_bytes() == b"old contents"
+    leftovers = [p.name for p in tmp_path.rglob("*") if p.name.startswith(".")]
+    assert not leftovers, leftovers
+
+
+# --------------------------------------------------------------------------- no pickles
+
+
+def test_no_code_path_unpickles():
+    """An AST scan of the package: no pickle imports, no allow_pickle=True, and every np.load
+    passes allow_pickle=False explicitly (numpy's default has changed before)."""
+    package = Path(mvpose_jax.__file__).parent
+    problems = []
+    unpicklers = {"pickle", "cPickle", "_pickle", "dill", "cloudpickle", "joblib", "shelve"}
+    unpicklers.add("marshal")
+    for file in sorted(package.rglob("*.py")):
+        tree = ast.parse(file.read_text(), filename=str(file))
+        where = lambda node: f"{file.relative_to(package.parent)}:{node.lineno}"  # noqa: E731
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [alias.name.split(".")[0] for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [(node.module or "").split(".")[0]]
+            else:
+                names = []
+            problems += [f"{where(node)} imports {n}" for n in names if n in unpicklers]
+            if isinstance(node, ast.Call):
+                kw = {k.arg: k.value for k in node.keywords}
+                allow = kw.get("allow_pickle")
+                if allow is not None and not (
+                    isinstance(allow, ast.Constant) and allow.value is False
+                ):
+                    problems.append(f"{where(node)} passes allow_pickle={ast.unparse(allow)}")
+                func = ast.unparse(node.func)
+                if func.split(".")[-1] == "load" and func.split(".")[0] in ("np", "numpy", "jnp"):
+                    if allow is None:
+                        problems.append(f"{where(node)} calls {func} without allow_pickle=False")
+                if func.split(".")[-1] in ("loads", "load") and func.split(".")[0] in unpicklers:
+                    problems.append(f"{where(node)} calls {func}")
+    assert not problems, "\n".join(problems)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _work(tmp_path_factory) -> Path:
+    """One scratch folder for the whole module (hypothesis reruns a test body many times)."""
+    global _WORK
+    if _WORK is None:
+        _WORK = tmp_path_factory.mktemp("hostile")
+    return _WORK
+
+
+_WORK: Path | None = None
+
+
+def _openpose_copy(valid, tmp_path_factory) -> Path:
+    """A fresh copy of the valid OpenPose folder."""
+    root = _work(tmp_path_factory) / "openpose"
+    if root.exists():
+        shutil.rmtree(root)
+    for rel, data in valid["openpose"].items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes(data)
+    return root
