@@ -1,0 +1,611 @@
+"""The benchmark groups: each is a function ``tier -> JSON-able dict`` run in its own process.
+
+* `peaks`: the machine's float32 matmul peak and memory read bandwidth, measured with jitted JAX.
+* `latency`: per-frame t_pp, t_3Dg, t_3Di and the triangulation rows, over views x people x model
+  size, and the time breakdown of the target configuration.
+* `offline`: a long recording in batches: frames/s and people/s of both stages, GFLOP/s of the 3D
+  stage, single-person latency.
+* `training`: samples/s and compile time of the estimator's and the matcher's train steps.
+
+Every timed call is warmed up first (every shape it meets is compiled before timing), and every
+clock stops after the result is on the host or after `jax.block_until_ready`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from benchmarks import scenes
+from mvpose_jax.cameras import Rig, rig_centre_and_radius
+from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.data.synthetic import generate_single_person_recordings
+from mvpose_jax.features import assemble_features, estimator_inputs, main_skeletons
+from mvpose_jax.graphs import build_graphs, detection_features, graph_budget, make_pool, match_table, sample_batches
+from mvpose_jax.inference import (
+    bucket_size,
+    estimate_grouped,
+    gat_match_table,
+    group_people,
+    match_scores,
+    poses_of_members,
+    predict_people,
+    propose_people,
+    propose_with_matcher,
+    triangulate_grouped,
+)
+from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
+from mvpose_jax.skeletons import Detections
+from mvpose_jax.train import (
+    EstimatorConfig,
+    MatcherConfig,
+    estimator_loss_fn,
+    init_train_state,
+    make_estimator_batch,
+    make_optimizer,
+    make_train_step,
+    matcher_loss_fn,
+)
+
+# The configuration the targets are stated for (DESIGN.md §5 and the tracker issue).
+TARGET_VIEWS, TARGET_PEOPLE, TARGET_MODEL = 5, 4, "paper"
+
+
+@dataclasses.dataclass(frozen=True)
+class Tier:
+    """How much each group measures.
+
+    Attributes:
+      name: "full", "quick" or "smoke".
+      views, people: the per-frame latency grid.
+      frames: frames per latency configuration (each timed once, after a warm-up pass).
+      models: model sizes of the latency grid ("paper", "quick").
+      quick_model_configs: (views, people) where the quick-size model is timed too, when
+        "quick" is not in ``models`` for the whole grid (None: the whole grid).
+      peak_sizes: square matmul sizes tried for the float32 peak.
+      peak_repeats: repeats per peak measurement (the best counts).
+      bandwidth_mb: array sizes (MB) of the bandwidth measurement; the first is compared with
+        the model (close to its weight bytes), the others are context (past the last-level cache).
+      offline_frames: length of the offline recording (5 views, 4 people).
+      offline_chunk: frames per estimator call offline (people per call = chunk x people).
+      offline_repeats: timed passes over the offline recording.
+      single_repeats: repeats of the single-person latency.
+      train_batch: estimator seed samples per step (graphs per step: the matcher's own 15).
+      train_steps: timed train steps per model.
+      model_sizes: model sizes of the offline and training groups.
+      matcher_batches: distinct composed batches the matcher's step is timed on (each new graph
+        budget among them is compiled during the warm-up).
+    """
+
+    name: str
+    views: tuple[int, ...]
+    people: tuple[int, ...]
+    frames: int
+    models: tuple[str, ...]
+    quick_model_configs: tuple[tuple[int, int], ...] | None
+    peak_sizes: tuple[int, ...]
+    peak_repeats: int
+    bandwidth_mb: tuple[int, ...]
+    offline_frames: int
+    offline_chunk: int
+    offline_repeats: int
+    single_repeats: int
+    train_batch: int
+    train_steps: int
+    model_sizes: tuple[str, ...]
+    matcher_batches: int
+
+
+TIERS = {
+    "full": Tier("full", views=(2, 3, 5, 8), people=(1, 2, 4, 8, 16), frames=200, models=("paper", "quick"),
+                 quick_model_configs=None, peak_sizes=(1024, 2048, 4096), peak_repeats=7,
+                 bandwidth_mb=(128, 2048), offline_frames=2048, offline_chunk=256, offline_repeats=3,
+                 single_repeats=200, train_batch=256, train_steps=10, model_sizes=("paper", "quick"),
+                 matcher_batches=20),
+    "quick": Tier("quick", views=(2, 5, 8), people=(1, 4, 16), frames=40, models=("paper",),
+                  quick_model_configs=((5, 4),), peak_sizes=(2048,), peak_repeats=5, bandwidth_mb=(128, 1024),
+                  offline_frames=256, offline_chunk=128, offline_repeats=2, single_repeats=50, train_batch=256,
+                  train_steps=3, model_sizes=("paper", "quick"), matcher_batches=6),
+    "smoke": Tier("smoke", views=(5,), people=(2,), frames=4, models=("quick",), quick_model_configs=None,
+                  peak_sizes=(512,), peak_repeats=3, bandwidth_mb=(32,), offline_frames=16, offline_chunk=8,
+                  offline_repeats=1, single_repeats=5, train_batch=16, train_steps=2, model_sizes=("quick",),
+                  matcher_batches=1),
+}  # fmt: skip
+
+
+# --------------------------------------------------------------------------- timing helpers
+
+
+def summary(seconds, scale: float = 1e3) -> dict:
+    """Median, p10, p90 and quartiles of a sample of durations (milliseconds by default)."""
+    s = np.asarray(seconds, np.float64) * scale
+    p10, q1, med, q3, p90 = np.percentile(s, [10, 25, 50, 75, 90])
+    return {"median": float(med), "p10": float(p10), "p90": float(p90), "iqr": [float(q1), float(q3)],
+            "mean": float(s.mean()), "n": int(s.size)}  # fmt: skip
+
+
+def timed(fn: Callable, *args) -> tuple[float, object]:
+    """(seconds, result) of one call; the clock stops when the result is ready."""
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return time.perf_counter() - t, out
+
+
+def repeat(fn: Callable, *args, n: int, warmup: int = 1) -> np.ndarray:
+    """Durations of ``n`` calls after ``warmup`` untimed ones."""
+    for _ in range(warmup):
+        jax.block_until_ready(fn(*args))
+    gc.collect()
+    return np.array([timed(fn, *args)[0] for _ in range(n)])
+
+
+def param_bytes(params) -> int:
+    return int(sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(params)))
+
+
+def mlp_flops(params) -> int:
+    """Multiply-add FLOPs (2 per MAC) of one person's forward pass: every kernel's in x out."""
+    return int(sum(2 * x.size for x in jax.tree_util.tree_leaves(params) if x.ndim == 2))
+
+
+# --------------------------------------------------------------------------- peaks
+
+
+def peaks(tier: Tier) -> dict:
+    """float32 matmul GFLOP/s (best of ``peak_repeats``) and memory read GB/s (jitted sum and GEMV)."""
+    key = jax.random.key(0)
+    matmul = {}
+    for n in tier.peak_sizes:
+        a = jax.random.normal(key, (n, n), jnp.float32)
+        b = jax.random.normal(jax.random.fold_in(key, 1), (n, n), jnp.float32)
+        t = repeat(jax.jit(jnp.dot), a, b, n=tier.peak_repeats).min()
+        matmul[str(n)] = 2.0 * n**3 / t / 1e9
+        del a, b
+    bandwidth = {}
+    for mb in tier.bandwidth_mb:
+        n = int(np.sqrt(mb * 2**20 / 4))
+        w = jnp.full((n, n), 0.5, jnp.float32)  # values do not matter to a read; random ones are slow to draw
+        h = jnp.ones((1, n), jnp.float32)
+        nbytes = w.size * 4
+        t_sum = repeat(jax.jit(jnp.sum), w, n=tier.peak_repeats).min()
+        t_gemv = repeat(jax.jit(jnp.dot), h, w, n=tier.peak_repeats).min()
+        bandwidth[str(mb)] = {"sum": nbytes / t_sum / 1e9, "gemv": nbytes / t_gemv / 1e9, "bytes": int(nbytes)}
+        del w
+    first = bandwidth[str(tier.bandwidth_mb[0])]
+    return {
+        "matmul_gflops": max(matmul.values()),
+        "matmul_gflops_by_size": matmul,
+        "bandwidth_gbs": max(first["sum"], first["gemv"]),
+        "bandwidth_array_mb": tier.bandwidth_mb[0],
+        "bandwidth_by_size": bandwidth,
+        "how": "matmul: jitted jnp.dot of two random n x n float32 matrices, best of the repeats, "
+               "2n^3 FLOP; bandwidth: bytes of an n x n float32 array / best time of a jitted jnp.sum "
+               "of it or of a (1, n) @ (n, n) GEMV (the MLP's single-person access pattern), best of "
+               "the two at the first size (about the paper MLP's weight bytes, so in the same cache "
+               "regime as its forward pass); other sizes for context.",
+    }  # fmt: skip
+
+
+# --------------------------------------------------------------------------- per-frame latency
+
+
+def _frame(det: Detections, f: int) -> Detections:
+    return Detections(det.xy[f : f + 1], det.score[f : f + 1], det.count[f : f + 1])
+
+
+def _numpy_detections(rec) -> tuple[Detections, np.ndarray]:
+    """The recording's detections as numpy, and its true proposals: members (F, G, C)."""
+    d = rec.detections
+    det = Detections(np.asarray(d.xy, np.float32), np.asarray(d.score, np.float32), np.asarray(d.count))
+    G = np.shape(rec.ground_truth.valid)[1]
+    return det, members_from_identity(np.asarray(rec.identity), G)
+
+
+def members_from_identity(identity: np.ndarray, num_people: int) -> np.ndarray:
+    """True proposals in the pipeline's format: (F, C, P) person of each skeleton -> (F, G, C)
+    skeleton of each person in each camera, -1 none."""
+    F, C, P = identity.shape
+    members = np.full((F, num_people, C), -1, np.int32)
+    f, c, p = np.nonzero(identity >= 0)
+    members[f, identity[f, c, p], c] = p
+    return members
+
+
+def _pipeline_fns(rig: Rig, det: Detections, members: np.ndarray, matcher, estimator):
+    """The per-frame calls, each f -> something ready on the host.
+
+    t_pp: match scores of one frame (one graph, no chunk padding) and its proposals; t_3Dg: the
+    pipeline's 3D stage (`inference.poses_of_members`: grouping, features, MLP) on the frame's
+    people, grouped by their true identities.
+    """
+    P = det.score.shape[2]
+
+    def t_pp(f):
+        d = _frame(det, f)
+        rows, scores = gat_match_table(matcher, d, frames_per_call=1)
+        return propose_people(rows, scores, d.count, num_skeletons=P)
+
+    def t_3dg(f):
+        poses, _ = poses_of_members(rig, _frame(det, f), members[f : f + 1], estimator=estimator)
+        return int(poses.valid.sum())
+
+    return t_pp, t_3dg
+
+
+def _tri_fns(rig: Rig, det: Detections, members: np.ndarray):
+    cams = scenes.opencv_cameras(rig)
+    min_views = min(2, rig.num_cameras)
+
+    def tri(method):
+        def fn(f):
+            return poses_of_members(rig, _frame(det, f), members[f : f + 1], method=method)[0].valid.sum()
+
+        return fn
+
+    def opencv(f):
+        xy, score = group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1])
+        present = (score > 0).any(-1).sum(-1) >= min_views  # (1, G): the pipeline's presence rule
+        return scenes.opencv_pairwise_centroid(cams, xy[present], score[present])
+
+    return {"dlt": tri("dlt"), "centroid": tri("centroid"), "opencv_centroid": opencv}
+
+
+def latency(tier: Tier) -> dict:
+    """Per-frame latency of both pipelines over the tier's grid, and the target's breakdown."""
+    K = 18
+    rows, tri_rows, compile_s = [], [], {}
+    breakdown = None
+    models: dict[tuple[int, str], tuple] = {}
+    # The breakdown is taken on the target configuration, or on the first one when the tier lacks it.
+    target = (TARGET_VIEWS, TARGET_PEOPLE, TARGET_MODEL)
+    if TARGET_VIEWS not in tier.views or TARGET_PEOPLE not in tier.people or TARGET_MODEL not in tier.models:
+        target = (tier.views[0], tier.people[0], tier.models[0])
+    for V in tier.views:
+        for n in tier.people:
+            rig, rec = scenes.recording(V, n, tier.frames, seed=V * 100 + n)
+            det, members = _numpy_detections(rec)
+            frames = range(tier.frames)
+            sizes = [s for s in scenes.MODEL_SIZES if s in tier.models or (
+                s == "quick" and tier.quick_model_configs and (V, n) in tier.quick_model_configs)]  # fmt: skip
+            for size in sizes:
+                if (V, size) not in models:
+                    mlp, gat = scenes.MODEL_SIZES[size]
+                    models[(V, size)] = (scenes.matcher_for(rig, K, gat), scenes.estimator_for(rig, K, mlp))
+                matcher, estimator = models[(V, size)]
+                t_pp, t_3dg = _pipeline_fns(rig, det, members, matcher, estimator)
+                # Warm-up: compiles every graph budget the frames meet (the people bucket and the
+                # other shapes are fixed by the recording), and runs the first frames once.
+                start = time.perf_counter()
+                for f in _warmup_frames(det, frames):
+                    t_pp(f), t_3dg(f)
+                compile_s[f"{V}v{n}p-{size}"] = time.perf_counter() - start
+                gc.collect()
+                pp, g3, people = [], [], []
+                for f in frames:  # frame by frame, as a live system runs: proposals, then 3D
+                    t1, _ = timed(t_pp, f)
+                    t2, num = timed(t_3dg, f)
+                    pp.append(t1)
+                    g3.append(t2)
+                    people.append(num)
+                people = np.asarray(people)
+                rows.append({
+                    "views": V, "people": n, "model": size, "frames": len(pp),
+                    "mean_people_estimated": float(people.mean()),
+                    "t_pp": summary(pp), "t_3Dg": summary(g3),
+                    "t_3Di": summary(np.asarray(g3) / np.maximum(people, 1)),
+                    "t_total": summary(np.asarray(pp) + np.asarray(g3)),
+                    "graph_budget_nodes": sorted({_budget(det, f).nodes for f in frames}),
+                    "people_bucket": bucket_size(n),
+                })  # fmt: skip
+                if (V, n, size) == target:
+                    breakdown = _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3dg)
+            # Triangulation rows: model-independent, on the same (true) proposals.
+            for method, fn in _tri_fns(rig, det, members).items():
+                for f in frames[:3]:  # one shape per recording: a few calls warm it up
+                    fn(f)
+                times = [timed(fn, f)[0] for f in frames]
+                row = {"views": V, "people": n, "method": method, "frames": len(times), "t_tri": summary(times)}
+                if method == "opencv_centroid":
+                    row["agreement_with_jax_centroid_mm"] = _agreement(rig, det, members, frames)
+                tri_rows.append(row)
+    sizes = {}
+    for (V, size), (matcher, estimator) in models.items():
+        sizes[f"{V}v-{size}"] = {
+            "mlp_params": int(sum(x.size for x in jax.tree_util.tree_leaves(estimator.params))),
+            "mlp_bytes": param_bytes(estimator.params), "mlp_flops_per_person": mlp_flops(estimator.params),
+            "gat_params": int(sum(x.size for x in jax.tree_util.tree_leaves(matcher.params))),
+            "mlp_widths": list(estimator.config.mlp.widths), "gat_widths": list(matcher.config.gat.widths),
+        }  # fmt: skip
+    return {"rows": rows, "triangulation": tri_rows, "warmup_seconds": compile_s, "models": sizes,
+            "breakdown": breakdown}  # fmt: skip
+
+
+def _warmup_frames(det: Detections, frames) -> list[int]:
+    """The first two frames and the first frame of every other graph budget."""
+    first: dict = {}
+    for f in frames:
+        first.setdefault(_budget(det, f), f)
+    return sorted(set(list(frames)[:2]) | set(first.values()))
+
+
+def _identity(members: np.ndarray, num_skeletons: int) -> np.ndarray:
+    """(F, G, C) members -> (F, C, P) person of each skeleton, -1 none."""
+    F, G, C = members.shape
+    identity = np.full((F, C, num_skeletons), -1, np.int64)
+    f, g, c = np.nonzero(members >= 0)
+    identity[f, c, members[f, g, c]] = g
+    return identity
+
+
+def _budget(det: Detections, f: int):
+    count = det.count[f]
+    n_det = int(count.sum())
+    n_match = (n_det**2 - int((count**2).sum())) // 2
+    return graph_budget(n_det, n_match, 1)
+
+
+def _agreement(rig: Rig, det: Detections, members: np.ndarray, frames) -> dict:
+    """How far our JAX pairwise centroid lies from the OpenCV reference (both valid), in mm."""
+    cams = scenes.opencv_cameras(rig)
+    diffs = []
+    for f in list(frames)[:20]:
+        xy, score = group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1])
+        ours = triangulate_grouped(rig, xy, score, "centroid")[0]
+        ref, ok = scenes.opencv_pairwise_centroid(cams, xy[0], score[0])
+        both = ok & ours.keypoint_valid[0]
+        diffs.append(np.linalg.norm(ref[both] - ours.xyz[0][both], axis=-1) * 1e3)
+    d = np.concatenate(diffs) if diffs else np.zeros(1)
+    return {"median": float(np.median(d)), "p99": float(np.percentile(d, 99)), "keypoints": int(d.size)}
+
+
+def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3dg) -> dict:
+    """Where the time of one frame goes, component by component (medians over the frames, ms)."""
+    P = det.score.shape[2]
+    frames = list(frames)
+    parts: dict[str, dict] = {}
+
+    warm = _warmup_frames(det, frames)
+
+    def measure(name, fn):
+        for f in warm:
+            fn(f)
+        parts[name] = summary([timed(fn, f)[0] for f in frames])
+
+    # ---- t_pp: host features, host graph building, the GAT call, the match table, proposals
+    feats = {f: detection_features(rig, *_frame(det, f)[:2]) for f in frames}
+    valid = {f: np.arange(P)[None, None] < _frame(det, f).count[..., None] for f in frames}
+    batches = {f: build_graphs(feats[f], valid[f], num_graphs=1) for f in frames}
+    scores = {f: match_scores(matcher, batches[f]) for f in frames}
+    tables = {f: match_table(batches[f], scores[f]) for f in frames}
+    identity = _identity(members, det.score.shape[2])
+    oracle = {}
+    for f in frames:
+        labelled = build_graphs(feats[f], valid[f], identity[f : f + 1], num_graphs=1)
+        oracle[f] = match_table(labelled, labelled.label)
+    on_device = {f: jax.device_put(batches[f]) for f in frames}
+    model_fn = jax.jit(lambda params, b: nnx.merge(matcher.graphdef, params, matcher.rest)(b))
+    first_fn = jax.jit(lambda params, b: nnx.merge(matcher.graphdef, params, matcher.rest).first_projection(b))
+
+    def attention_only(params, b, z):
+        model = nnx.merge(matcher.graphdef, params, matcher.rest)
+        h = model.layers[0].attend(z, b.graphs)
+        for layer in model.layers[1:]:
+            h = layer(jax.nn.leaky_relu(h, model.between_slope), b.graphs)
+        return h
+
+    attention_fn = jax.jit(attention_only)
+    z_first = {f: first_fn(matcher.params, on_device[f]) for f in frames}
+    measure("pp.detection_features", lambda f: detection_features(rig, *_frame(det, f)[:2]))
+    measure("pp.build_graphs", lambda f: build_graphs(feats[f], valid[f], num_graphs=1))
+    measure("pp.match_scores (GAT call)", lambda f: match_scores(matcher, batches[f]))
+    measure("pp.gat_device_only", lambda f: model_fn(matcher.params, on_device[f]))
+    measure("pp.gat_first_projection", lambda f: first_fn(matcher.params, on_device[f]))
+    measure("pp.gat_attention_layers", lambda f: attention_fn(matcher.params, on_device[f], z_first[f]))
+    measure("pp.match_table", lambda f: match_table(batches[f], scores[f]))
+    measure("pp.propose_people (network scores)", lambda f: propose_people(*tables[f], _frame(det, f).count,
+                                                                           num_skeletons=P))  # fmt: skip
+    measure("pp.propose_people (oracle scores)", lambda f: propose_people(*oracle[f], _frame(det, f).count,
+                                                                          num_skeletons=P))  # fmt: skip
+    measure("pp.total", t_pp)
+    measure("pp.propose_with_matcher (default 32-frame chunk)", lambda f: propose_with_matcher(matcher, _frame(det, f)))
+
+    # ---- t_3Dg: grouping, estimate_grouped, then its insides: features and MLP (poses_of_members
+    # is group_people + estimate_grouped)
+    centre, radius = rig_centre_and_radius(estimator.rig_infer)
+    graphdef, rest = estimator.graphdef, estimator.rest
+    feature_fn = jax.jit(lambda r, xy, s: assemble_features(estimator_inputs(r, xy, s), (s > 0).any(axis=-1)))
+    mlp_fn = jax.jit(lambda params, x: to_world(nnx.merge(graphdef, params, rest)(x), centre, radius))
+    grouped = {f: group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1]) for f in frames}
+    bucket = bucket_size(n)
+
+    def padded(f, rows_):
+        xy, sc = grouped[f][0][0], grouped[f][1][0]  # (G, C, K, 2), (G, C, K)
+        pad = [(0, rows_ - len(xy))] + [(0, 0)] * 3
+        return jnp.asarray(np.pad(xy, pad)), jnp.asarray(np.pad(sc, pad[:-1]))
+
+    dev_bucket = {f: padded(f, bucket) for f in frames}
+    dev_exact = {f: padded(f, n) for f in frames}
+    feats_bucket = {f: feature_fn(estimator.rig_infer, *dev_bucket[f]) for f in frames}
+    feats_exact = {f: feature_fn(estimator.rig_infer, *dev_exact[f]) for f in frames}
+    measure("3d.group_people", lambda f: group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1]))
+    measure("3d.estimate_grouped", lambda f: estimate_grouped(estimator, *grouped[f]))
+    measure(f"3d.features_device ({bucket} rows)", lambda f: feature_fn(estimator.rig_infer, *dev_bucket[f]))
+    measure(f"3d.mlp_device ({bucket} rows: the bucket)", lambda f: mlp_fn(estimator.params, feats_bucket[f]))
+    measure(f"3d.mlp_device ({n} rows: the people)", lambda f: mlp_fn(estimator.params, feats_exact[f]))
+    measure("3d.mlp_device (1 row)", lambda f: mlp_fn(estimator.params, feats_exact[f][:1]))
+    measure("3d.total", t_3dg)
+    return {
+        "views": int(rig.num_cameras), "people": int(n), "model": size, "bucket": int(bucket),
+        "graph_budgets": sorted({str(dataclasses.astuple(_budget(det, f))) for f in frames}),
+        "mlp_bytes": param_bytes(estimator.params), "gat_bytes": param_bytes(matcher.params),
+        "parts_ms": parts,
+    }  # fmt: skip
+
+
+# --------------------------------------------------------------------------- offline throughput
+
+
+def offline(tier: Tier) -> dict:
+    """A long recording in chunks, as `inference.stream_pipeline` runs it: both stages' frames/s
+    and people/s, the 3D stage's GFLOP/s, and the single-person latency."""
+    V, n, K = TARGET_VIEWS, TARGET_PEOPLE, 18
+    rig, rec = scenes.recording(V, n, tier.offline_frames, seed=7)
+    det, members = _numpy_detections(rec)
+    F, C, P, _ = det.score.shape
+    chunks = [slice(s, min(F, s + tier.offline_chunk)) for s in range(0, F, tier.offline_chunk)]
+    chunk = lambda sl: Detections(det.xy[sl], det.score[sl], det.count[sl])  # noqa: E731
+    out = {"views": V, "people": n, "frames": F, "chunk_frames": tier.offline_chunk, "models": {}}
+    for size in tier.model_sizes:
+        mlp, gat = scenes.MODEL_SIZES[size]
+        matcher, estimator = scenes.matcher_for(rig, K, gat), scenes.estimator_for(rig, K, mlp)
+
+        def stage2():  # stream_pipeline's proposal step, chunk by chunk
+            return sum(len(p) for sl in chunks for p in propose_with_matcher(matcher, chunk(sl)).people)
+
+        def stage3():  # its 3D step, on the true proposals
+            return sum(int(poses_of_members(rig, chunk(sl), members[sl], estimator=estimator)[0].valid.sum())
+                       for sl in chunks)  # fmt: skip
+
+        def triangulation():
+            return sum(int(poses_of_members(rig, chunk(sl), members[sl], method="dlt")[0].valid.sum())
+                       for sl in chunks)  # fmt: skip
+
+        first2, _ = timed(stage2)
+        first3, people = timed(stage3)
+        t2 = repeat(stage2, n=tier.offline_repeats, warmup=0)
+        t3 = repeat(stage3, n=tier.offline_repeats, warmup=0)
+        flops = mlp_flops(estimator.params)
+        t2m, t3m = float(np.median(t2)), float(np.median(t3))
+        # The MLP alone on the people of one chunk (padded to its bucket), device-resident input.
+        rows = bucket_size(tier.offline_chunk * n)
+        feats = jnp.zeros((rows, C, K, 14), jnp.float32)
+        mlp = jax.jit(lambda p, x: nnx.merge(estimator.graphdef, p, estimator.rest)(x))
+        t_mlp = float(np.median(repeat(mlp, estimator.params, feats, n=max(2, tier.offline_repeats))))
+        # Single-person latency: the library call with one person, and the MLP alone on one row.
+        xy, score = group_people(det.xy[:1], det.score[:1], members[:1])
+        single = repeat(predict_people, estimator, xy[0, :1], score[0, :1], n=tier.single_repeats)
+        single_mlp = repeat(mlp, estimator.params, feats[:1], n=tier.single_repeats)
+        entry = {
+            "stage2": {"seconds": t2m, "first_run_seconds": first2, "frames_per_s": F / t2m,
+                       "people_per_s": F * n / t2m, "repeats": t2.size},
+            "stage3": {"seconds": t3m, "first_run_seconds": first3, "frames_per_s": F / t3m,
+                       "people_per_s": people / t3m, "people": people, "gflops": flops * people / t3m / 1e9,
+                       "repeats": t3.size},
+            "mlp_only": {"rows": rows, "seconds": t_mlp, "people_per_s": rows / t_mlp,
+                         "gflops": flops * rows / t_mlp / 1e9},
+            "single_person": {"predict_people_ms": summary(single), "mlp_one_row_ms": summary(single_mlp)},
+            "mlp_flops_per_person": flops, "mlp_bytes": param_bytes(estimator.params),
+        }  # fmt: skip
+        if size == tier.model_sizes[0]:
+            first_t, _ = timed(triangulation)
+            tt = float(np.median(repeat(triangulation, n=tier.offline_repeats, warmup=0)))
+            entry["triangulation_dlt"] = {"seconds": tt, "frames_per_s": F / tt, "first_run_seconds": first_t}
+        out["models"][size] = entry
+    return out
+
+
+# --------------------------------------------------------------------------- training throughput
+
+
+def training(tier: Tier) -> dict:
+    """Samples/s and compile time of one train step of each model (panoptic5, single-person data)."""
+    rig = load_rig(scenes.PANOPTIC)
+    C, K = rig.num_cameras, 18
+    num_rec = 8  # the matcher composes up to 8 people from 8 different recordings
+    recs = generate_single_person_recordings(rig, num_recordings=num_rec,
+                                             num_frames=max(8, -(-tier.train_batch // num_rec) * 2), seed=3)  # fmt: skip
+    mains = [main_skeletons(np.asarray(r.detections.xy), np.asarray(r.detections.score)) for r in recs]
+    xy = np.concatenate([m[0] for m in mains])
+    score = np.concatenate([m[1] for m in mains])
+    out = {"estimator": {}, "matcher": {}}
+    for size in tier.model_sizes:
+        mlp, gat = scenes.MODEL_SIZES[size]
+        out["estimator"][size] = _train_estimator_step(rig, xy, score, mlp, tier)
+        out["matcher"][size] = _train_matcher_step(rig, recs, gat, tier, K)
+    return out
+
+
+def _train_estimator_step(rig, xy, score, mlp, tier: Tier) -> dict:
+    C, K = rig.num_cameras, xy.shape[-2]
+    config = EstimatorConfig(mlp=mlp)
+    model = PoseMLP(C, K, mlp, rngs=nnx.Rngs(0))
+    tx = make_optimizer(config.train)
+    graphdef, rest, state = init_train_state(model, tx)
+    step = make_train_step(graphdef, rest, tx, estimator_loss_fn(rig, rig, config.num_augment, config.loss_power))
+    data = make_estimator_batch(rig, list(range(C)), xy, score)
+    B = tier.train_batch
+    rng = np.random.default_rng(0)
+    key = jax.random.key(0)
+
+    def batch():  # as train_estimator draws a batch: an index gather on the device
+        idx = rng.choice(len(xy), B, replace=len(xy) < B)
+        return jax.tree.map(lambda a: a[idx], data)
+
+    b = batch()
+    first, (state, _) = timed(step, state, b, key)
+    times = []
+    for _ in range(tier.train_steps):
+        b = jax.block_until_ready(batch())
+        t, (state, metrics) = timed(step, state, b, key)
+        times.append(t)
+    med = float(np.median(times))
+    samples = B * (1 + config.num_augment)
+    return {
+        "batch": B, "augmented_per_seed": config.num_augment, "step_ms": summary(times),
+        "seed_samples_per_s": B / med, "forward_backward_samples_per_s": samples / med,
+        "compile_seconds": max(0.0, first - med), "first_step_seconds": first,
+        "gflops": 3 * mlp_flops(state.params) * samples / med / 1e9,
+    }  # fmt: skip
+
+
+def _train_matcher_step(rig, recs, gat, tier: Tier, K: int) -> dict:
+    config = MatcherConfig(gat=gat)
+    per_batch = config.train.batch_size
+    pool = make_pool(rig, recs)
+    rng = np.random.default_rng(0)
+    build_times, batches = [], []
+    for _ in range(tier.matcher_batches):  # as train_matcher's epoch_batches builds them, one at a time
+        t, b = timed(lambda: sample_batches(pool, rng, 1, per_batch, max_people=config.max_people)[0])
+        build_times.append(t)
+        batches.append(b)
+    model = MatchingGAT(rig.num_cameras, K, gat, rngs=nnx.Rngs(0))
+    tx = make_optimizer(config.train, config.steps_per_epoch)
+    graphdef, rest, state = init_train_state(model, tx)
+    step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
+    key = jax.random.key(0)
+    compile_times, seen = [], {}
+    for b in batches:  # warm-up: one compilation per graph budget
+        shape = (b.graphs.nodes.shape[0], b.det_features.shape[0])
+        t, (state, _) = timed(step, state, b, key)
+        if shape not in seen:
+            seen[shape] = t
+    times = []
+    for i in range(max(tier.train_steps, len(batches))):
+        t, (state, _) = timed(step, state, batches[i % len(batches)], key)
+        times.append(t)
+    steady = float(np.median(times))
+    compile_times = [max(0.0, t - steady) for t in seen.values()]
+    med_build = float(np.median(build_times))
+    return {
+        "graphs_per_batch": per_batch, "step_ms": summary(times),
+        "graphs_per_s": per_batch / steady, "host_batch_ms": summary(build_times),
+        "host_graphs_per_s": per_batch / med_build,
+        "end_to_end_graphs_per_s": per_batch / (steady + med_build),
+        "compile_seconds": float(np.mean(compile_times)), "budgets_compiled": len(seen),
+        "budgets": [list(s) for s in seen],
+    }  # fmt: skip
+
+
+GROUPS: dict[str, Callable[[Tier], dict]] = {
+    "peaks": peaks,
+    "latency": latency,
+    "offline": offline,
+    "training": training,
+}

@@ -1,0 +1,226 @@
+"""Targets and the Markdown report of a benchmark run (pure functions of the run's JSON)."""
+
+from __future__ import annotations
+
+from benchmarks.measure import TARGET_MODEL, TARGET_PEOPLE, TARGET_VIEWS
+
+T_PP_LIMIT_MS = 2.0
+T_3DG_BOUND_FACTOR = 1.3
+OFFLINE_PEAK_FRACTION = 0.70
+PIPELINE_FACTOR = 2.0
+
+
+def _row(rows, **match):
+    for r in rows:
+        if all(r.get(k) == v for k, v in match.items()):
+            return r
+    return None
+
+
+def targets(run: dict) -> list[dict]:
+    """The tracker issue's four targets (2 CPU cores, 5 views, 4 people, paper-size models).
+
+    Each entry: name, measured, limit, unit, status ("pass", "miss" or "n/a" when the run lacks
+    what the target needs), and a detail line.
+    """
+    lat = run.get("latency") or {}
+    peaks = run.get("peaks") or {}
+    off = run.get("offline") or {}
+    where = dict(views=TARGET_VIEWS, people=TARGET_PEOPLE)
+    row = _row(lat.get("rows", []), model=TARGET_MODEL, **where)
+    tri = {m: _row(lat.get("triangulation", []), method=m, **where) for m in ("dlt", "centroid", "opencv_centroid")}
+    model = (lat.get("models") or {}).get(f"{TARGET_VIEWS}v-{TARGET_MODEL}")
+    out = []
+
+    def add(name, measured, limit, unit, detail, ok=None):
+        if measured is None or limit is None:
+            status = "n/a"
+        else:
+            status = "pass" if (measured <= limit if ok is None else ok) else "miss"
+        out.append({"name": name, "measured": measured, "limit": limit, "unit": unit, "status": status,
+                    "detail": detail})  # fmt: skip
+
+    t_pp = row["t_pp"]["median"] if row else None
+    add("t_pp <= 2 ms", t_pp, T_PP_LIMIT_MS, "ms",
+        "median per frame: host features + graph building + GAT + proposals")  # fmt: skip
+
+    bw = peaks.get("bandwidth_gbs")
+    bound = model["mlp_bytes"] / (bw * 1e9) * 1e3 if (model and bw) else None
+    t_3dg = row["t_3Dg"]["median"] if row else None
+    add("t_3Dg <= 1.3 x weight-streaming bound", t_3dg, None if bound is None else T_3DG_BOUND_FACTOR * bound, "ms",
+        f"bound = MLP bytes / measured bandwidth = {bound:.2f} ms" if bound else "no bound measured")  # fmt: skip
+
+    stage3 = ((off.get("models") or {}).get(TARGET_MODEL) or {}).get("stage3")
+    peak = peaks.get("matmul_gflops")
+    frac = stage3["gflops"] / peak if (stage3 and peak) else None
+    add("offline 3D >= 70% of matmul peak", frac, OFFLINE_PEAK_FRACTION, "fraction",
+        f"{stage3['gflops']:.0f} of {peak:.0f} GFLOP/s" if frac is not None else "not measured",
+        ok=None if frac is None else frac >= OFFLINE_PEAK_FRACTION)  # fmt: skip
+
+    ratio, detail = None, "not measured"
+    if row and tri["centroid"]:
+        t_tri = {m: r["t_tri"]["median"] for m, r in tri.items() if r}
+        ratio = (row["t_pp"]["median"] + row["t_3Dg"]["median"]) / (row["t_pp"]["median"] + t_tri["centroid"])
+        others = ", ".join(f"{m} {(t_pp + t_3dg) / (t_pp + t):.1f}x" for m, t in t_tri.items() if m != "centroid")
+        detail = (f"(t_pp + t_3Dg) / (t_pp + t_tri), t_tri = the library's triangulate_grouped (pairwise "
+                  f"centroid, {t_tri['centroid']:.2f} ms); against the other rows: {others}")
+    add("t_pp + t_3Dg <= 2 x triangulation pipeline", ratio, PIPELINE_FACTOR, "x", detail)
+    return out
+
+
+# --------------------------------------------------------------------------- Markdown
+
+
+def _ms(s: dict | None) -> str:
+    if not s:
+        return "-"
+    return f"{s['median']:.2f} [{s['p10']:.2f}-{s['p90']:.2f}]"
+
+
+def _num(x, fmt=",.0f") -> str:
+    return "-" if x is None else format(x, fmt)
+
+
+def markdown(run: dict) -> str:
+    m = run["machine"]
+    lines = [
+        f"# Benchmark run ({run['tier']})",
+        "",
+        f"- CPU: {m['cpu_model']}, {m['cpu_count']} cores ({m['cores_usable']} usable); "
+        f"load average {m['load_before']} before, {m['load_after']} after",
+        f"- JAX {m['jax']} (jaxlib {m['jaxlib']}), flax {m['flax']}, numpy {m['numpy']}, OpenCV {m['opencv']}, "
+        f"Python {m['python']}; device: {m['device']}"
+        + (" (GPU run)" if m.get("gpu") else ""),
+        f"- git {run['git']['commit'][:12]}{' (uncommitted changes)' if run['git']['dirty'] else ''}; "
+        f"BLAS/OpenMP threads {m['blas_threads']}; {run['date']}; total {run['seconds']:.0f} s",
+    ]
+    if m.get("loaded"):
+        lines.append("- **The machine was loaded during this run (load average above half the cores): "
+                     "timings are noisy upper bounds.**")  # fmt: skip
+    lines += ["", "## Targets (5 views, 4 people, paper-size models)", "",
+              "| target | measured | limit | status | how |", "|---|---|---|---|---|"]  # fmt: skip
+    for t in run.get("targets", []):
+        fmt = ".2f" if t["unit"] in ("ms", "x", "fraction") else ",.0f"
+        lines.append(f"| {t['name']} | {_num(t['measured'], fmt)} {t['unit']} | {_num(t['limit'], fmt)} | "
+                     f"**{t['status']}** | {t['detail']} |")  # fmt: skip
+
+    lat = run.get("latency")
+    if lat:
+        lines += ["", "## Per-frame latency (ms: median [p10-p90], one frame at a time, after compilation)", "",
+                  "| views | people | model | t_pp | t_3Dg | t_3Di | t_pp + t_3Dg | frames |",
+                  "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for r in lat["rows"]:
+            lines.append(f"| {r['views']} | {r['people']} | {r['model']} | {_ms(r['t_pp'])} | {_ms(r['t_3Dg'])} | "
+                         f"{_ms(r['t_3Di'])} | {_ms(r['t_total'])} | {r['frames']} |")  # fmt: skip
+        lines += ["", "Triangulation of the same (true) proposals, per frame (ms):", "",
+                  "| views | people | DLT (ours) | pairwise centroid (ours) | pairwise centroid (OpenCV, "
+                  "the paper's code) | OpenCV vs ours, median / p99 mm |", "|---|---|---|---|---|---|"]  # fmt: skip
+        keys = sorted({(r["views"], r["people"]) for r in lat["triangulation"]})
+        for v, n in keys:
+            get = {r["method"]: r for r in lat["triangulation"] if (r["views"], r["people"]) == (v, n)}
+            agree = get.get("opencv_centroid", {}).get("agreement_with_jax_centroid_mm")
+            a = f"{agree['median']:.2f} / {agree['p99']:.2f}" if agree else "-"
+            lines.append(f"| {v} | {n} | {_ms(get.get('dlt', {}).get('t_tri'))} | "
+                         f"{_ms(get.get('centroid', {}).get('t_tri'))} | "
+                         f"{_ms(get.get('opencv_centroid', {}).get('t_tri'))} | {a} |")  # fmt: skip
+
+    off, peaks = run.get("offline"), run.get("peaks") or {}
+    if off:
+        lines += ["", f"## Offline throughput ({off['frames']} frames, {off['views']} views, {off['people']} people, "
+                  f"{off['chunk_frames']} frames per estimator call)", "",
+                  "| model | stage 2 frames/s | stage 3 frames/s | stage 3 people/s | stage 3 GFLOP/s | "
+                  "% of matmul peak | MLP alone GFLOP/s (rows) | single person ms (MLP alone) | "
+                  "weight-streaming bound ms |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        peak, bw = peaks.get("matmul_gflops"), peaks.get("bandwidth_gbs")
+        for size, e in off["models"].items():
+            s3, mo, sp = e["stage3"], e["mlp_only"], e["single_person"]
+            pct = f"{100 * s3['gflops'] / peak:.0f}%" if peak else "-"
+            bound = f"{e['mlp_bytes'] / (bw * 1e9) * 1e3:.2f}" if bw else "-"
+            lines.append(f"| {size} | {e['stage2']['frames_per_s']:,.0f} | {s3['frames_per_s']:,.0f} | "
+                         f"{s3['people_per_s']:,.0f} | {s3['gflops']:.0f} | {pct} | {mo['gflops']:.0f} ({mo['rows']}) | "
+                         f"{sp['predict_people_ms']['median']:.2f} ({sp['mlp_one_row_ms']['median']:.2f}) | {bound} |")  # fmt: skip
+        tri = next((e["triangulation_dlt"] for e in off["models"].values() if "triangulation_dlt" in e), None)
+        if tri:
+            lines.append(f"\nTriangulation (DLT) of the same recording: {tri['frames_per_s']:,.0f} frames/s.")
+
+    tr = run.get("training")
+    if tr:
+        lines += ["", "## Training throughput (panoptic5, single-person data)", "",
+                  "| model | estimator step ms | seed samples/s | forward-backward samples/s | compile s | "
+                  "matcher step ms (15 graphs) | graphs/s | host batch building graphs/s | compile s per budget "
+                  "(budgets) |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for size in tr["estimator"]:
+            e, g = tr["estimator"][size], tr["matcher"][size]
+            lines.append(f"| {size} | {_ms(e['step_ms'])} | {e['seed_samples_per_s']:,.0f} | "
+                         f"{e['forward_backward_samples_per_s']:,.0f} | {e['compile_seconds']:.1f} | {_ms(g['step_ms'])} | "
+                         f"{g['graphs_per_s']:,.0f} | {g['host_graphs_per_s']:,.0f} | {g['compile_seconds']:.1f} "
+                         f"({g['budgets_compiled']}) |")  # fmt: skip
+
+    if peaks:
+        lines += ["", "## Machine peaks (measured in this run)", "",
+                  f"- float32 matmul: {peaks['matmul_gflops']:,.0f} GFLOP/s (best over sizes "
+                  f"{', '.join(peaks['matmul_gflops_by_size'])})",
+                  f"- memory read bandwidth: {peaks['bandwidth_gbs']:.1f} GB/s on a {peaks['bandwidth_array_mb']} MB "
+                  "array; by size: " + "; ".join(f"{k} MB: sum {v['sum']:.1f}, GEMV {v['gemv']:.1f} GB/s"
+                                                   for k, v in peaks["bandwidth_by_size"].items())]  # fmt: skip
+
+    mem = run.get("memory")
+    if mem:
+        lines += ["", f"## Peak memory per group ({run['memory_method']})", "",
+                  "| group | peak RSS MB | RSS after imports MB | growth MB | device peak MB | seconds |",
+                  "|---|---|---|---|---|---|"]  # fmt: skip
+        for g, r in mem.items():
+            dev = "-" if r.get("device_peak_mb") is None else f"{r['device_peak_mb']:,.0f}"
+            lines.append(f"| {g} | {r['maxrss_mb']:,.0f} | {r['rss_after_import_mb']:,.0f} | "
+                         f"{r['maxrss_mb'] - r['rss_after_import_mb']:,.0f} | {dev} | {r['seconds']:.0f} |")  # fmt: skip
+
+    bd = (lat or {}).get("breakdown")
+    if bd:
+        lines += ["", f"## Breakdown ({bd['views']} views, {bd['people']} people, {bd['model']} model; ms per frame)",
+                  "", f"Graph budgets (nodes, detections, edges, graphs): {', '.join(bd['graph_budgets'])}; "
+                  f"estimator bucket: {bd['bucket']} rows.", "",
+                  "| component | median | p10 | p90 |", "|---|---|---|---|"]  # fmt: skip
+        for name, s in bd["parts_ms"].items():
+            lines.append(f"| {name} | {s['median']:.3f} | {s['p10']:.3f} | {s['p90']:.3f} |")
+        if run.get("profile"):
+            lines += ["", "Where the time goes:", ""] + [f"- {p}" for p in run["profile"]]
+
+    if run.get("errors"):
+        lines += ["", "## Errors", ""] + [f"- {g}: {e}" for g, e in run["errors"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def profile_notes(run: dict) -> list[str]:
+    """Plain statements of where the target configuration's time goes, from the breakdown."""
+    bd = (run.get("latency") or {}).get("breakdown")
+    if not bd:
+        return []
+    p = {k: v["median"] for k, v in bd["parts_ms"].items()}
+    notes = []
+    pp = p.get("pp.total")
+    if pp:
+        host = p["pp.detection_features"] + p["pp.build_graphs"] + p["pp.match_table"]
+        gat = p["pp.match_scores (GAT call)"]
+        notes.append(
+            f"t_pp {pp:.2f} ms: GAT call {gat:.2f} ms ({100 * gat / pp:.0f}%; on device-resident inputs "
+            f"{p['pp.gat_device_only']:.2f} ms = first projection {p['pp.gat_first_projection']:.2f} + attention "
+            f"layers {p['pp.gat_attention_layers']:.2f}); host features + graph building + match table "
+            f"{host:.2f} ms; proposals {p['pp.propose_people (network scores)']:.2f} ms "
+            f"({p['pp.propose_people (oracle scores)']:.2f} ms with oracle scores, which accept the true pairs). "
+            f"The default propose_with_matcher pads one frame to a 32-frame chunk: "
+            f"{p['pp.propose_with_matcher (default 32-frame chunk)']:.2f} ms."
+        )  # fmt: skip
+    g3 = p.get("3d.total")
+    if g3:
+        keys = [k for k in p if k.startswith("3d.mlp_device")]
+        bucket = next(k for k in keys if "bucket" in k)
+        people = next(k for k in keys if "people" in k)
+        feat = next(k for k in p if k.startswith("3d.features_device"))
+        notes.append(
+            f"t_3Dg {g3:.2f} ms: MLP on the {bd['bucket']}-row bucket {p[bucket]:.2f} ms vs "
+            f"{p[people]:.2f} ms on the {bd['people']} real rows and {p['3d.mlp_device (1 row)']:.2f} ms on one row; "
+            f"features {p[feat]:.2f} ms; grouping {p['3d.group_people']:.2f} ms; the rest of "
+            f"estimate_grouped (padding, transfers, dispatch) "
+            f"{p['3d.estimate_grouped'] - p[bucket] - p[feat]:.2f} ms."
+        )  # fmt: skip
+    return notes

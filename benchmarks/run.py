@@ -1,0 +1,227 @@
+"""The benchmark harness: per-frame latency, offline and training throughput, peak memory, targets.
+
+    python -m benchmarks.run [--quick | --smoke] [--out results/benchmarks] [--groups latency,offline]
+
+Runs four groups, each in its own Python process so that its peak memory is its own (`measure`):
+``peaks`` (float32 matmul peak, memory bandwidth), ``latency`` (t_pp, t_3Dg, t_3Di per frame over
+views x people x model size, the triangulation rows, and the time breakdown of the target
+configuration), ``offline`` (a long recording in batches) and ``training`` (train-step
+throughput, compile times). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
+the git commit, every measurement, the targets with pass/miss, and where the time goes.
+
+``--quick`` (under 3 minutes on 2 cores) shrinks the grid and the frame counts but keeps every
+section; ``--smoke`` is a seconds-long check of the harness itself (tests). On a GPU machine the
+same command runs there, and the report names the device. See benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Host-side numpy and OpenCV on one thread (the synthetic benchmark's convention), set before numpy
+# loads; XLA's own CPU thread pool is not affected and uses every core.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+MEMORY_METHOD = ("each group in its own process; peak RSS = its getrusage ru_maxrss, growth = peak minus "
+                 "the RSS right after its imports; device peak = jax memory_stats() peak_bytes_in_use "
+                 "where the backend reports it (GPU), else -")  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    tier = parser.add_mutually_exclusive_group()
+    tier.add_argument("--quick", action="store_true", help="a smaller grid and fewer frames (under 3 minutes)")
+    tier.add_argument("--smoke", action="store_true", help="one tiny configuration: checks the harness (tests)")
+    parser.add_argument("--out", default="results/benchmarks", help="folder for run.json and run.md")
+    parser.add_argument("--groups", default="peaks,latency,offline,training", help="comma-separated groups to run")
+    parser.add_argument("--in-process", action="store_true",
+                        help="run the groups in this process (debugging; peak memory is then cumulative)")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--tier", help=argparse.SUPPRESS)
+    parser.add_argument("--child-out", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        return _child(args.child, args.tier, Path(args.child_out))
+
+    tier = "smoke" if args.smoke else "quick" if args.quick else "full"
+    groups = [g.strip() for g in args.groups.split(",") if g.strip()]
+    from benchmarks.measure import GROUPS
+
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        parser.error(f"unknown groups {unknown}; groups: {list(GROUPS)}")
+    start = time.perf_counter()
+    load_before = _loadavg()
+    run: dict = {"benchmark": "run", "tier": tier, "date": datetime.datetime.now().isoformat(timespec="seconds"),
+                 "git": _git(), "memory_method": MEMORY_METHOD, "memory": {}, "errors": {}}  # fmt: skip
+    for group in groups:
+        print(f"[benchmarks] {group} ({tier}) ...", flush=True)
+        t = time.perf_counter()
+        result, memory, error = (_in_process if args.in_process else _subprocess)(group, tier)
+        if error:
+            run["errors"][group] = error
+            print(f"[benchmarks] {group} FAILED: {error}", file=sys.stderr, flush=True)
+        else:
+            run[group] = result
+            run["memory"][group] = {**memory, "seconds": time.perf_counter() - t}
+            print(f"[benchmarks] {group} done in {time.perf_counter() - t:.0f} s", flush=True)
+    run["machine"] = _machine(load_before, _loadavg())
+    if args.in_process:
+        run["memory_method"] = "in-process run: ru_maxrss is cumulative over the groups run before"
+
+    from benchmarks.report import markdown, profile_notes, targets
+
+    run["targets"] = targets(run)
+    run["profile"] = profile_notes(run)
+    run["seconds"] = time.perf_counter() - start
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from mvpose_jax.data.files import atomic_write_text
+
+    text = markdown(run)
+    atomic_write_text(out / "run.json", json.dumps(run, indent=1, default=_jsonable) + "\n")
+    atomic_write_text(out / "run.md", text)
+    print(text)
+    print(f"wrote {out / 'run.json'} and {out / 'run.md'} ({run['seconds']:.0f} s)")
+    return 1 if run["errors"] else 0
+
+
+# --------------------------------------------------------------------------- group processes
+
+
+def _subprocess(group: str, tier: str) -> tuple[dict | None, dict | None, str | None]:
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"{group}.json"
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+        cmd = [sys.executable, "-m", "benchmarks.run", "--child", group, "--tier", tier, "--child-out", str(path)]
+        proc = subprocess.run(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        if proc.returncode != 0 or not path.exists():
+            return None, None, f"exit {proc.returncode}: {proc.stdout[-2000:]}"
+        data = json.loads(path.read_text())
+    return data["result"], data["memory"], None
+
+
+def _in_process(group: str, tier: str) -> tuple[dict | None, dict | None, str | None]:
+    from benchmarks.measure import GROUPS, TIERS
+
+    rss = _rss_mb()
+    try:
+        result = GROUPS[group](TIERS[tier])
+    except Exception as e:  # noqa: BLE001 - a failed group is reported, the others still run
+        return None, None, f"{type(e).__name__}: {e}"
+    return result, {"maxrss_mb": _rss_mb(), "rss_after_import_mb": rss, "device_peak_mb": _device_peak_mb()}, None
+
+
+def _child(group: str, tier: str, out: Path) -> int:
+    from benchmarks.measure import GROUPS, TIERS
+
+    import jax
+
+    jax.devices()  # the backend's own memory belongs to the baseline
+    rss = _current_rss_mb()
+    result = GROUPS[group](TIERS[tier])
+    memory = {"maxrss_mb": _rss_mb(), "rss_after_import_mb": rss, "device_peak_mb": _device_peak_mb()}
+    out.write_text(json.dumps({"result": result, "memory": memory}, default=_jsonable))
+    return 0
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kilobytes
+
+
+def _current_rss_mb() -> float:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        return _rss_mb()
+
+
+def _device_peak_mb() -> float | None:
+    import jax
+
+    stats = jax.devices()[0].memory_stats()
+    if not stats or "peak_bytes_in_use" not in stats:
+        return None
+    return stats["peak_bytes_in_use"] / 2**20
+
+
+# --------------------------------------------------------------------------- machine description
+
+
+def _machine(load_before, load_after) -> dict:
+    import cv2
+    import flax
+    import jax
+    import jaxlib
+    import numpy as np
+
+    dev = jax.devices()[0]
+    cores = os.cpu_count() or 1
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else cores
+    return {
+        "cpu_model": _cpu_model(), "cpu_count": cores, "cores_usable": usable,
+        "python": platform.python_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
+        "flax": flax.__version__, "numpy": np.__version__, "opencv": cv2.__version__,
+        "device": f"{dev.platform}: {getattr(dev, 'device_kind', '')} x{jax.device_count()}".strip(),
+        "gpu": dev.platform == "gpu", "platform": platform.platform(),
+        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"), "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "load_before": load_before, "load_after": load_after,
+        "loaded": max(load_before[0], load_after[0]) > 0.5 * usable,
+    }  # fmt: skip
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _loadavg() -> list[float]:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return [0.0, 0.0, 0.0]
+
+
+def _git() -> dict:
+    def git(*cmd):
+        try:
+            return subprocess.run(["git", *cmd], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            return ""
+
+    return {"commit": git("rev-parse", "HEAD") or "unknown", "dirty": bool(git("status", "--porcelain", "-uno"))}
+
+
+def _jsonable(value):
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON-serialisable: {type(value).__name__}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""The benchmark harness: its smoke run writes every section with sane numbers; targets; the
+OpenCV comparison row agrees with the library's pairwise centroid."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import report, scenes
+from mvpose_jax.cameras import project_points
+from mvpose_jax.triangulate import triangulate_pairwise_centroid
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+    # One process (no per-group subprocesses) keeps the smoke run short; the CLI path is the same.
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.run", "--smoke", "--in-process", "--out", str(out)],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    return json.loads((out / "run.json").read_text()), (out / "run.md").read_text()
+
+
+def _check_stats(s: dict):
+    assert s["n"] >= 1
+    assert 0 < s["p10"] <= s["median"] <= s["p90"]
+
+
+def test_smoke_run_has_every_section(smoke_run):
+    run, md = smoke_run
+    for key in ("machine", "git", "peaks", "latency", "offline", "training", "memory", "targets", "profile"):
+        assert key in run, key
+    assert not run["errors"]
+    m = run["machine"]
+    assert m["cpu_count"] >= 1 and m["jax"] and m["device"]
+    assert len(run["git"]["commit"]) >= 7
+
+    assert run["peaks"]["matmul_gflops"] > 0 and run["peaks"]["bandwidth_gbs"] > 0
+
+    lat = run["latency"]
+    assert lat["rows"]
+    for row in lat["rows"]:
+        for key in ("t_pp", "t_3Dg", "t_3Di", "t_total"):
+            _check_stats(row[key])
+    methods = {r["method"] for r in lat["triangulation"]}
+    assert methods == {"dlt", "centroid", "opencv_centroid"}
+    for r in lat["triangulation"]:
+        _check_stats(r["t_tri"])
+    assert all(v["median"] > 0 for v in lat["breakdown"]["parts_ms"].values())
+    assert run["profile"]
+
+    for entry in run["offline"]["models"].values():
+        assert entry["stage2"]["frames_per_s"] > 0 and entry["stage2"]["people_per_s"] > 0
+        assert entry["stage3"]["frames_per_s"] > 0 and entry["stage3"]["gflops"] > 0
+        _check_stats(entry["single_person"]["predict_people_ms"])
+
+    for size, e in run["training"]["estimator"].items():
+        assert e["seed_samples_per_s"] > 0 and e["compile_seconds"] >= 0
+        g = run["training"]["matcher"][size]
+        assert g["graphs_per_s"] > 0 and g["budgets_compiled"] >= 1
+
+    assert set(run["memory"]) == {"peaks", "latency", "offline", "training"}
+    assert all(r["maxrss_mb"] > 0 for r in run["memory"].values())
+
+    assert len(run["targets"]) == 4
+    assert all(t["status"] in ("pass", "miss", "n/a") for t in run["targets"])
+    for heading in ("## Targets", "## Per-frame latency", "## Offline throughput", "## Training throughput",
+                    "## Peak memory", "## Breakdown"):  # fmt: skip
+        assert heading in md
+
+
+def _stats(ms: float) -> dict:
+    return {"median": ms, "p10": ms, "p90": ms, "iqr": [ms, ms], "mean": ms, "n": 1}
+
+
+def _fake_run(t_pp: float, t_3dg: float, t_tri: float, stage3_gflops: float) -> dict:
+    where = dict(views=5, people=4)
+    return {
+        "peaks": {"matmul_gflops": 300.0, "bandwidth_gbs": 40.0},
+        "latency": {
+            "rows": [{**where, "model": "paper", "t_pp": _stats(t_pp), "t_3Dg": _stats(t_3dg)}],
+            "triangulation": [{**where, "method": m, "t_tri": _stats(t_tri)} for m in ("dlt", "centroid")],
+            "models": {"5v-paper": {"mlp_bytes": 120_000_000}},  # bound 3 ms at 40 GB/s
+        },
+        "offline": {"models": {"paper": {"stage3": {"gflops": stage3_gflops}}}},
+    }
+
+
+def test_targets_pass_and_miss():
+    good = {t["name"]: t["status"] for t in report.targets(_fake_run(1.5, 3.5, 1.5, 250.0))}
+    assert set(good.values()) == {"pass"}
+    bad = {t["name"]: t for t in report.targets(_fake_run(2.5, 4.0, 0.5, 100.0))}
+    assert [t["status"] for t in bad.values()] == ["miss", "miss", "miss", "miss"]
+    assert bad["t_3Dg <= 1.3 x weight-streaming bound"]["limit"] == pytest.approx(3.9)
+    assert bad["t_pp + t_3Dg <= 2 x triangulation pipeline"]["measured"] == pytest.approx(6.5 / 3.0)
+    assert all(t["status"] == "n/a" for t in report.targets({}))
+
+
+def test_opencv_reference_matches_the_library_centroid():
+    rig = scenes.ring_rig(4)
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(3, 18, 3)).astype(np.float32) * 0.4 + np.array([0.0, -1.0, 0.0], np.float32)
+    px = np.asarray(project_points(rig, xyz))  # (C, 3, 18, 2)
+    score = (rng.random(px.shape[:-1]) < 0.8).astype(np.float32)
+    ref, ok = scenes.opencv_pairwise_centroid(scenes.opencv_cameras(rig), np.moveaxis(px, 0, 1), np.moveaxis(score, 0, 1))
+    ours, ours_ok = triangulate_pairwise_centroid(rig, px, score)
+    np.testing.assert_array_equal(ok, np.asarray(ours_ok))
+    np.testing.assert_allclose(ref[ok], np.asarray(ours)[ok], atol=2e-3)
+    np.testing.assert_allclose(ref[ok], xyz[ok], atol=2e-3)
