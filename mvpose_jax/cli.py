@@ -125,6 +125,8 @@ def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None =
                    "JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID)")  # fmt: skip
     p.add_argument("--num-processes", type=int, help="several hosts: how many processes take part")
     p.add_argument("--process-id", type=int, help="several hosts: this process's index, 0 .. N-1")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the latest checkpoint in --out (same settings; training may be lengthened)")  # fmt: skip
 
 
 def _train_matcher_arguments(p: argparse.ArgumentParser) -> None:
@@ -163,7 +165,7 @@ def _train_matcher(args: argparse.Namespace) -> int:
     )  # fmt: skip
     train_recs = _recordings_in(args.train, args.layout)
     dev_recs = _recordings_in(args.dev, args.layout)
-    _, fit = train_matcher(rig, train_recs, dev_recs, config, checkpoint_dir=args.out)
+    _, fit = train_matcher(rig, train_recs, dev_recs, config, checkpoint_dir=args.out, resume=args.resume)
     print(f"best validation loss {fit.best_val_loss:.5f} after {fit.steps} steps ({fit.seconds:.0f} s); "
           f"checkpoints in {args.out}")  # fmt: skip
     return 0
@@ -185,8 +187,6 @@ def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--learning-rate", type=float, default=1e-3, help="Adam's initial step size")
     p.add_argument("--constant-lr", action="store_true", help="no cosine decay (the paper's)")
     p.add_argument("--patience", type=int, default=20, help="validations without improvement before stopping")
-    p.add_argument("--resume", action="store_true",
-                   help="continue from the latest checkpoint in --out (same settings; --steps may grow)")  # fmt: skip
 
 
 @command(
