@@ -488,6 +488,13 @@ def offline(tier: Tier) -> dict:
         feats = jnp.zeros((rows, C, K, 14), jnp.float32)
         mlp = jax.jit(lambda p, x: nnx.merge(estimator.graphdef, p, estimator.rest)(x))
         t_mlp = float(np.median(repeat(mlp, estimator.params, feats, n=max(2, tier.offline_repeats))))
+        # The features alone for one chunk's people (device-resident, padded to the same bucket).
+        xy, score = group_people(det.xy[chunks[0]], det.score[chunks[0]], members[chunks[0]])
+        xy, score = xy.reshape((-1,) + xy.shape[2:]), score.reshape((-1,) + score.shape[2:])
+        pad = [(0, rows - len(xy))] + [(0, 0)] * 3
+        xy_d, score_d = jnp.asarray(np.pad(xy, pad)), jnp.asarray(np.pad(score, pad[:-1]))
+        feature_fn = jax.jit(lambda r, a, b: assemble_features(estimator_inputs(r, a, b), (b > 0).any(axis=-1)))
+        t_feat = float(np.median(repeat(feature_fn, rig, xy_d, score_d, n=max(2, tier.offline_repeats))))
         # Single-person latency: the library call with one person, and the MLP alone on one row.
         xy, score = group_people(det.xy[:1], det.score[:1], members[:1])
         single = repeat(predict_people, estimator, xy[0, :1], score[0, :1], n=tier.single_repeats)
@@ -500,6 +507,8 @@ def offline(tier: Tier) -> dict:
                        "repeats": t3.size},
             "mlp_only": {"rows": rows, "seconds": t_mlp, "people_per_s": rows / t_mlp,
                          "gflops": flops * rows / t_mlp / 1e9},
+            "features_only": {"rows": rows, "seconds": t_feat, "people_per_s": rows / t_feat},
+            "chunks": len(chunks),
             "single_person": {"predict_people_ms": summary(single), "mlp_one_row_ms": summary(single_mlp)},
             "mlp_flops_per_person": flops, "mlp_bytes": param_bytes(estimator.params),
         }  # fmt: skip

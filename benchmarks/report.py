@@ -210,6 +210,14 @@ def profile_notes(run: dict) -> list[str]:
             f"The default propose_with_matcher pads one frame to a 32-frame chunk: "
             f"{p['pp.propose_with_matcher (default 32-frame chunk)']:.2f} ms."
         )  # fmt: skip
+        row = _row((run.get("latency") or {}).get("rows", []), views=bd["views"], people=bd["people"],
+                   model=bd["model"])  # fmt: skip
+        if row and row["t_pp"]["median"] > 1.2 * pp:
+            notes.append(
+                f"In the frame-by-frame loop t_pp is {row['t_pp']['median']:.2f} ms against {pp:.2f} ms for the "
+                f"same calls back to back (the breakdown): there the 3D stage runs between two frames' "
+                f"proposals, which then start with cold caches and idle worker threads."
+            )  # fmt: skip
     g3 = p.get("3d.total")
     if g3:
         keys = [k for k in p if k.startswith("3d.mlp_device")]
@@ -221,6 +229,37 @@ def profile_notes(run: dict) -> list[str]:
             f"{p[people]:.2f} ms on the {bd['people']} real rows and {p['3d.mlp_device (1 row)']:.2f} ms on one row; "
             f"features {p[feat]:.2f} ms; grouping {p['3d.group_people']:.2f} ms; the rest of "
             f"estimate_grouped (padding, transfers, dispatch) "
-            f"{p['3d.estimate_grouped'] - p[bucket] - p[feat]:.2f} ms."
+            f"{max(0.0, p['3d.estimate_grouped'] - p[bucket] - p[feat]):.2f} ms."
+        )  # fmt: skip
+        bw = (run.get("peaks") or {}).get("bandwidth_gbs")
+        if bw:
+            bound = bd["mlp_bytes"] / (bw * 1e9) * 1e3
+            one = p["3d.mlp_device (1 row)"]
+            per_row = (p[bucket] - one) / max(1, bd["bucket"] - 1)
+            if p[bucket] > 1.3 * one:
+                why = (f"past one row the products are compute-bound, about {per_row:.2f} ms per added row, "
+                       "so every padding row of the bucket costs time")  # fmt: skip
+            else:
+                why = "extra rows cost little at this size"
+            notes.append(
+                f"The MLP's weights take {bound:.2f} ms to stream at the measured {bw:.1f} GB/s; one row runs "
+                f"in {one:.2f} ms ({one / bound:.1f}x the bound), {bd['people']} rows in {p[people]:.2f} ms "
+                f"({p[people] / bound:.1f}x) and the {bd['bucket']}-row bucket in {p[bucket]:.2f} ms "
+                f"({p[bucket] / bound:.1f}x): {why}."
+            )  # fmt: skip
+    off = ((run.get("offline") or {}).get("models") or {}).get(bd["model"])
+    peak = (run.get("peaks") or {}).get("matmul_gflops")
+    if off and peak:
+        s3 = off["stage3"]
+        per_chunk = s3["seconds"] / max(1, off.get("chunks", 1))
+        feat = off.get("features_only", {}).get("seconds")
+        notes.append(
+            f"Offline 3D: {s3['gflops']:.0f} GFLOP/s over the whole stage ({100 * s3['gflops'] / peak:.0f}% of the "
+            f"{peak:.0f} GFLOP/s peak); the MLP alone on a {off['mlp_only']['rows']}-row chunk reaches "
+            f"{off['mlp_only']['gflops']:.0f} GFLOP/s. Per chunk: {1e3 * per_chunk:.1f} ms in all, MLP "
+            f"{1e3 * off['mlp_only']['seconds']:.1f} ms"
+            + (f", features {1e3 * feat:.1f} ms" if feat else "")
+            + f", the rest (grouping, padding, transfers) "
+            f"{1e3 * max(0.0, per_chunk - off['mlp_only']['seconds'] - (feat or 0.0)):.1f} ms."
         )  # fmt: skip
     return notes
