@@ -163,6 +163,11 @@ def markdown(run: dict) -> str:
                   f"- memory read bandwidth: {peaks['bandwidth_gbs']:.1f} GB/s on a {peaks['bandwidth_array_mb']} MB "
                   "array; by size: " + "; ".join(f"{k} MB: sum {v['sum']:.1f}, GEMV {v['gemv']:.1f} GB/s"
                                                    for k, v in peaks["bandwidth_by_size"].items())]  # fmt: skip
+        if "spread" in peaks:
+            mm, bw = peaks["matmul_gflops_start_end"], peaks["bandwidth_gbs_start_end"]
+            lines.append(f"- measured at the start and again at the end of the run: matmul {mm[0]:,.0f} / {mm[1]:,.0f} "
+                         f"GFLOP/s, bandwidth {bw[0]:.1f} / {bw[1]:.1f} GB/s (the better counts; spread "
+                         f"{100 * peaks['spread']:.0f}%{', the load changed during the run' if peaks['spread'] > 0.15 else ''})")  # fmt: skip
 
     mem = run.get("memory")
     if mem:

@@ -67,17 +67,23 @@ def main(argv: list[str] | None = None) -> int:
     load_before = _loadavg()
     run: dict = {"benchmark": "run", "tier": tier, "date": datetime.datetime.now().isoformat(timespec="seconds"),
                  "git": _git(), "memory_method": MEMORY_METHOD, "memory": {}, "errors": {}}  # fmt: skip
-    for group in groups:
-        print(f"[benchmarks] {group} ({tier}) ...", flush=True)
+    # The machine's peaks are measured again at the end: the bounds are the better of the two, and
+    # a large difference says the machine's load changed during the run.
+    steps = [(g, g) for g in groups] + ([("peaks", "peaks_end")] if "peaks" in groups and len(groups) > 1 else [])
+    for group, key in steps:
+        print(f"[benchmarks] {key} ({tier}) ...", flush=True)
         t = time.perf_counter()
         result, memory, error = (_in_process if args.in_process else _subprocess)(group, tier)
         if error:
-            run["errors"][group] = error
-            print(f"[benchmarks] {group} FAILED: {error}", file=sys.stderr, flush=True)
+            run["errors"][key] = error
+            print(f"[benchmarks] {key} FAILED: {error}", file=sys.stderr, flush=True)
+        elif key == "peaks_end":
+            if "peaks" in run:
+                run["peaks"] = _merge_peaks(run["peaks"], result)
         else:
-            run[group] = result
-            run["memory"][group] = {**memory, "seconds": time.perf_counter() - t}
-            print(f"[benchmarks] {group} done in {time.perf_counter() - t:.0f} s", flush=True)
+            run[key] = result
+            run["memory"][key] = {**memory, "seconds": time.perf_counter() - t}
+            print(f"[benchmarks] {key} done in {time.perf_counter() - t:.0f} s", flush=True)
     run["machine"] = _machine(load_before, _loadavg())
     if args.in_process:
         run["memory_method"] = "in-process run: ru_maxrss is cumulative over the groups run before"
@@ -97,6 +103,16 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     print(f"wrote {out / 'run.json'} and {out / 'run.md'} ({run['seconds']:.0f} s)")
     return 1 if run["errors"] else 0
+
+
+def _merge_peaks(start: dict, end: dict) -> dict:
+    """The better of two peak measurements, with both kept and their spread."""
+    out = dict(start)
+    for key in ("matmul_gflops", "bandwidth_gbs"):
+        out[key] = max(start[key], end[key])
+        out[f"{key}_start_end"] = [start[key], end[key]]
+    out["spread"] = max(abs(start[k] - end[k]) / max(start[k], end[k]) for k in ("matmul_gflops", "bandwidth_gbs"))
+    return out
 
 
 # --------------------------------------------------------------------------- group processes
