@@ -2,8 +2,8 @@
 
 People arrive grouped (by proposals, or by true identities for stage-only evaluation) as
 ``xy (N, C_i, K, 2)``, ``score (N, C_i, K)``. The estimator runs as one jitted, batched call over
-all of them; N is padded to a power of two (at least 16) so a long recording compiles a handful
-of shapes, not one per frame.
+all of them; N is padded to a power of two so a long recording compiles a handful of shapes, not one per
+frame.
 """
 
 from __future__ import annotations
@@ -27,7 +27,9 @@ from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.train import Estimator, Matcher
 from mvpose_jax.triangulate import camera_pairs, triangulate_pairwise_centroid, triangulate_points
 
-MIN_BUCKET = 16
+# Powers of two from 1: a single frame's few people are not padded to a batch (the MLP's cost
+# grows with the rows), and a long recording still compiles only log2(N) shapes.
+MIN_BUCKET = 1
 
 
 def bucket_size(n: int, minimum: int = MIN_BUCKET) -> int:
@@ -198,8 +200,8 @@ def gat_match_table(
     """Match scores of every cross-view skeleton pair of every frame, by the learned matcher.
 
     Frames go through the network ``frames_per_call`` at a time, as one padded graph batch each
-    (the last chunk is padded with empty frames, so the graph budget and the feature shapes stay
-    fixed and jit compiles a handful of shapes for a whole recording).
+    (a shorter chunk is padded with empty frames to the next power of two, so jit compiles a
+    handful of shapes for a whole recording, and a single frame is one graph).
 
     Args:
       matcher: a trained `Matcher`.
@@ -218,9 +220,11 @@ def gat_match_table(
     rows, scores = [], []
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
-        pad = [(0, frames_per_call - (stop - start))] + [(0, 0)] * 3
+        # A short (or single-frame) chunk is padded only to the next power of two of frames.
+        n_graphs = min(frames_per_call, bucket_size(stop - start))
+        pad = [(0, n_graphs - (stop - start))] + [(0, 0)] * 3
         feats = detection_features(matcher.rig, np.pad(xy[start:stop], pad + [(0, 0)]), np.pad(score[start:stop], pad))
-        batch = build_graphs(feats[: stop - start], valid[start:stop], num_graphs=frames_per_call)
+        batch = build_graphs(feats[: stop - start], valid[start:stop], num_graphs=n_graphs)
         r, s = match_table(batch, match_scores(matcher, batch))
         r[:, 0] += start
         rows.append(r)
@@ -289,7 +293,7 @@ def geometric_match_table(
     dist = []
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
-        pad = [(0, frames_per_call - (stop - start))] + [(0, 0)] * 3
+        pad = [(0, min(frames_per_call, bucket_size(stop - start)) - (stop - start))] + [(0, 0)] * 3
         xy_c = np.moveaxis(np.pad(xy[start:stop], pad + [(0, 0)]), 1, 0)
         sc_c = np.moveaxis(np.pad(score[start:stop], pad), 1, 0)
         dist.append(np.asarray(_epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared))[:, : stop - start])
