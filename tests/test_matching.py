@@ -84,7 +84,9 @@ def test_tiny_model_overfits_tiny_dataset():
     feats, valid, identity = _random_frames(rng, 6)
     feats[..., :3] = np.eye(3, dtype=np.float32)[np.maximum(identity, 0)] * (identity >= 0)[..., None]
     batch = jax.device_put(build_graphs(feats, valid, identity))
-    _, _, state, step = _train_state(GATConfig(widths=(16, 16, 1), heads=(2, 2, 1)), lr=1e-2)
+    # 3e-3: at 1e-2 Adam sometimes parks this tiny net on a plateau (seed-dependent); at 3e-3
+    # every initialisation tried converges (loss / 1e4 within 300 steps).
+    _, _, state, step = _train_state(GATConfig(widths=(16, 16, 1), heads=(2, 2, 1)), lr=3e-3)
     key = jax.random.key(0)
     losses = []
     for _ in range(300):
