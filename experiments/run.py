@@ -134,7 +134,7 @@ SCALES = {
     # Minutes on a 2-core CPU: the paper's GAT (the 3-layer quick GAT stays near chance at these
     # step counts) with short training, the small MLP.
     "quick": Scale(60, 100, 10, 50, tuple(range(1, 9)), 25, _matcher(GATConfig(), 1e-3, 300, 5, 90),
-                   {2: 4000, 3: 2500, 5: 1500, 6: 1500}, _estimator(MLPConfig.quick(), 1500)),  # fmt: skip
+                   {2: 8000, 3: 5000, 5: 3000, 6: 3000}, _estimator(MLPConfig.quick(), 3000)),  # fmt: skip
     # The paper's network sizes, 2000 test frames, long training (hours on a CPU).
     "paper": Scale(150, 100, 20, 50, tuple(range(1, 9)), 250, _matcher(GATConfig(), 1e-3, 1500, 5, 300),
                    {2: 15000, 3: 8000, 5: 4000, 6: 4000}, _estimator(MLPConfig(), 12000)),  # fmt: skip
