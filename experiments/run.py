@@ -54,10 +54,10 @@ from mvpose_jax.inference import (
     run_pipeline,
     triangulate_grouped,
 )
-from mvpose_jax.metrics import matching_scores, pose_metrics, reprojection_errors
+from mvpose_jax.metrics import match_people, matching_scores, pose_metrics, reprojection_errors
 from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.render import curves_figure, save_figure, skeleton_figure
-from mvpose_jax.skeletons import Detections, Poses3D
+from mvpose_jax.skeletons import Detections, Poses3D, evaluation_keypoints
 from mvpose_jax.train import MATCHER_TRAIN, EstimatorConfig, MatcherConfig, TrainConfig, train_estimator, train_matcher
 
 # The paper's numbers (reference only; never mixed into ours).
@@ -343,12 +343,29 @@ def sample_figures(samples: dict, rig, layout: str, out: Path, count: int = 2) -
             picks.append(int(cand[np.argmax(people[cand])]))
     written = []
     for f in picks[:count]:
-        panels = {"ground truth": (gt.xyz[f][gt.valid[f]], gt.keypoint_valid[f][gt.valid[f]]),
-                  "ours": (ours.poses.xyz[f], ours.poses.keypoint_valid[f]),
-                  "triangulation": (tri.xyz[f], tri.keypoint_valid[f])}  # fmt: skip
+        g_list = np.flatnonzero(gt.valid[f])
+        panels = {"ground truth": (gt.xyz[f][g_list], gt.keypoint_valid[f][g_list]),
+                  "ours": _in_gt_order(ours.poses, gt, f, g_list, layout),
+                  "triangulation": _in_gt_order(tri, gt, f, g_list, layout)}  # fmt: skip
         fig = skeleton_figure(panels, layout, rig=rig, title=f"test frame {f} (D-detected, {source})")
         written.append(str(save_figure(fig, out / f"frame_{f:05d}.png")))
     return written
+
+
+def _in_gt_order(pred: Poses3D, gt: Poses3D, f: int, g_list: np.ndarray, layout: str):
+    """Frame f's predicted people reordered so that the one assigned to ground-truth person
+    ``g_list[i]`` (minimum-total-error assignment) comes i-th, and so gets that person's colour;
+    unassigned predictions follow."""
+    one = lambda p: Poses3D(*(np.asarray(a)[f : f + 1] for a in p))  # noqa: E731
+    p_idx, g_idx = match_people(one(pred), one(gt), evaluation_keypoints(layout))[0]
+    K = pred.xyz.shape[2]
+    order = [int(p_idx[g_idx == g][0]) if (g_idx == g).any() else -1 for g in g_list]
+    order += [int(p) for p in np.flatnonzero(pred.valid[f]) if p not in set(p_idx.tolist())]
+    if not order:
+        return np.zeros((0, K, 3), np.float32), np.zeros((0, K), bool)
+    xyz = np.stack([pred.xyz[f, p] if p >= 0 else np.zeros((K, 3), np.float32) for p in order])
+    kv = np.stack([pred.keypoint_valid[f, p] & pred.valid[f, p] if p >= 0 else np.zeros(K, bool) for p in order])
+    return xyz, kv
 
 
 # --------------------------------------------------------------------------- tables
