@@ -35,17 +35,19 @@ NUM_ESTIMATOR_FEATURES = 14
 
 
 @jax.jit
-def keypoint_features(rig: Rig, xy: jax.Array, score: jax.Array) -> jax.Array:
+def keypoint_features(rig: Rig, xy: jax.Array, score: jax.Array, frame=None) -> jax.Array:
     """The 10 per-(camera, keypoint) numbers.
 
     Args:
       rig: the C cameras the detections come from.
       xy: (C, ..., K, 2) distorted pixels.
       score: (C, ..., K) detection scores; 0 = missing.
+      frame: (centre (3,), radius ()) of the normalised frame; default the rig's own
+        (`cameras.rig_centre_and_radius`).
     Returns:
       (C, ..., K, 10) features, all zeros where the keypoint is missing.
     """
-    centre, radius = rig_centre_and_radius(rig)
+    centre, radius = rig_centre_and_radius(rig) if frame is None else frame
     seen = score > 0
     # Missing keypoints may carry junk coordinates: replace before any geometry touches them.
     xy = jnp.where(seen[..., None], xy, 0.5 * rig.size.reshape((-1,) + (1,) * (xy.ndim - 2) + (2,)))
@@ -76,18 +78,22 @@ class EstimatorInputs(NamedTuple):
 
 
 @jax.jit
-def estimator_inputs(rig: Rig, xy: jax.Array, score: jax.Array) -> EstimatorInputs:
+def estimator_inputs(rig: Rig, xy: jax.Array, score: jax.Array, frame=None) -> EstimatorInputs:
     """Per-person inputs of the 3D estimator, before view selection.
 
     Args:
       rig: the C inference cameras (C_i).
       xy: (N, C, K, 2) each person's detections in each camera (pixels).
       score: (N, C, K) scores; 0 = missing (a whole view missing is all zeros).
+      frame: (centre, radius) of the normalised frame. An estimator uses its TRAINING rig's
+        (the space people were recorded in): a compact inference rig (one camera, a stereo
+        pair) spans almost nothing itself. Default: ``rig``'s own.
     Returns:
       `EstimatorInputs`.
     """
-    centre, radius = rig_centre_and_radius(rig)
-    keypoint = jnp.moveaxis(keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)), 0, 1)
+    centre, radius = rig_centre_and_radius(rig) if frame is None else frame
+    keypoint = jnp.moveaxis(keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0), (centre, radius)),
+                            0, 1)  # fmt: skip
     pair_xyz, pair_ok = triangulate_pairs(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))
     pair_xyz = jnp.where(pair_ok[..., None], (pair_xyz - centre.reshape(1, 1, 1, 3)) / radius, 0.0)
     return EstimatorInputs(keypoint, pair_xyz, pair_ok)

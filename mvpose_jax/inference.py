@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, rig_centre_and_radius, undistort_points
+from mvpose_jax.cameras import Rig, undistort_points
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estimator_inputs
 from mvpose_jax.graphs import GraphBatch, build_graphs, detection_features, match_table
@@ -38,9 +38,9 @@ def bucket_size(n: int, minimum: int = MIN_BUCKET) -> int:
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _predict(graphdef, rest, params, rig: Rig, xy, score):
-    centre, radius = rig_centre_and_radius(rig)
-    inputs = estimator_inputs(rig, xy, score)
+def _predict(graphdef, rest, params, rig: Rig, frame, xy, score):
+    centre, radius = frame
+    inputs = estimator_inputs(rig, xy, score, frame)
     feats = assemble_features(inputs, (score > 0).any(axis=-1))
     return to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
 
@@ -60,7 +60,8 @@ def predict_people(
     """
     xy_p, score_p = _pad_people(xy, score)
     if mesh is None:
-        out = _predict(estimator.graphdef, estimator.rest, estimator.params, estimator.rig_infer, xy_p, score_p)
+        out = _predict(estimator.graphdef, estimator.rest, estimator.params, estimator.rig_infer,
+                       estimator.normalisation, xy_p, score_p)  # fmt: skip
         return np.asarray(out)[: len(xy)]
     # Local imports: this function is the only place inference needs the mesh helpers.
     from mvpose_jax.parallel import mesh_size, pad_leading, replicate, shard_batch, to_host
@@ -68,7 +69,7 @@ def predict_people(
     n = mesh_size(mesh)
     xy_p, score_p = shard_batch(mesh, (pad_leading(xy_p, n), pad_leading(score_p, n)))  # (B, ...) split
     out = _predict(estimator.graphdef, estimator.rest, replicate(mesh, estimator.params), estimator.rig_infer,
-                   xy_p, score_p)  # fmt: skip
+                   replicate(mesh, estimator.normalisation), xy_p, score_p)  # fmt: skip
     return to_host(out)[: len(xy)]
 
 

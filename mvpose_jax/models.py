@@ -105,10 +105,13 @@ def initial_estimate(features: jax.Array, per_keypoint: bool) -> jax.Array:
     Args:
       features: (..., C, K, 14) as `features.assemble_features` makes them.
       per_keypoint: each keypoint's own initial estimate where it has one; for a keypoint one
-        view sees, the point on its ray at the anchor's distance from that camera; else the
-        anchor. False: the anchor (mean of the person's initial estimates) for every keypoint.
+        view sees, the point on its ray at the anchor's distance from that camera (for a person
+        without any initial estimate, e.g. seen by one camera, the anchor is the rig centre);
+        else the anchor. False: the anchor (mean of the person's initial estimates) for every
+        keypoint.
     Returns:
-      (..., K, 3); zeros (the rig centre) for a person without any initial estimate.
+      (..., K, 3); zeros (the rig centre) for keypoints no view sees of a person without any
+      initial estimate.
     """
     xyz, has, anchor = _initial_estimate(features)
     anchor = jnp.broadcast_to(anchor[..., None, :], xyz.shape)
@@ -121,7 +124,9 @@ def initial_estimate(features: jax.Array, per_keypoint: bool) -> jax.Array:
     ray = jnp.sum(features[..., 7:10] * seen[..., None], axis=-3)  # and its unit ray
     depth = jnp.linalg.norm(anchor - cam, axis=-1, keepdims=True)
     on_ray = cam + ray * depth
-    one_view = (seen.sum(axis=-2) == 1) & (has.sum(axis=-1, keepdims=True) > 0)
+    # Also without any estimate (one camera): on the ray at the rig centre's distance, so the
+    # start projects onto the detection in that camera instead of at the rig centre.
+    one_view = seen.sum(axis=-2) == 1
     fallback = jnp.where(one_view[..., None], on_ray, anchor)
     return jnp.where(has[..., None] > 0, xyz, fallback)
 

@@ -602,7 +602,7 @@ def make_estimator_batch(
     rig_infer = rig_train.select(list(idx))
     xy = jnp.asarray(xy, jnp.float32)
     score = jnp.asarray(score, jnp.float32)
-    inputs = estimator_inputs(rig_infer, xy[:, idx], score[:, idx])
+    inputs = estimator_inputs(rig_infer, xy[:, idx], score[:, idx], rig_centre_and_radius(rig_train))
     available = (score[:, idx] > 0).any(axis=-1)
     return EstimatorBatch(inputs, available, xy, score)
 
@@ -660,11 +660,18 @@ class Estimator(NamedTuple):
     params: Any
     rig_infer: Rig
     config: EstimatorConfig
+    # (centre (3,), radius ()) of the normalised frame: the TRAINING rig's (see
+    # `features.estimator_inputs`); None: the inference rig's own (checkpoints before it).
+    frame: tuple[Any, Any] | None = None
+
+    @property
+    def normalisation(self) -> tuple[Any, Any]:
+        return rig_centre_and_radius(self.rig_infer) if self.frame is None else self.frame
 
 
 def estimator_loss_fn(rig_train: Rig, rig_infer: Rig, num_augment: int, loss_power: float = 2.0):
     """``loss_fn(model, batch, key)`` of the estimator, for `make_train_step`."""
-    centre, radius = rig_centre_and_radius(rig_infer)
+    centre, radius = rig_centre_and_radius(rig_train)
 
     def loss_fn(model, batch: EstimatorBatch, key):
         subsets, subset_ok = random_view_subsets(key, batch.available, num_augment)
@@ -761,6 +768,9 @@ def train_estimator(
     run_config = _jsonable(dataclasses.asdict(config))
     # What restoring needs beyond the config: the resolved cameras and the keypoint count.
     run_config.update(train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K))
+    centre, radius = rig_centre_and_radius(rig_train)
+    # The normalised frame travels with the model (inference may hold only the inference cameras).
+    run_config["frame"] = [float(x) for x in np.asarray(centre)] + [float(radius)]
     try:
         resumed = Resumed(state, None, math.inf, None)
         if resume and checkpoints is not None:
@@ -773,7 +783,7 @@ def train_estimator(
     finally:
         if checkpoints is not None:
             checkpoints.close()
-    return Estimator(graphdef, rest, result.state.params, rig_infer, config), result
+    return Estimator(graphdef, rest, result.state.params, rig_infer, config, rig_centre_and_radius(rig_train)), result
 
 
 def estimator_config_from_dict(d: dict) -> EstimatorConfig:
@@ -809,11 +819,18 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
         state, _ = checkpoints.restore(jax.eval_shape(lambda: state), which)
     finally:
         checkpoints.close()
-    return Estimator(graphdef, rest, state.params, rig_infer, config)
+    frame = None
+    if "frame" in saved:
+        f = np.asarray(saved["frame"], np.float32)
+        if f.shape != (4,) or not np.isfinite(f).all() or f[3] <= 0:
+            raise InputError("the saved normalisation frame is not [cx, cy, cz, radius > 0]", file=directory,
+                             field="config.frame")  # fmt: skip
+        frame = (jnp.asarray(f[:3]), jnp.asarray(f[3]))
+    return Estimator(graphdef, rest, state.params, rig_infer, config, frame)
 
 
 def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, data: EstimatorBatch):
-    centre, radius = rig_centre_and_radius(rig_infer)
+    centre, radius = rig_centre_and_radius(rig_train)
     model = nnx.merge(graphdef, params, rest)
     feats = assemble_features(data.inputs, data.available)
     xyz = to_world(model(feats), centre, radius)
