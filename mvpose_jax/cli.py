@@ -325,6 +325,29 @@ def _infer(args: argparse.Namespace) -> int:
     return 0
 
 
+def _poses_and_detections(args: argparse.Namespace):
+    """``--poses`` (written by infer) and the ``--detections`` they were made from, on their
+    cameras: (PoseResults, Recording, Rig). Poses that cannot come from these detections (another
+    layout, frame count or more skeletons per view) are an error."""
+    import numpy as np
+
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.data.poses import load_poses
+
+    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
+    poses = load_poses(args.poses)
+    args.cameras = list(poses.cameras)
+    rec, rig = _load_detections(args, rig_all)
+    if rec.layout != poses.layout:
+        raise InputError(f"poses are in layout {poses.layout!r}, the detections in {rec.layout!r}; pass --layout",
+                         file=args.poses, field="layout")  # fmt: skip
+    F, P = rec.num_frames, np.shape(rec.detections.score)[2]
+    if len(poses.confidence) != F or poses.identity.shape[2] > P:
+        raise InputError(f"poses have {len(poses.confidence)} frames and {poses.identity.shape[2]} skeletons per "
+                         f"view; the detections {F} and {P}", file=args.poses, field="frames")  # fmt: skip
+    return poses, rec, rig
+
+
 def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
     _detection_arguments(p)
     p.add_argument("--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer")
@@ -342,24 +365,12 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.data.files import atomic_write_text
-    from mvpose_jax.data.poses import load_poses
     from mvpose_jax.inference import group_people
     from mvpose_jax.metrics import matching_scores, pose_metrics, reprojection_errors
 
-    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
-    poses = load_poses(args.poses)
-    args.cameras = list(poses.cameras)
-    rec, rig = _load_detections(args, rig_all)
-    if rec.layout != poses.layout:
-        raise InputError(f"poses are in layout {poses.layout!r}, the detections in {rec.layout!r}; pass --layout",
-                         file=args.poses, field="layout")  # fmt: skip
+    poses, rec, rig = _poses_and_detections(args)
     F = rec.num_frames
-    if len(poses.confidence) != F or poses.identity.shape[2] > np.shape(rec.detections.score)[2]:
-        raise InputError(f"poses have {len(poses.confidence)} frames and {poses.identity.shape[2]} skeletons per "
-                         f"view; the detections {F} and {np.shape(rec.detections.score)[2]}",
-                         file=args.poses, field="frames")  # fmt: skip
     out = {"frames": F, "people": int(poses.poses.valid.sum())}
     if rec.ground_truth is not None:
         out["pose"] = pose_metrics(poses.poses, rec.ground_truth, layout=rec.layout, confidence=poses.confidence)
@@ -414,18 +425,10 @@ def _render(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm.auto import tqdm
 
-    from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.data.poses import load_poses
     from mvpose_jax.render import VideoWriter, draw_view, save_figure, skeleton_figure, tile, write_image
 
-    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
-    poses = load_poses(args.poses)
-    args.cameras = list(poses.cameras)
-    rec, rig = _load_detections(args, rig_all)
+    poses, rec, rig = _poses_and_detections(args)
     F = rec.num_frames
-    if len(poses.confidence) != F:
-        raise InputError(f"poses have {len(poses.confidence)} frames, the detections {F}", file=args.poses,
-                         field="frames")  # fmt: skip
     if args.every < 1 or args.scale <= 0:
         raise InputError("--every must be >= 1 and --scale > 0", field="--every/--scale")
     frames = args.frames if args.frames else list(range(0, F, args.every))

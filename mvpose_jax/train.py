@@ -764,26 +764,16 @@ def train_estimator(
     def evaluate(state):
         return {k: float(v) for k, v in eval_loss(state.params, dev_data).items()}
 
-    checkpoints = _checkpoints(checkpoint_dir, tcfg)
     run_config = _jsonable(dataclasses.asdict(config))
     # What restoring needs beyond the config: the resolved cameras and the keypoint count.
     run_config.update(train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K))
     centre, radius = rig_centre_and_radius(rig_train)
     # The normalised frame travels with the model (inference may hold only the inference cameras).
     run_config["frame"] = [float(x) for x in np.asarray(centre)] + [float(radius)]
-    try:
-        resumed = Resumed(state, None, math.inf, None)
-        if resume and checkpoints is not None:
-            resumed = resume_state(checkpoints, state, run_config)
-        result = fit(
-            resumed.state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
-            checkpoints=checkpoints, run_config=run_config, desc="estimator", progress=progress,
-            best_val_loss=resumed.best_val_loss, best_state=resumed.best_state, resume_from=resumed.progress,
-        )  # fmt: skip
-    finally:
-        if checkpoints is not None:
-            checkpoints.close()
-    return Estimator(graphdef, rest, result.state.params, rig_infer, config, rig_centre_and_radius(rig_train)), result
+    result = _fit_resumable(state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
+                            checkpoint_dir=checkpoint_dir, run_config=run_config, resume=resume, desc="estimator",
+                            progress=progress)  # fmt: skip
+    return Estimator(graphdef, rest, result.state.params, rig_infer, config, (centre, radius)), result
 
 
 def estimator_config_from_dict(d: dict) -> EstimatorConfig:
@@ -850,8 +840,24 @@ def _mesh(config: TrainConfig) -> jax.sharding.Mesh | None:
         raise InputError(str(e), field="num_devices") from None
 
 
-def _checkpoints(directory: str | Path | None, config: TrainConfig) -> Checkpoints | None:
-    return None if directory is None else Checkpoints(directory, max_to_keep=config.max_to_keep)
+def _fit_resumable(state, train_step, epoch_batches, evaluate, config: TrainConfig, *, steps_per_epoch: int,
+                   checkpoint_dir: str | Path | None, run_config: dict, resume: bool, desc: str,
+                   progress: bool) -> FitResult:  # fmt: skip
+    """`fit` with the checkpoints of ``checkpoint_dir`` (optional), continuing the latest one
+    when ``resume`` (`resume_state`); both trainers' loop."""
+    checkpoints = None if checkpoint_dir is None else Checkpoints(checkpoint_dir, max_to_keep=config.max_to_keep)
+    try:
+        resumed = Resumed(state, None, math.inf, None)
+        if resume and checkpoints is not None:
+            resumed = resume_state(checkpoints, state, run_config)
+        return fit(
+            resumed.state, train_step, epoch_batches, evaluate, config, steps_per_epoch=steps_per_epoch,
+            checkpoints=checkpoints, run_config=run_config, desc=desc, progress=progress,
+            best_val_loss=resumed.best_val_loss, best_state=resumed.best_state, resume_from=resumed.progress,
+        )  # fmt: skip
+    finally:
+        if checkpoints is not None:
+            checkpoints.close()
 
 
 def _jsonable(value):
@@ -992,20 +998,10 @@ def train_matcher(
         n = max(total["count"], 1.0)
         return {"val_loss": total["sq_error"] / n, "val_accuracy": total["correct"] / n}
 
-    checkpoints = _checkpoints(checkpoint_dir, tcfg)
     run_config = {**_jsonable(dataclasses.asdict(config)), "num_keypoints": K}
-    try:
-        resumed = Resumed(state, None, math.inf, None)
-        if resume and checkpoints is not None:
-            resumed = resume_state(checkpoints, state, run_config)
-        result = fit(
-            resumed.state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
-            checkpoints=checkpoints, run_config=run_config, desc="matcher", progress=progress,
-            best_val_loss=resumed.best_val_loss, best_state=resumed.best_state, resume_from=resumed.progress,
-        )  # fmt: skip
-    finally:
-        if checkpoints is not None:
-            checkpoints.close()
+    result = _fit_resumable(state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
+                            checkpoint_dir=checkpoint_dir, run_config=run_config, resume=resume, desc="matcher",
+                            progress=progress)  # fmt: skip
     return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
 
 
