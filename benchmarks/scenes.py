@@ -17,7 +17,7 @@ import jax
 import numpy as np
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, make_rig
+from mvpose_jax.cameras import Rig, make_rig, rig_centre_and_radius
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.formats import select_cameras
 from mvpose_jax.data.recording import Recording
@@ -82,7 +82,8 @@ def estimator_for(rig: Rig, num_keypoints: int, mlp: MLPConfig) -> Estimator:
     """An untrained `Estimator` for ``rig``'s cameras, built as `train.load_estimator` builds it."""
     config = EstimatorConfig(train_cameras=rig.names, infer_cameras=rig.names, mlp=mlp)
     graphdef, rest, params = _split(lambda: PoseMLP(rig.num_cameras, num_keypoints, config.mlp, rngs=nnx.Rngs(0)))
-    return Estimator(graphdef, rest, params, rig, config)
+    # The normalised frame as trained estimators carry it (computed once, not on every call).
+    return Estimator(graphdef, rest, params, rig, config, rig_centre_and_radius(rig))
 
 
 def matcher_for(rig: Rig, num_keypoints: int, gat: GATConfig) -> Matcher:

@@ -44,6 +44,27 @@ class MLPConfig:
         return cls(widths=(512, 512, 256))
 
 
+class FeatureMajorLinear(nnx.Module):
+    """A dense layer on feature-major activations: (in, M) -> (out, M), kernel stored (out, in).
+
+    Same function as ``nnx.Linear`` (lecun-normal kernel, zero bias by default), laid out for the
+    estimator's hot path: with the weights stored (out, in) and the rows as columns, the product
+    is a matrix times a thin matrix, which XLA:CPU runs near the weight-streaming speed for a few
+    rows, while ``rows @ kernel(in, out)`` costs about one extra weight pass per added row
+    (benchmarks/README.md); on big batches both run at the matmul peak.
+    """
+
+    def __init__(self, in_features: int, out_features: int, *, kernel_init=None, rngs: nnx.Rngs):
+        init = kernel_init or nnx.initializers.lecun_normal()
+        # lecun_normal reads fan-in from axis -2 of an (in, out) shape: draw it so, store it (out, in).
+        self.kernel = nnx.Param(init(rngs.params(), (in_features, out_features), jnp.float32).T)
+        self.bias = nnx.Param(jnp.zeros((out_features,), jnp.float32))
+
+    def __call__(self, h: jax.Array) -> jax.Array:
+        """h: (in, M) -> (out, M)."""
+        return self.kernel[...] @ h + self.bias[...][:, None]
+
+
 class PoseMLP(nnx.Module):
     """Per-person 3D regressor: (C, K, 14) features -> (K, 3) rig-normalised coordinates.
 
@@ -61,12 +82,12 @@ class PoseMLP(nnx.Module):
             num_inputs += num_keypoints * 4  # the pose-relative initial estimate, see __call__
         sizes = (num_inputs,) + tuple(config.widths)
         self.hidden = nnx.List(
-            [nnx.Linear(a, b, rngs=rngs) for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
+            [FeatureMajorLinear(a, b, rngs=rngs) for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
         )
         # Offset outputs start at zero, so an untrained network returns its anchor (the
         # triangulation, for "residual") instead of noise around it.
         init = nnx.initializers.zeros if config.output != "absolute" else nnx.initializers.lecun_normal()
-        self.out = nnx.Linear(sizes[-1], num_keypoints * 3, kernel_init=init, rngs=rngs)
+        self.out = FeatureMajorLinear(sizes[-1], num_keypoints * 3, kernel_init=init, rngs=rngs)
 
     def __call__(self, features: jax.Array) -> jax.Array:
         batch = features.shape[:-3]
@@ -79,9 +100,11 @@ class PoseMLP(nnx.Module):
             xyz, has, anchor = _initial_estimate(features)
             rel = jnp.where(has[..., None] > 0, xyz - anchor[..., None, :], 0.0)
             h = jnp.concatenate([h, jnp.concatenate([has[..., None], rel], -1).reshape(batch + (-1,))], -1)
+        # Rows become columns once, for the whole stack (see FeatureMajorLinear).
+        h = h.reshape(-1, h.shape[-1]).T
         for layer in self.hidden:
             h = jax.nn.leaky_relu(layer(h), self.slope)
-        out = self.out(h).reshape(batch + (self.num_keypoints, 3))
+        out = self.out(h).T.reshape(batch + (self.num_keypoints, 3))
         if self.output == "absolute":
             return out
         return out + initial_estimate(features, per_keypoint=self.output == "residual")

@@ -35,34 +35,48 @@ def _centred_extrinsics(rig: Rig) -> tuple[jax.Array, jax.Array, jax.Array]:
     return jnp.concatenate([rig.R, t_c[..., None]], axis=-1), centre, radius
 
 
-def _dlt(Rt: jax.Array, xy: jax.Array, w: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Weighted linear triangulation of one point.
+def _view_normals(Rt: jax.Array, xy: jax.Array, w: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Each view's share of the weighted linear-triangulation normal equations.
+
+    DLT minimises |A[:, :3] X + A[:, 3]|^2 over two rows per view, x P[2] - P[0] and
+    y P[2] - P[1], scaled by the view's weight; the 3x3 normal equations are a sum over views,
+    so any subset of views (a camera pair) is a sum of these terms.
 
     Args:
-      Rt: (C, 3, 4) normalised projection matrices; xy: (C, 2) normalised image points;
-      w: (C,) non-negative weights, 0 = not seen.
+      Rt: (C, 3, 4) normalised projection matrices; xy: (B, C, 2) normalised image points;
+      w: (B, C) non-negative weights, 0 = not seen.
     Returns:
-      xyz (3,) in the frame of Rt, and valid () bool.
+      m (B, C, 3, 3) and b (B, C, 3): view c contributes m[:, c] X = b[:, c].
     """
-    # Two rows per view: x * P[2] - P[0] and y * P[2] - P[1], scaled by the view's weight.
-    rows = jnp.stack(
-        [xy[:, 0:1] * Rt[:, 2] - Rt[:, 0], xy[:, 1:2] * Rt[:, 2] - Rt[:, 1]], axis=1
-    )  # (C, 2, 4)
-    rows = (rows * w[:, None, None]).reshape(-1, 4)
-    # Inhomogeneous least squares: minimise |A[:, :3] X + A[:, 3]|^2 via the 3x3 normal equations.
-    m = rows[:, :3].T @ rows[:, :3]
-    b = -rows[:, :3].T @ rows[:, 3]
-    scale = jnp.max(jnp.abs(m))
-    # Two views with non-parallel rays make m full rank; compare the smallest eigenvalue with the
-    # largest rather than trusting the count, which also catches rays through one camera centre.
-    eig = jnp.linalg.eigvalsh(m)
-    enough = (jnp.sum(w > 0) >= 2) & (eig[0] > _SINGULAR_RTOL * jnp.maximum(eig[-1], 1e-30))
-    ok = enough & (scale > 0)
-    m_safe = jnp.where(ok, m, jnp.eye(3, dtype=m.dtype))
-    b_safe = jnp.where(ok, b, jnp.zeros_like(b))
-    xyz = jnp.linalg.solve(m_safe, b_safe)
-    ok = ok & jnp.all(jnp.isfinite(xyz))
-    return jnp.where(ok, xyz, 0.0), ok
+    P = Rt[None]  # (1, C, 3, 4)
+    rows = jnp.stack([xy[..., 0:1] * P[..., 2, :] - P[..., 0, :], xy[..., 1:2] * P[..., 2, :] - P[..., 1, :]], axis=-2)
+    rows = rows * w[..., None, None]  # (B, C, 2, 4)
+    a, c = rows[..., :3], rows[..., 3]
+    return jnp.einsum("...ri,...rj->...ij", a, a), -jnp.einsum("...ri,...r->...i", a, c)
+
+
+def _solve_normals(m: jax.Array, b: jax.Array, num_views: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Solves symmetric 3x3 normal equations in closed form (cofactors over the determinant).
+
+    Elementwise arithmetic on the whole batch: a batched eigendecomposition and LU solve per point
+    cost several times more on a CPU (and this runs for every keypoint of every camera pair).
+
+    Args:
+      m: (..., 3, 3) symmetric positive semi-definite; b: (..., 3); num_views: (...) views seen.
+    Returns:
+      xyz (..., 3), 0 where invalid, and valid (...): two or more views and a normal matrix that
+      is not (nearly) singular, i.e. rays not (nearly) parallel nor all through one centre.
+    """
+    r0, r1, r2 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
+    cof = jnp.stack([jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)], axis=-2)  # adj(m), symmetric
+    det = jnp.sum(r0 * cof[..., 0, :], axis=-1)
+    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    # det = l_min l_mid l_max and trace >= l_max >= l_mid: det > rtol trace^3 implies
+    # l_min > rtol l_max, a scale-free rank test (rays at an angle, not one line).
+    ok = (num_views >= 2) & (trace > 0) & (det > _SINGULAR_RTOL * trace**3)
+    xyz = jnp.einsum("...ij,...j->...i", cof, b) / jnp.where(ok, det, 1.0)[..., None]
+    ok = ok & jnp.all(jnp.isfinite(xyz), axis=-1)
+    return jnp.where(ok[..., None], xyz, 0.0), ok
 
 
 def _flatten(rig: Rig, px: jax.Array, weight: jax.Array):
@@ -93,7 +107,8 @@ def triangulate_points(
     """
     Rt, centre, radius = _centred_extrinsics(rig)
     xy, w, batch = _flatten(rig, px, weight)
-    xyz, ok = jax.vmap(_dlt, in_axes=(None, 0, 0))(Rt, xy, w)
+    m, b = _view_normals(Rt, xy, w)
+    xyz, ok = _solve_normals(m.sum(axis=1), b.sum(axis=1), jnp.sum(w > 0, axis=1))
     xyz = jnp.where(ok[:, None], xyz * radius + centre[None], 0.0)
     return xyz.reshape(batch + (3,)), ok.reshape(batch)
 
@@ -121,9 +136,10 @@ def triangulate_pairs(rig: Rig, px: jax.Array, visible: jax.Array) -> tuple[jax.
     Q = pairs.shape[0]
     if Q == 0:
         return jnp.zeros(batch + (0, 3), xy.dtype), jnp.zeros(batch + (0,), bool)
-    one_pair = lambda pair, xy_b, seen_b: _dlt(Rt[pair], xy_b[pair], seen_b[pair])  # noqa: E731
+    m, b = _view_normals(Rt, xy, seen)  # each view's terms once, then summed per pair
+    i, j = pairs[:, 0], pairs[:, 1]
     # (B, Q, 3), (B, Q)
-    xyz, ok = jax.vmap(lambda x, s: jax.vmap(lambda p: one_pair(p, x, s))(pairs))(xy, seen)
+    xyz, ok = _solve_normals(m[:, i] + m[:, j], b[:, i] + b[:, j], seen[:, i] + seen[:, j])
     xyz = jnp.where(ok[..., None], xyz * radius + centre[None, None], 0.0)
     return xyz.reshape(batch + (Q, 3)), ok.reshape(batch + (Q,))
 

@@ -95,6 +95,22 @@ def test_mlp_accepts_any_leading_batch():
     assert model(x).shape == (2, 5, 18, 3)
 
 
+def test_mlp_is_the_plain_dense_stack():
+    # The feature-major layout (kernels stored (out, in)) must compute rows @ kernel.T + bias.
+    model = PoseMLP(2, 4, MLPConfig(widths=(16, 8)), rngs=nnx.Rngs(0))
+    x = np.random.default_rng(0).standard_normal((3, 2, 4, 14)).astype(np.float32)
+    h = x.reshape(3, -1).astype(np.float64)
+    for layer in model.hidden:
+        h = h @ np.asarray(layer.kernel[...]).T + np.asarray(layer.bias[...])
+        h = np.where(h > 0, h, 0.1 * h)
+    out = h @ np.asarray(model.out.kernel[...]).T + np.asarray(model.out.bias[...])
+    np.testing.assert_allclose(np.asarray(model(jnp.asarray(x))), out.reshape(3, 4, 3), rtol=1e-4, atol=1e-5)
+    # lecun-normal fan-in: the first kernel's spread is 1/sqrt(inputs), not 1/sqrt(outputs).
+    first = PoseMLP(5, 18, MLPConfig(widths=(64,)), rngs=nnx.Rngs(0)).hidden[0].kernel[...]
+    assert first.shape == (64, 5 * 18 * 14)
+    assert np.std(np.asarray(first)) == pytest.approx(1 / np.sqrt(5 * 18 * 14), rel=0.1)
+
+
 
 @pytest.mark.parametrize("widths, millions", [
     ((3072, 3072, 2048, 2048, 1024, 1024, 1024), 28.06),  # the paper's widths
