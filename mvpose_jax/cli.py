@@ -136,6 +136,9 @@ def _train_matcher_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-epochs", type=int, help="override the epoch limit")
     p.add_argument("--learning-rate", type=float, help="override Adam's step size (paper 1e-4)")
     p.add_argument("--max-people", type=int, help="most recordings composed into one frame (default 8)")
+    p.add_argument("--keypoint-dropout", type=float,
+                   help="missing-keypoint augmentation: largest per-skeleton drop rate (default 0, the paper; "
+                        "python -m experiments.run uses 0.5)")  # fmt: skip
 
 
 @command(
@@ -162,7 +165,11 @@ def _train_matcher(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         config, train=train, cameras=tuple(args.cameras) if args.cameras else None,
         **({"max_people": args.max_people} if args.max_people else {}),
+        **({"keypoint_dropout": args.keypoint_dropout} if args.keypoint_dropout is not None else {}),
     )  # fmt: skip
+    if not 0 <= config.keypoint_dropout < 1:
+        raise InputError(f"--keypoint-dropout must be in [0, 1), not {config.keypoint_dropout}",
+                         field="keypoint_dropout")  # fmt: skip
     train_recs = _recordings_in(args.train, args.layout)
     dev_recs = _recordings_in(args.dev, args.layout)
     _, fit = train_matcher(rig, train_recs, dev_recs, config, checkpoint_dir=args.out, resume=args.resume)

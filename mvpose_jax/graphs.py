@@ -354,6 +354,7 @@ def compose_samples(
     max_people: int = 8,
     subset_probability: float = 0.5,
     min_views: int = 2,
+    keypoint_dropout: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Multi-person training frames from single-person ones (DESIGN.md §1.2), vectorised.
 
@@ -361,7 +362,11 @@ def compose_samples(
     ``1..min(R, max_people)`` (the paper draws up to R; capping it keeps graphs the size of the
     test scenes, 1-8 people). With probability ``subset_probability`` only a random subset of the
     views is kept, of size uniform in ``min_views..C`` (view-subset augmentation: the network sees
-    people missing from some views).
+    people missing from some views). With ``keypoint_dropout`` > 0, each skeleton loses each of
+    its keypoints with a probability drawn uniformly in ``[0, keypoint_dropout)`` per skeleton
+    (missing-keypoint augmentation: in multi-person scenes people hide each other's keypoints,
+    which single-person recordings never show; a skeleton always keeps at least one keypoint).
+    Labels do not change. At 0 (the paper) no random numbers are drawn for it.
 
     Returns:
       features (S, C, Q, K*10), valid (S, C, Q), identity (S, C, Q) with Q = n_max * P; identity
@@ -388,6 +393,16 @@ def compose_samples(
     feats = to_views(pool.features[t]).reshape(S, C, n_max * P, KF)
     valid = to_views(pool.valid[t]) & active[:, None, :, None] & kept[:, :, None, None]
     main = to_views(pool.main[t])
+    if keypoint_dropout > 0:
+        K = KF // NUM_KEYPOINT_FEATURES
+        Q = n_max * P
+        rate = rng.random((S, C, Q, 1)) * keypoint_dropout
+        seen = feats.reshape(S, C, Q, K, NUM_KEYPOINT_FEATURES)[..., 0] > 0  # visible flags
+        keep = rng.random((S, C, Q, K)) >= rate
+        # A skeleton whose every seen keypoint was drawn out keeps them all (detectors never
+        # report an empty skeleton).
+        keep |= ~(keep & seen).any(axis=-1, keepdims=True)
+        feats = (feats.reshape(S, C, Q, K, NUM_KEYPOINT_FEATURES) * keep[..., None]).reshape(S, C, Q, KF)
     slot = np.broadcast_to(np.arange(n_max)[None, None, :, None], main.shape)
     identity = np.where(main, slot, -1)
     return feats, valid.reshape(S, C, n_max * P), identity.reshape(S, C, n_max * P)

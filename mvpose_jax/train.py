@@ -893,6 +893,8 @@ class MatcherConfig:
       num_dev_samples: composed validation frames, drawn once from the dev recordings.
       subset_probability: share of samples that keep only a random subset of the views.
       min_views: the smallest view subset kept by augmentation.
+      keypoint_dropout: largest per-skeleton keypoint-drop rate of the missing-keypoint
+        augmentation (`graphs.compose_samples`); 0 = none (the paper).
     """
 
     cameras: tuple[str, ...] | None = None
@@ -903,6 +905,7 @@ class MatcherConfig:
     num_dev_samples: int = 300
     subset_probability: float = 0.5
     min_views: int = 2
+    keypoint_dropout: float = 0.0
 
     @property
     def steps_per_epoch(self) -> int:
@@ -964,7 +967,7 @@ def train_matcher(
     train_pool = make_pool(rig_infer, train_recordings)
     dev_pool = make_pool(rig_infer, dev_recordings)
     compose = dict(max_people=config.max_people, subset_probability=config.subset_probability,
-                   min_views=config.min_views)  # fmt: skip
+                   min_views=config.min_views, keypoint_dropout=config.keypoint_dropout)  # fmt: skip
     per_batch = tcfg.batch_size
     steps_per_epoch = config.steps_per_epoch
     num_dev = max(1, math.ceil(config.num_dev_samples / per_batch))

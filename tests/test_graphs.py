@@ -162,6 +162,25 @@ def test_composed_samples_use_distinct_recordings_and_are_reproducible(pool_and_
     assert views.min() == 2 and views.max() == valid_all.shape[1]
 
 
+def test_keypoint_dropout_only_removes_whole_keypoints(pool_and_rig):
+    pool, _, _ = pool_and_rig
+    plain = compose_samples(pool, np.random.default_rng(7), 60, max_people=3)
+    dropped = compose_samples(pool, np.random.default_rng(7), 60, max_people=3, keypoint_dropout=0.6)
+    # Same frames, views and labels: the augmentation draws after the composition.
+    np.testing.assert_array_equal(plain[1], dropped[1])
+    np.testing.assert_array_equal(plain[2], dropped[2])
+    S, C, Q, KF = plain[0].shape
+    a = plain[0].reshape(S, C, Q, KF // 10, 10)
+    b = dropped[0].reshape(S, C, Q, KF // 10, 10)
+    same = (a == b).all(-1)
+    zeroed = (b == 0).all(-1)
+    assert (same | zeroed).all()  # each keypoint kept whole or removed whole
+    seen_a, seen_b = a[..., 0] > 0, b[..., 0] > 0
+    assert 0.1 < 1 - seen_b.sum() / seen_a.sum() < 0.5  # about 0.3 of the keypoints on average
+    has = seen_a.any(-1)
+    assert (seen_b.any(-1) == has).all()  # no skeleton is emptied
+
+
 def test_detection_features_match_keypoint_features(ring_rig):
     from mvpose_jax.features import keypoint_features
 
