@@ -35,6 +35,7 @@ from mvpose_jax.inference import (
     gat_match_table,
     group_people,
     match_scores,
+    members_from_identity,
     poses_of_members,
     predict_people,
     propose_people,
@@ -206,16 +207,6 @@ def _numpy_detections(rec) -> tuple[Detections, np.ndarray]:
     det = Detections(np.asarray(d.xy, np.float32), np.asarray(d.score, np.float32), np.asarray(d.count))
     G = np.shape(rec.ground_truth.valid)[1]
     return det, members_from_identity(np.asarray(rec.identity), G)
-
-
-def members_from_identity(identity: np.ndarray, num_people: int) -> np.ndarray:
-    """True proposals in the pipeline's format: (F, C, P) person of each skeleton -> (F, G, C)
-    skeleton of each person in each camera, -1 none."""
-    F, C, P = identity.shape
-    members = np.full((F, num_people, C), -1, np.int32)
-    f, c, p = np.nonzero(identity >= 0)
-    members[f, identity[f, c, p], c] = p
-    return members
 
 
 def _pipeline_fns(rig: Rig, det: Detections, members: np.ndarray, matcher, estimator):

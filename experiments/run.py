@@ -50,6 +50,7 @@ from mvpose_jax.inference import (
     estimate_grouped,
     geometric_match_table,
     group_people,
+    members_from_identity,
     poses_of_members,
     propose_people,
     run_pipeline,
@@ -283,10 +284,7 @@ def _compare(rig, det, gt, ours, members, ours_seconds=None) -> tuple[dict, dict
 
 def _true_members(identity: np.ndarray, num_people: int, min_views: int) -> np.ndarray:
     """(F, G, C) each true person's skeleton per camera (-1: none), people seen in min_views+ views."""
-    F, C, _ = identity.shape
-    members = np.full((F, num_people, C), -1, np.int32)
-    f, c, p = np.nonzero(identity >= 0)
-    members[f, identity[f, c, p], c] = p
+    members = members_from_identity(identity, num_people)
     members[(members >= 0).sum(-1) < min_views] = -1
     return members
 

@@ -625,6 +625,23 @@ def _members_table(proposals: Proposals, num_frames: int, num_cameras: int) -> n
     return table
 
 
+def members_from_identity(identity: np.ndarray, num_people: int) -> np.ndarray:
+    """A per-detection assignment as the pipeline's person table (e.g. true proposals).
+
+    Args:
+      identity: (F, C, P) int, the person (0..G-1) of each skeleton, -1 for none.
+      num_people: G, the size of the person axis.
+    Returns:
+      members (F, G, C): each person's skeleton index in each camera, -1 for none (the inverse
+      of `PipelineResult.identity`).
+    """
+    F, C, _ = np.shape(identity)
+    members = np.full((F, num_people, C), -1, np.int32)
+    f, c, p = np.nonzero(np.asarray(identity) >= 0)
+    members[f, np.asarray(identity)[f, c, p], c] = p
+    return members
+
+
 def _identity_from_members(members: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
     """(F, G, C) members -> (F, C, P) person of each skeleton (-1 none)."""
     identity = np.full(shape, -1, np.int32)

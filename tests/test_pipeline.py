@@ -12,7 +12,7 @@ from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.synthetic import generate_recording, generate_single_person_recordings
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import main_skeletons
-from mvpose_jax.inference import poses_of_members, run_pipeline
+from mvpose_jax.inference import members_from_identity, poses_of_members, run_pipeline
 from mvpose_jax.metrics import matching_scores, pose_metrics
 from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.skeletons import Detections
@@ -87,6 +87,16 @@ def test_pipeline_with_learned_matcher_has_consistent_groups(scene, models):
     assert np.isfinite(res.poses.xyz).all()
     # threshold 0 joins every allowed pair: nobody is left alone in a frame with two views of people.
     assert res.poses.valid.any()
+
+
+def test_members_from_identity_inverts_the_pipeline_identity(scene):
+    rig, rec = scene
+    res = run_pipeline(rig, rec.detections, threshold=0.5)
+    G = res.members.shape[1]
+    np.testing.assert_array_equal(members_from_identity(res.identity, G), res.members)
+    # Hand-made: frame 0, person 1 is skeleton 2 of camera 0 and skeleton 0 of camera 1.
+    identity = np.array([[[-1, -1, 1], [1, -1, -1]]])
+    np.testing.assert_array_equal(members_from_identity(identity, 2), [[[-1, -1], [2, 0]]])
 
 
 def test_chunks_give_the_same_result_as_one_batch(scene):
