@@ -809,7 +809,9 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
         state, _ = checkpoints.restore(jax.eval_shape(lambda: state), which)
     finally:
         checkpoints.close()
-    frame = None
+    # Checkpoints from before the frame was saved normalised in the inference rig's own frame:
+    # resolve it here, once, not on every call (`Estimator.normalisation`).
+    frame = rig_centre_and_radius(rig_infer)
     if "frame" in saved:
         f = np.asarray(saved["frame"], np.float32)
         if f.shape != (4,) or not np.isfinite(f).all() or f[3] <= 0:
