@@ -396,13 +396,13 @@ def compose_samples(
     if keypoint_dropout > 0:
         K = KF // NUM_KEYPOINT_FEATURES
         Q = n_max * P
+        per_keypoint = feats.reshape(S, C, Q, K, NUM_KEYPOINT_FEATURES)
         rate = rng.random((S, C, Q, 1)) * keypoint_dropout
-        seen = feats.reshape(S, C, Q, K, NUM_KEYPOINT_FEATURES)[..., 0] > 0  # visible flags
         keep = rng.random((S, C, Q, K)) >= rate
         # A skeleton whose every seen keypoint was drawn out keeps them all (detectors never
-        # report an empty skeleton).
-        keep |= ~(keep & seen).any(axis=-1, keepdims=True)
-        feats = (feats.reshape(S, C, Q, K, NUM_KEYPOINT_FEATURES) * keep[..., None]).reshape(S, C, Q, KF)
+        # report an empty skeleton); [..., 0] is the visible flag.
+        keep |= ~(keep & (per_keypoint[..., 0] > 0)).any(axis=-1, keepdims=True)
+        feats = (per_keypoint * keep[..., None]).reshape(S, C, Q, KF)
     slot = np.broadcast_to(np.arange(n_max)[None, None, :, None], main.shape)
     identity = np.where(main, slot, -1)
     return feats, valid.reshape(S, C, n_max * P), identity.reshape(S, C, n_max * P)
