@@ -204,15 +204,16 @@ def profile_notes(run: dict) -> list[str]:
     notes = []
     pp = p.get("pp.total")
     if pp:
-        host = p["pp.detection_features"] + p["pp.build_graphs"] + p["pp.match_table"]
-        gat = p["pp.match_scores (GAT call)"]
+        call = p["pp.gat_match_table (features + GAT, one call)"]
+        net = p["pp.gat_device_only"]
         notes.append(
-            f"t_pp {pp:.2f} ms: GAT call {gat:.2f} ms ({100 * gat / pp:.0f}%; on device-resident inputs "
-            f"{p['pp.gat_device_only']:.2f} ms = first projection {p['pp.gat_first_projection']:.2f} + attention "
-            f"layers {p['pp.gat_attention_layers']:.2f}); host features + graph building + match table "
-            f"{host:.2f} ms; proposals {p['pp.propose_people (network scores)']:.2f} ms "
+            f"t_pp {pp:.2f} ms: the matcher's call {call:.2f} ms ({100 * call / pp:.0f}%): the network on "
+            f"device-resident graphs {net:.2f} ms (first projection {p['pp.gat_first_projection']:.2f} + attention "
+            f"layers {p['pp.gat_attention_layers']:.2f}) and {max(0.0, call - net):.2f} ms of features, "
+            f"transfers, dispatch and match table; proposals {p['pp.propose_people (network scores)']:.2f} ms "
             f"({p['pp.propose_people (oracle scores)']:.2f} ms with oracle scores, which accept the true pairs). "
-            f"The default propose_with_matcher pads one frame to a 32-frame chunk: "
+            f"A frame whose skeleton counts per view were not met before also builds its graph: "
+            f"{p['pp.graph_for_new_counts (build + to device)']:.2f} ms. The default propose_with_matcher: "
             f"{p['pp.propose_with_matcher (default 32-frame chunk)']:.2f} ms."
         )  # fmt: skip
         row = _row((run.get("latency") or {}).get("rows", []), views=bd["views"], people=bd["people"],

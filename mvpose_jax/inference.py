@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import NamedTuple
 
 import jax
@@ -20,8 +20,8 @@ from flax import nnx
 
 from mvpose_jax.cameras import Rig, undistort_points
 from mvpose_jax.errors import InputError
-from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estimator_inputs
-from mvpose_jax.graphs import GraphBatch, build_graphs, detection_features, match_table
+from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estimator_inputs, keypoint_features
+from mvpose_jax.graphs import GraphBatch, build_graphs, match_table
 from mvpose_jax.models import to_world
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.train import Estimator, Matcher
@@ -37,12 +37,42 @@ def bucket_size(n: int, minimum: int = MIN_BUCKET) -> int:
     return max(minimum, 1 << max(0, int(n - 1).bit_length()))
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _predict(graphdef, rest, params, rig: Rig, frame, xy, score):
+# Models are called through jit-compiled functions with their NNX GraphDef closed over, one per
+# GraphDef: passed as a static argument, a GraphDef is hashed on every call, and hashing one
+# costs about 70 µs (a twentieth of a frame's 3D stage). Equal GraphDefs share one function (and
+# its compiled programs); the id cache keeps a strong reference, so an id is never reused.
+_BOUND_BY_ID: dict[tuple, tuple] = {}
+_BOUND_BY_VALUE: dict[tuple, Callable] = {}
+_MAX_BOUND = 256
+
+
+def bound_model_fn(fn: Callable, graphdef) -> Callable:
+    """``jax.jit(functools.partial(fn, graphdef))``, built once per (fn, GraphDef).
+
+    ``fn(graphdef, *args)`` must be a pure function of arrays besides its GraphDef.
+    """
+    hit = _BOUND_BY_ID.get((fn, id(graphdef)))
+    if hit is not None and hit[0] is graphdef:
+        return hit[1]
+    if len(_BOUND_BY_ID) >= _MAX_BOUND:
+        _BOUND_BY_ID.clear()
+        _BOUND_BY_VALUE.clear()
+    jitted = _BOUND_BY_VALUE.get((fn, graphdef))
+    if jitted is None:
+        jitted = _BOUND_BY_VALUE[(fn, graphdef)] = jax.jit(functools.partial(fn, graphdef))
+    _BOUND_BY_ID[(fn, id(graphdef))] = (graphdef, jitted)
+    return jitted
+
+
+def _predict_fn(graphdef, rest, params, rig: Rig, frame, xy, score):
     centre, radius = frame
     inputs = estimator_inputs(rig, xy, score, frame)
     feats = assemble_features(inputs, (score > 0).any(axis=-1))
     return to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
+
+
+def _predict(graphdef, rest, params, rig: Rig, frame, xy, score):
+    return bound_model_fn(_predict_fn, graphdef)(rest, params, rig, frame, xy, score)
 
 
 def predict_people(
@@ -73,12 +103,17 @@ def predict_people(
     return to_host(out)[: len(xy)]
 
 
-def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[jax.Array, jax.Array]:
-    """(N, C, K, 2) / (N, C, K) zero-padded to `bucket_size(N)` people, as float32 device arrays."""
+def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, C, K, 2) / (N, C, K) zero-padded to `bucket_size(N)` people, float32 numpy.
+
+    Host arrays: the jitted call they go to moves them to the device itself, for less than an
+    explicit transfer per array costs.
+    """
     n = len(xy)
-    pad = [(0, bucket_size(n) - n)] + [(0, 0)] * (np.ndim(xy) - 1)
-    return (jnp.asarray(np.pad(np.asarray(xy, np.float32), pad)),
-            jnp.asarray(np.pad(np.asarray(score, np.float32), pad[:-1])))  # fmt: skip
+    xy_p = np.zeros((bucket_size(n),) + np.shape(xy)[1:], np.float32)
+    score_p = np.zeros((bucket_size(n),) + np.shape(score)[1:], np.float32)
+    xy_p[:n], score_p[:n] = xy, score
+    return xy_p, score_p
 
 
 def triangulate_people(
@@ -95,7 +130,7 @@ def triangulate_people(
     """
     fn = {"centroid": triangulate_pairwise_centroid, "dlt": triangulate_points}[method]
     xy_p, score_p = _pad_people(xy, score)
-    xyz, ok = fn(rig, jnp.moveaxis(xy_p, 1, 0), jnp.moveaxis(score_p, 1, 0))
+    xyz, ok = fn(rig, np.moveaxis(xy_p, 1, 0), np.moveaxis(score_p, 1, 0))
     return np.asarray(xyz)[: len(xy)], np.asarray(ok)[: len(xy)]
 
 
@@ -168,9 +203,12 @@ def _confidence(score: np.ndarray) -> np.ndarray:
 FRAMES_PER_CALL = 32
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
+def _match_scores_fn(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
     return nnx.merge(graphdef, params, rest)(batch)
+
+
+def _match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
+    return bound_model_fn(_match_scores_fn, graphdef)(rest, params, batch)
 
 
 def match_scores(matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh | None = None) -> np.ndarray:
@@ -195,6 +233,52 @@ def match_scores(matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh
     return scores
 
 
+class _FrameGraphs(NamedTuple):
+    """The matching graphs of a chunk of frames, without features: what depends on counts alone."""
+
+    batch: GraphBatch  # device-resident; det_features has width 0
+    det_source: jax.Array  # (D,) int32 flat (frame, camera, skeleton) index of each detection row
+    det_camera: jax.Array  # (D,) int32 camera of each detection row
+    match_nodes: np.ndarray  # (M,) node ids of the real match nodes
+    rows: np.ndarray  # (M, 5) their ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``
+
+
+def _frame_graphs(count_bytes: bytes, num_frames: int, num_cameras: int, num_skeletons: int,
+                  num_graphs: int) -> _FrameGraphs:  # fmt: skip
+    """The graphs of frames with these skeleton counts ((F, C) int64 as bytes)."""
+    F, C, P = num_frames, num_cameras, num_skeletons
+    count = np.frombuffer(count_bytes, np.int64).reshape(F, C)
+    valid = np.arange(P)[None, None] < count[..., None]
+    batch = build_graphs(np.zeros((F, C, P, 0), np.float32), valid, num_graphs=num_graphs)
+    node = batch.det_node
+    frame = np.repeat(np.arange(len(batch.graphs.n_node)), batch.graphs.n_node)[node]
+    cam, skel = batch.node_camera[node], batch.node_skeleton[node]
+    source = np.where(batch.det_mask, (frame * C + cam) * P + skel, 0).astype(np.int32)
+    rows, _ = match_table(batch, np.zeros(len(batch.node_mask), np.float32))
+    return _FrameGraphs(jax.device_put(batch), jax.device_put(source), jax.device_put(np.maximum(cam, 0)),
+                        np.flatnonzero(batch.is_match), rows)  # fmt: skip
+
+
+# One frame at a time (a live stream) meets a few count patterns over and over: cached, such a
+# frame neither builds its graph nor moves it to the device. Multi-frame chunks rarely repeat (and
+# amortise the build), so they are not kept: at most 64 single-frame graphs are (a few MB).
+_single_frame_graphs = functools.lru_cache(maxsize=64)(_frame_graphs)
+
+
+def _frame_scores_fn(graphdef, rest, params, rig: Rig, xy, score, batch: GraphBatch, det_source, det_camera):
+    """Detection features (`graphs.detection_features`) and the GAT in one call.
+
+    xy (F, C, P, K, 2), score (F, C, P, K) -> (N,) node scores of ``batch`` (the same numbers as
+    `match_scores` on the batch `graphs.build_graphs` makes from the features).
+    """
+    F, C, P, K = score.shape
+    feats = keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))  # (C, F, P, K, 10)
+    rows = jnp.moveaxis(feats, 0, 1).reshape(F * C * P, K * NUM_KEYPOINT_FEATURES)[det_source]  # (D, K*10)
+    in_slot = (det_camera[:, None] == jnp.arange(C)[None]) & batch.det_mask[:, None]  # (D, C)
+    det = jnp.where(in_slot[..., None], rows[:, None, :], 0.0).reshape(rows.shape[0], -1)
+    return nnx.merge(graphdef, params, rest)(batch._replace(det_features=det))
+
+
 def gat_match_table(
     matcher: Matcher, detections: Detections, *, frames_per_call: int = FRAMES_PER_CALL
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -202,7 +286,9 @@ def gat_match_table(
 
     Frames go through the network ``frames_per_call`` at a time, as one padded graph batch each
     (a shorter chunk is padded with empty frames to the next power of two, so jit compiles a
-    handful of shapes for a whole recording, and a single frame is one graph).
+    handful of shapes for a whole recording, and a single frame is one graph). Features and
+    network run as one jit call; the graphs, which depend on the skeleton counts alone, are
+    built once per count pattern and kept on the device.
 
     Args:
       matcher: a trained `Matcher`.
@@ -213,23 +299,28 @@ def gat_match_table(
     """
     xy = np.asarray(detections.xy, np.float32)
     score = np.asarray(detections.score, np.float32)
-    count = np.asarray(detections.count)
+    count = np.asarray(detections.count, np.int64)
     F, C, P, K = score.shape
     if C != matcher.rig.num_cameras:
         raise InputError(f"detections have {C} cameras, the matcher {matcher.rig.num_cameras}", field="cameras")
-    valid = np.arange(P)[None, None] < count[..., None]
+    scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef)
     rows, scores = [], []
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
         # A short (or single-frame) chunk is padded only to the next power of two of frames.
         n_graphs = min(frames_per_call, bucket_size(stop - start))
-        pad = [(0, n_graphs - (stop - start))] + [(0, 0)] * 3
-        feats = detection_features(matcher.rig, np.pad(xy[start:stop], pad + [(0, 0)]), np.pad(score[start:stop], pad))
-        batch = build_graphs(feats[: stop - start], valid[start:stop], num_graphs=n_graphs)
-        r, s = match_table(batch, match_scores(matcher, batch))
+        xy_c, score_c = xy[start:stop], score[start:stop]
+        if n_graphs > stop - start:
+            xy_c = np.concatenate([xy_c, np.zeros((n_graphs - (stop - start),) + xy.shape[1:], np.float32)])
+            score_c = np.concatenate([score_c, np.zeros((n_graphs - (stop - start),) + score.shape[1:], np.float32)])
+        build = _single_frame_graphs if stop - start == 1 else _frame_graphs
+        graphs = build(np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, P, n_graphs)
+        out = scores_fn(matcher.rest, matcher.params, matcher.rig, xy_c, score_c, graphs.batch,
+                        graphs.det_source, graphs.det_camera)  # fmt: skip
+        r = graphs.rows.copy()
         r[:, 0] += start
         rows.append(r)
-        scores.append(s)
+        scores.append(np.asarray(out)[graphs.match_nodes])
     if not rows:
         return np.zeros((0, 5), np.int64), np.zeros(0, np.float32)
     return np.concatenate(rows), np.concatenate(scores)
@@ -494,8 +585,10 @@ def poses_of_members(
     p_xy, p_score = group_people(detections.xy, detections.score, members)
     if estimator is None:
         return triangulate_grouped(rig, p_xy, p_score, method, min_views)
-    idx = _camera_columns(rig.names, estimator.rig_infer.names, "the estimator's inference")
-    return estimate_grouped(estimator, p_xy[:, :, idx], p_score[:, :, idx], min_views)
+    if tuple(rig.names) != tuple(estimator.rig_infer.names):
+        idx = _camera_columns(rig.names, estimator.rig_infer.names, "the estimator's inference")
+        p_xy, p_score = p_xy[:, :, idx], p_score[:, :, idx]
+    return estimate_grouped(estimator, p_xy, p_score, min_views)
 
 
 def _camera_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:

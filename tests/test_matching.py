@@ -11,10 +11,14 @@ from flax import nnx
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mvpose_jax.graphs import Budget, build_graphs, dense_node_features, graph_budget
+from mvpose_jax.graphs import Budget, build_graphs, dense_node_features, detection_features, graph_budget, match_table
 from mvpose_jax.inference import (
     _match_scores,
+    _match_scores_fn,
+    bound_model_fn,
+    gat_match_table,
     geometric_match_table,
+    match_scores,
     propose_people,
     union_find_exclusive,
 )
@@ -101,7 +105,8 @@ def test_no_recompilation_beyond_buckets():
     params = state.params
     rng = np.random.default_rng(3)
     budgets = set()
-    before = _match_scores._cache_size()
+    jitted = bound_model_fn(_match_scores_fn, graphdef)
+    before = jitted._cache_size()
     for _ in range(40):
         F = 5
         P = int(rng.integers(1, 4))  # frames of any size, padded to buckets
@@ -109,7 +114,51 @@ def test_no_recompilation_beyond_buckets():
         b = build_graphs(feats, valid, identity, num_graphs=F)
         budgets.add((b.graphs.nodes.shape[0], b.det_features.shape[0]))
         _match_scores(graphdef, rest, params, b)
-    assert _match_scores._cache_size() - before <= len(budgets) <= 6
+    assert jitted._cache_size() - before <= len(budgets) <= 6
+
+
+def test_bound_model_fn_is_built_once_per_graphdef():
+    graphdef, _, _, _ = _train_state()
+    again, _, _, _ = _train_state()  # an equal GraphDef, another object
+    f = bound_model_fn(_match_scores_fn, graphdef)
+    assert bound_model_fn(_match_scores_fn, graphdef) is f
+    assert again is not graphdef and bound_model_fn(_match_scores_fn, again) is f
+    other, _, _, _ = _train_state(GATConfig(widths=(16, 16, 1), heads=(2, 2, 1)))
+    assert bound_model_fn(_match_scores_fn, other) is not f
+
+
+def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
+    """The fused path (features in the GAT's jit, graphs cached by count) gives the two-step numbers."""
+    from mvpose_jax.data.synthetic import generate_recording
+    from mvpose_jax.skeletons import Detections
+    from mvpose_jax.train import Matcher
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=5, seed=4)
+    d = rec.detections
+    count = np.asarray(d.count).copy()
+    count[2] = 0  # a frame without any skeleton
+    count[3, 0] = 0  # and a camera without one
+    det = Detections(np.asarray(d.xy), np.asarray(d.score), count)
+    model = MatchingGAT(ring_rig.num_cameras, rec.num_keypoints, TINY, rngs=nnx.Rngs(1))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    matcher = Matcher(graphdef, rest, params, ring_rig, MatcherConfig(gat=TINY))
+    F, C, P, _ = det.score.shape
+    valid = np.arange(P)[None, None] < count[..., None]
+    feats = detection_features(ring_rig, det.xy, det.score)
+    for per_call in (1, 2, 8):
+        want_rows, want_scores = [], []
+        for start in range(0, F, per_call):
+            sl = slice(start, min(F, start + per_call))
+            b = build_graphs(feats[sl], valid[sl])
+            r, s = match_table(b, match_scores(matcher, b))
+            r[:, 0] += start
+            want_rows.append(r)
+            want_scores.append(s)
+        for _ in range(2):  # the second pass meets cached single-frame graphs
+            rows, scores = gat_match_table(matcher, det, frames_per_call=per_call)
+            np.testing.assert_array_equal(rows, np.concatenate(want_rows))
+            np.testing.assert_allclose(scores, np.concatenate(want_scores), atol=1e-6)
+    assert not (rows[:, 0] == 2).any()
 
 
 def test_train_matcher_quick_runs_and_checkpoints(ring_rig, tmp_path):
