@@ -16,8 +16,10 @@ product at a tenth of its cost; `dense_node_features` rebuilds the paper's (N, 2
 
 Padding follows ``jraph.pad_with_graphs`` exactly (one padding graph holding every padding node
 and edge, padding edges on the first padding node, then empty graphs) but is built directly,
-vectorised over all frames of a batch. Budgets are powers of two (`graph_budget`): a stream of
-random frames compiles a handful of shapes.
+vectorised over all frames of a batch. Budgets are powers of two and their halfway points, 1.5
+times a power of two (`graph_budget`): a stream of random frames compiles a handful of shapes,
+and padding costs at most a third of the work (a half with powers of two alone; the attention
+layers' segment sums cost in proportion to the padded edges).
 
 Training samples (`compose_samples`) put ``n`` single-person frames of ``n`` DIFFERENT recordings
 into one frame; per view a recording's main skeleton (most keypoints) is its person, any other
@@ -82,16 +84,22 @@ def next_power_of_two(n: int) -> int:
     return 1 << max(0, int(n - 1).bit_length())
 
 
+def next_bucket(n: int) -> int:
+    """The smallest power of two or 1.5 times a power of two that is >= n (1, 2, 3, 4, 6, 8, 12, ...)."""
+    p = next_power_of_two(n)
+    return 3 * p // 4 if p >= 4 and n <= 3 * p // 4 else p
+
+
 def graph_budget(num_dets: int, num_matches: int, num_graphs: int) -> Budget:
-    """The bucket of a batch: node and detection budgets are powers of two.
+    """The bucket of a batch: node and detection budgets are `next_bucket` sizes.
 
     The edge budget follows from the node budget (every real node has a self-loop and every match
     node four more edges, so E = N + 4M <= 5N), which keeps the buckets one-dimensional in nodes
     and detections. Node and graph budgets leave room for `jraph.pad_with_graphs`' padding node
     and padding graph.
     """
-    nodes = max(MIN_NODES, next_power_of_two(num_dets + num_matches + 1))
-    dets = max(MIN_DETECTIONS, next_power_of_two(num_dets))
+    nodes = max(MIN_NODES, next_bucket(num_dets + num_matches + 1))
+    dets = max(MIN_DETECTIONS, next_bucket(num_dets))
     return Budget(nodes=nodes, dets=dets, edges=5 * nodes, graphs=num_graphs + 1)
 
 

@@ -212,11 +212,22 @@ class GATLayer(nnx.Module):
     ``z = W2·LeakyReLU(W1·h)`` (W1 square; both with bias), split into heads; per edge
     ``e = LeakyReLU(a_l·z_src + a_r·z_dst)``; softmax of ``e`` over the edges entering each node;
     the node's new feature is the attention-weighted sum of ``z_src``; heads are concatenated.
+
+    ``feature_major``: W1 is stored (out, in) (`FeatureMajorLinear`, as ``fc1_out_in``), for the
+    first layer, whose wide W1 multiplies a few detection rows (see `MatchingGAT`). Same function
+    and initial values; the other name makes a checkpoint of the other layout fail to load
+    instead of loading transposed.
     """
 
-    def __init__(self, in_dim: int, width: int, heads: int, slope: float, *, rngs: nnx.Rngs):
+    def __init__(self, in_dim: int, width: int, heads: int, slope: float, *, feature_major: bool = False,
+                 rngs: nnx.Rngs):  # fmt: skip
         self.heads, self.head_dim, self.slope = heads, width // heads, slope
-        self.fc1 = nnx.Linear(in_dim, in_dim, rngs=rngs)
+        self.feature_major = feature_major
+        if feature_major:
+            self.fc1_out_in = FeatureMajorLinear(in_dim, in_dim, rngs=rngs)
+            rngs.params()  # nnx.Linear draws a bias key too: the layers after it start as before
+        else:
+            self.fc1 = nnx.Linear(in_dim, in_dim, rngs=rngs)
         self.fc2 = nnx.Linear(in_dim, width, rngs=rngs)
         init = nnx.initializers.xavier_normal()
         self.attn_src = nnx.Param(init(rngs.params(), (heads, self.head_dim)))
@@ -224,7 +235,8 @@ class GATLayer(nnx.Module):
 
     def project(self, h: jax.Array) -> jax.Array:
         """(N, in) -> z (N, heads, head_dim)."""
-        z = self.fc2(jax.nn.leaky_relu(self.fc1(h), self.slope))
+        pre = self.fc1_out_in(h.T).T if self.feature_major else self.fc1(h)
+        z = self.fc2(jax.nn.leaky_relu(pre, self.slope))
         return z.reshape(z.shape[:-1] + (self.heads, self.head_dim))
 
     def attend(self, z: jax.Array, graphs: jraph.GraphsTuple) -> jax.Array:
@@ -252,7 +264,9 @@ class MatchingGAT(nnx.Module):
     The first layer's input is the paper's (N, 2 + C·K·10) matrix, which is zero outside the
     one-hot and the node's own camera slot. Its projection is computed exactly but cheaply: match
     and padding nodes carry only a one-hot, so their ``z`` is one of two rows computed once; the
-    square ``W1`` multiplies detection rows only (`graphs.GraphBatch.det_features`).
+    square ``W1`` multiplies detection rows only (`graphs.GraphBatch.det_features`), stored
+    (out, in) so that the product of the wide matrix with a few rows streams it once
+    (benchmarks/README.md).
     """
 
     def __init__(self, num_cameras: int, num_keypoints: int, config: GATConfig, *, rngs: nnx.Rngs):
@@ -262,26 +276,27 @@ class MatchingGAT(nnx.Module):
         self.between_slope = config.between_slope
         dims = (self.in_dim,) + tuple(config.widths[:-1])
         self.layers = nnx.List([
-            GATLayer(d, w, h, config.inner_slope, rngs=rngs)
-            for d, w, h in zip(dims, config.widths, config.heads, strict=True)
+            GATLayer(d, w, h, config.inner_slope, feature_major=i == 0, rngs=rngs)
+            for i, (d, w, h) in enumerate(zip(dims, config.widths, config.heads, strict=True))
         ])  # fmt: skip
 
     def first_projection(self, batch: GraphBatch) -> jax.Array:
         """z of the first layer, (N, heads, head_dim), without densifying the node features."""
         layer = self.layers[0]
-        w1, b1 = layer.fc1.kernel[...], layer.fc1.bias[...]  # (in, in), (in,)
+        w1, b1 = layer.fc1_out_in.kernel[...], layer.fc1_out_in.bias[...]  # (out, in), (out,)
         project = lambda pre: layer.fc2(jax.nn.leaky_relu(pre, layer.slope))  # noqa: E731
         # Match and padding nodes carry only their one-hot (or nothing): their z is one of two rows.
         kind = batch.graphs.nodes  # (N, 2)
-        table = project(jnp.stack([w1[MATCH] + b1, b1]))  # (2, width): match, padding
+        table = project(jnp.stack([w1[:, MATCH] + b1, b1]))  # (2, width): match, padding
         is_match = kind[:, MATCH:MATCH + 1]
         z = is_match * table[0][None] + (1.0 - is_match) * table[1][None]  # (N, width)
-        # Detection rows: the full product of their dense rows [one-hot, camera slots]. Prepending
-        # the one-hot to the rows (not slicing W1's one-hot rows off) keeps W1 in place: a slice
-        # would copy the whole matrix on every call.
+        # Detection rows: the full product of their dense rows [one-hot, camera slots], as columns.
+        # Prepending the one-hot to the rows (not slicing W1's one-hot columns off) keeps W1 in
+        # place: a slice would copy the whole matrix on every call.
         det = batch.det_features
         one_hot = jnp.zeros((det.shape[0], 2), det.dtype).at[:, DETECTION].set(1.0)
-        z_det = project(jnp.concatenate([one_hot, det], axis=1) @ w1 + b1[None])  # (D, width)
+        pre = w1 @ jnp.concatenate([one_hot, det], axis=1).T + b1[:, None]  # (in, D)
+        z_det = project(pre.T)  # (D, width)
         # Padding rows point at a padding node: whatever they write there stays in padding.
         z = z.at[batch.det_node].set(jnp.where(batch.det_mask[:, None], z_det, table[1][None]))
         return z.reshape(z.shape[:-1] + (layer.heads, layer.head_dim))

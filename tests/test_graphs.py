@@ -19,6 +19,7 @@ from mvpose_jax.graphs import (
     graph_budget,
     make_pool,
     match_table,
+    next_bucket,
 )
 
 KF = 4 * 10  # K = 4 keypoints
@@ -117,10 +118,17 @@ def test_empty_frames_and_budget_errors():
         build_graphs(*_frame([3, 3]), budget=Budget(8, 16, 40, 2))
 
 
-def test_budgets_are_powers_of_two_with_room_for_padding():
+def test_budgets_are_buckets_with_room_for_padding():
     b = graph_budget(num_dets=16, num_matches=47, num_graphs=15)
     assert b.nodes == 64 and b.dets == 16 and b.graphs == 16 and b.edges == 5 * 64
-    assert graph_budget(16, 48, 15).nodes == 128  # 64 real nodes need a padding node
+    assert graph_budget(16, 48, 15).nodes == 96  # 64 real nodes need a padding node
+    assert graph_budget(20, 76, 1).nodes == 128 and graph_budget(17, 0, 1).dets == 24
+
+
+def test_next_bucket_is_the_smallest_power_of_two_or_one_and_a_half_times_one():
+    sizes = sorted({2**k for k in range(16)} | {3 * 2**k for k in range(15)})
+    for n in range(1, 5000):
+        assert next_bucket(n) == next(s for s in sizes if s >= n), n
 
 
 @pytest.fixture(scope="module")
