@@ -72,7 +72,8 @@ class Tier:
       peak_sizes: square matmul sizes tried for the float32 peak.
       peak_repeats: repeats per peak measurement (the best counts).
       bandwidth_mb: array sizes (MB) of the bandwidth measurement; the first is compared with
-        the model (close to its weight bytes), the others are context (past the last-level cache).
+        the model (112: the paper MLP's weight bytes at 5 views, so the same cache regime as its
+        forward pass), the others are context (past the last-level cache).
       offline_frames: length of the offline recording (5 views, 4 people).
       offline_chunk: frames per estimator call offline (people per call = chunk x people).
       offline_repeats: timed passes over the offline recording.
@@ -106,11 +107,11 @@ class Tier:
 TIERS = {
     "full": Tier("full", views=(2, 3, 5, 8), people=(1, 2, 4, 8, 16), frames=200, models=("paper", "quick"),
                  quick_model_configs=None, peak_sizes=(1024, 2048, 4096), peak_repeats=7,
-                 bandwidth_mb=(128, 2048), offline_frames=2048, offline_chunk=256, offline_repeats=3,
+                 bandwidth_mb=(112, 2048), offline_frames=2048, offline_chunk=256, offline_repeats=3,
                  single_repeats=200, train_batch=256, train_steps=10, model_sizes=("paper", "quick"),
                  matcher_batches=20),
     "quick": Tier("quick", views=(2, 5, 8), people=(1, 4, 16), frames=32, models=("paper",),
-                  quick_model_configs=((5, 4),), peak_sizes=(2048,), peak_repeats=5, bandwidth_mb=(128, 1024),
+                  quick_model_configs=((5, 4),), peak_sizes=(2048,), peak_repeats=5, bandwidth_mb=(112, 1024),
                   offline_frames=256, offline_chunk=128, offline_repeats=2, single_repeats=50, train_batch=256,
                   train_steps=3, model_sizes=("paper", "quick"), matcher_batches=4),
     "smoke": Tier("smoke", views=(5,), people=(2,), frames=4, models=("quick",), quick_model_configs=None,
@@ -172,24 +173,27 @@ def peaks(tier: Tier) -> dict:
     for mb in tier.bandwidth_mb:
         n = int(np.sqrt(mb * 2**20 / 4))
         w = jnp.full((n, n), 0.5, jnp.float32)  # values do not matter to a read; random ones are slow to draw
-        h = jnp.ones((1, n), jnp.float32)
+        row, col = jnp.ones((1, n), jnp.float32), jnp.ones((n, 1), jnp.float32)
         nbytes = w.size * 4
         t_sum = repeat(jax.jit(jnp.sum), w, n=tier.peak_repeats).min()
-        t_gemv = repeat(jax.jit(jnp.dot), h, w, n=tier.peak_repeats).min()
-        bandwidth[str(mb)] = {"sum": nbytes / t_sum / 1e9, "gemv": nbytes / t_gemv / 1e9, "bytes": int(nbytes)}
+        # Both GEMV layouts: (n, n) @ (n, 1) is the estimator's (kernels stored (out, in)).
+        t_out_in = repeat(jax.jit(jnp.dot), w, col, n=tier.peak_repeats).min()
+        t_in_out = repeat(jax.jit(jnp.dot), row, w, n=tier.peak_repeats).min()
+        bandwidth[str(mb)] = {"sum": nbytes / t_sum / 1e9, "gemv_out_in": nbytes / t_out_in / 1e9,
+                              "gemv_in_out": nbytes / t_in_out / 1e9, "bytes": int(nbytes)}  # fmt: skip
         del w
     first = bandwidth[str(tier.bandwidth_mb[0])]
     return {
         "matmul_gflops": max(matmul.values()),
         "matmul_gflops_by_size": matmul,
-        "bandwidth_gbs": max(first["sum"], first["gemv"]),
+        "bandwidth_gbs": max(first["sum"], first["gemv_out_in"], first["gemv_in_out"]),
         "bandwidth_array_mb": tier.bandwidth_mb[0],
         "bandwidth_by_size": bandwidth,
         "how": "matmul: jitted jnp.dot of two random n x n float32 matrices, best of the repeats, "
                "2n^3 FLOP; bandwidth: bytes of an n x n float32 array / best time of a jitted jnp.sum "
-               "of it or of a (1, n) @ (n, n) GEMV (the MLP's single-person access pattern), best of "
-               "the two at the first size (about the paper MLP's weight bytes, so in the same cache "
-               "regime as its forward pass); other sizes for context.",
+               "of it, of an (n, n) @ (n, 1) GEMV (the MLP's single-person access pattern) and of a "
+               "(1, n) @ (n, n) one, best of the three at the first size (the paper MLP's weight "
+               "bytes, so in the same cache regime as its forward pass); other sizes for context.",
     }  # fmt: skip
 
 
@@ -355,6 +359,12 @@ def _agreement(rig: Rig, det: Detections, members: np.ndarray, frames) -> dict:
     return {"median": float(np.median(d)), "p99": float(np.percentile(d, 99)), "keypoints": int(d.size)}
 
 
+# A camera stream leaves the pipeline idle between frames (25+ ms at 30 fps, more than the
+# pipeline's own time): the breakdown times each stage after such a pause too.
+IDLE_MS = 5
+IDLE_SECONDS = IDLE_MS / 1000
+
+
 def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3dg) -> dict:
     """Where the time of one frame goes, component by component (medians over the frames, ms)."""
     P = det.score.shape[2]
@@ -363,10 +373,18 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
 
     warm = _warmup_frames(det, frames)
 
-    def measure(name, fn):
+    def measure(name, fn, before=None):
         for f in warm:
             fn(f)
-        parts[name] = summary([timed(fn, f)[0] for f in frames])
+        times = []
+        for f in frames:
+            if before is not None:
+                before()  # untimed
+            times.append(timed(fn, f)[0])
+        parts[name] = summary(times)
+
+    def idle():
+        time.sleep(IDLE_SECONDS)
 
     # ---- t_pp: the matcher's call (features and network in one jit, graphs cached per count
     # pattern), then proposals; inside it, the network on device-resident inputs, and the graph
@@ -406,6 +424,7 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
     measure("pp.propose_people (oracle scores)", lambda f: propose_people(*oracle[f], _frame(det, f).count,
                                                                           num_skeletons=P))  # fmt: skip
     measure("pp.total", t_pp)
+    measure(f"pp.total after {IDLE_MS} ms idle", t_pp, before=idle)
     measure("pp.propose_with_matcher (default 32-frame chunk)", lambda f: propose_with_matcher(matcher, _frame(det, f)))
 
     # ---- t_3Dg: grouping, estimate_grouped, then its insides: features and MLP (poses_of_members
@@ -433,6 +452,7 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
     measure(f"3d.mlp_device ({n} rows: the people)", lambda f: mlp_fn(estimator.params, feats_exact[f]))
     measure("3d.mlp_device (1 row)", lambda f: mlp_fn(estimator.params, feats_exact[f][:1]))
     measure("3d.total", t_3dg)
+    measure(f"3d.total after {IDLE_MS} ms idle", t_3dg, before=idle)
     return {
         "views": int(rig.num_cameras), "people": int(n), "model": size, "bucket": int(bucket),
         "graph_budgets": sorted({str(dataclasses.astuple(_budget(det, f))) for f in frames}),

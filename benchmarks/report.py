@@ -95,7 +95,8 @@ def markdown(run: dict) -> str:
         f"BLAS/OpenMP threads {m['blas_threads']}; {run['date']}; total {run['seconds']:.0f} s",
     ]
     if m.get("loaded"):
-        lines.append("- **The machine was loaded during this run (load average above half the cores): "
+        lines.append("- **The machine was loaded during this run (load average above half the cores before it, or "
+                     "above 1.25x the cores after it, which the run alone does not reach): "
                      "timings are noisy upper bounds.**")  # fmt: skip
     lines += ["", "## Targets (5 views, 4 people, paper-size models)", "",
               "| target | measured | limit | status | how |", "|---|---|---|---|---|"]  # fmt: skip
@@ -161,7 +162,8 @@ def markdown(run: dict) -> str:
                   f"- float32 matmul: {peaks['matmul_gflops']:,.0f} GFLOP/s (best over sizes "
                   f"{', '.join(peaks['matmul_gflops_by_size'])})",
                   f"- memory read bandwidth: {peaks['bandwidth_gbs']:.1f} GB/s on a {peaks['bandwidth_array_mb']} MB "
-                  "array; by size: " + "; ".join(f"{k} MB: sum {v['sum']:.1f}, GEMV {v['gemv']:.1f} GB/s"
+                  "array; by size: " + "; ".join(f"{k} MB: sum {v['sum']:.1f}, GEMV (n,n)@(n,1) {v['gemv_out_in']:.1f}, "
+                                                   f"(1,n)@(n,n) {v['gemv_in_out']:.1f} GB/s"
                                                    for k, v in peaks["bandwidth_by_size"].items())]  # fmt: skip
         if "spread" in peaks:
             mm, bw = peaks["matmul_gflops_start_end"], peaks["bandwidth_gbs_start_end"]
@@ -224,6 +226,16 @@ def profile_notes(run: dict) -> list[str]:
                 f"same calls back to back (the breakdown): there the 3D stage runs between two frames' "
                 f"proposals, which then start with cold caches and idle worker threads."
             )  # fmt: skip
+    idle = [k for k in p if k.startswith("pp.total after")]
+    if idle and pp and p.get("3d.total"):
+        ms = idle[0].split("after ")[1].split(" ms")[0]
+        pp_idle, g3_idle = p[idle[0]], p[f"3d.total after {ms} ms idle"]
+        notes.append(
+            f"After {ms} ms of idling before each call (what a 30 fps camera stream does between frames): "
+            f"t_pp {pp_idle:.2f} ms and t_3Dg {g3_idle:.2f} ms, against {pp:.2f} and {p['3d.total']:.2f} ms back "
+            f"to back: after a pause XLA's worker threads (and the cores under them) have gone idle, "
+            f"and the parallel operations of the next call start by waking them."
+        )  # fmt: skip
     g3 = p.get("3d.total")
     if g3:
         keys = [k for k in p if k.startswith("3d.mlp_device")]
