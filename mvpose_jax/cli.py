@@ -172,10 +172,56 @@ def _train_matcher(args: argparse.Namespace) -> int:
                          field="keypoint_dropout")  # fmt: skip
     train_recs = _recordings_in(args.train, args.layout)
     dev_recs = _recordings_in(args.dev, args.layout)
-    _, fit = train_matcher(rig, train_recs, dev_recs, config, checkpoint_dir=args.out, resume=args.resume)
+    matcher, fit = train_matcher(rig, train_recs, dev_recs, config, checkpoint_dir=args.out, resume=args.resume)
     print(f"best validation loss {fit.best_val_loss:.5f} after {fit.steps} steps ({fit.seconds:.0f} s); "
           f"checkpoints in {args.out}")  # fmt: skip
+    import jax
+
+    if jax.process_index() == 0:
+        threshold, ari = save_proposal_threshold(matcher, dev_recs, args.out, seed=args.seed)
+        print(f"proposal threshold {threshold} (ARI {ari[threshold]:.4f} on multi-person frames composed from "
+              f"--dev; 0.5: {ari[0.5]:.4f}), used by `infer --matcher {args.out}`")  # fmt: skip
     return 0
+
+
+PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
+
+
+def save_proposal_threshold(matcher, dev_recordings, folder: str, *, seed: int = 0,
+                            num_samples: int = 1024) -> tuple[float, dict]:
+    """Chooses the matcher's proposal threshold on frames composed from the dev recordings and
+    writes it beside the checkpoints (`PROPOSAL_THRESHOLD_FILE`)."""
+    import json
+    from pathlib import Path
+
+    from mvpose_jax.data.files import atomic_write_text
+    from mvpose_jax.inference import composed_match_table
+    from mvpose_jax.metrics import choose_proposal_threshold
+
+    rows, scores, identity, count = composed_match_table(matcher, dev_recordings, num_samples=num_samples, seed=seed)
+    threshold, ari = choose_proposal_threshold(rows, scores, identity, count)
+    record = {"threshold": threshold, "ari_by_threshold": {str(k): round(v, 6) for k, v in ari.items()},
+              "composed_frames": int(len(count)),
+              "how": "the best adjusted Rand index of the proposals on multi-person frames composed from the "
+                     "dev recordings (inference.composed_match_table, metrics.choose_proposal_threshold)"}  # fmt: skip
+    atomic_write_text(Path(folder) / PROPOSAL_THRESHOLD_FILE, json.dumps(record, indent=1) + "\n")
+    return threshold, ari
+
+
+def matcher_threshold(folder: str | None, given: float | None) -> float:
+    """The proposal threshold: ``given``, else the matcher folder's chosen one, else the paper's 0.5."""
+    import json
+    from pathlib import Path
+
+    if given is not None:
+        return given
+    path = Path(folder) / PROPOSAL_THRESHOLD_FILE if folder else None
+    if path is None or not path.exists():
+        return 0.5
+    try:
+        return float(json.loads(path.read_text())["threshold"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise InputError(f"unreadable proposal threshold ({e})", file=path, field="threshold") from e
 
 
 def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
@@ -292,7 +338,9 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
                    "triangulation of the keypoints seen in 2+ views")  # fmt: skip
     p.add_argument("--method", choices=("dlt", "centroid"), default="dlt",
                    help="triangulation without --estimator: score-weighted DLT, or the paper's pairwise centroid")
-    p.add_argument("--threshold", type=float, default=0.5, help="proposals: least match score to join two skeletons")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="proposals: least match score to join two skeletons (default: the one train-matcher "
+                   "chose, in the --matcher folder's proposal_threshold.json; else 0.5, the paper's)")  # fmt: skip
     p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
     p.add_argument("--half-score-px", type=float, default=30.0,
                    help="geometric matcher: epipolar distance (px) that scores 0.5")
@@ -320,7 +368,8 @@ def _infer(args: argparse.Namespace) -> int:
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
     res = run_pipeline(rig, rec.detections, matcher=matcher, estimator=estimator, method=args.method,
-                       threshold=args.threshold, min_views=args.min_views, half_score_px=args.half_score_px,
+                       threshold=matcher_threshold(args.matcher, args.threshold), min_views=args.min_views,
+                       half_score_px=args.half_score_px,
                        chunk_frames=args.chunk_frames, progress=True)  # fmt: skip
     out = PoseResults(res.poses, res.confidence, res.members, res.identity, res.cameras, rec.layout, rec.timestamps)
     npz_path, json_path = save_poses(out, args.out)

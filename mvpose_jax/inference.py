@@ -8,6 +8,7 @@ frame.
 
 from __future__ import annotations
 
+import collections
 import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -21,7 +22,7 @@ from flax import nnx
 from mvpose_jax.cameras import Rig, undistort_points
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estimator_inputs, keypoint_features
-from mvpose_jax.graphs import GraphBatch, build_graphs, match_table
+from mvpose_jax.graphs import GraphBatch, build_graphs, compose_samples, make_pool, match_table
 from mvpose_jax.models import to_world
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.train import Estimator, Matcher
@@ -259,10 +260,47 @@ def _frame_graphs(count_bytes: bytes, num_frames: int, num_cameras: int, num_ske
                         np.flatnonzero(batch.is_match), rows)  # fmt: skip
 
 
-# One frame at a time (a live stream) meets a few count patterns over and over: cached, such a
-# frame neither builds its graph nor moves it to the device. Multi-frame chunks rarely repeat (and
-# amortise the build), so they are not kept: at most 64 single-frame graphs are (a few MB).
-_single_frame_graphs = functools.lru_cache(maxsize=64)(_frame_graphs)
+class _GraphCache:
+    """Least-recently-used single-frame graphs, bounded by their bytes (not by their number).
+
+    One frame at a time (a live stream) meets a few hundred skeleton-count patterns over and over
+    (a 200-frame, 5-view, 4-person synthetic recording: 61; 8 people: 133): cached, such a frame
+    neither builds its graph nor moves it to the device (0.5 ms). A graph takes 20 KB (5 views, 6
+    skeletons) to 340 KB (5 views, 16), so a count limit is either too small for small rigs or
+    unbounded in memory for large ones. Multi-frame chunks rarely repeat (and amortise the build),
+    so they are not kept.
+    """
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self._entries: collections.OrderedDict[tuple, _FrameGraphs] = collections.OrderedDict()
+        self._bytes = 0
+
+    @staticmethod
+    def _size(g: _FrameGraphs) -> int:
+        return sum(int(getattr(x, "nbytes", 0)) for x in jax.tree.leaves(g))
+
+    def __call__(self, *key) -> _FrameGraphs:
+        g = self._entries.get(key)
+        if g is not None:
+            self._entries.move_to_end(key)
+            return g
+        g = _frame_graphs(*key)
+        self._entries[key] = g
+        self._bytes += self._size(g)
+        while self._bytes > self.max_bytes and len(self._entries) > 1:
+            self._bytes -= self._size(self._entries.popitem(last=False)[1])
+        return g
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def clear(self) -> None:
+        self._entries.clear()
+        self._bytes = 0
+
+
+_single_frame_graphs = _GraphCache(max_bytes=64 << 20)
 
 
 def _frame_scores_fn(graphdef, rest, params, rig: Rig, xy, score, batch: GraphBatch, det_source, det_camera):
@@ -499,6 +537,46 @@ def _proposals_from_roots(root: np.ndarray, ok: np.ndarray, min_views: int) -> P
     f_i, c_i, p_i = np.nonzero(identity >= 0)
     table[f_i, identity[f_i, c_i, p_i], c_i] = p_i
     return Proposals(identity, [table[f, : num[f]] for f in range(F)])
+
+
+def composed_match_table(
+    matcher: Matcher, recordings: Sequence, *, num_samples: int = 1024, seed: int = 0,
+    frames_per_call: int = FRAMES_PER_CALL,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The matcher's scores on multi-person frames composed from single-person recordings.
+
+    The frames are composed as training composes them (`graphs.compose_samples` with the
+    matcher's own settings), so their true identities come free: held-out single-person
+    recordings give a labelled multi-person set without a single label (for
+    `metrics.choose_proposal_threshold`).
+
+    Args:
+      matcher: a trained `Matcher`.
+      recordings: single-person recordings holding the matcher's cameras.
+      num_samples: composed frames.
+    Returns:
+      rows (M, 5) and scores (M,) as `gat_match_table`, identity (S, C, Q) (the frame's person
+      of each skeleton, -1 for false detections and padding) and count (S, C).
+    """
+    cfg = matcher.config
+    pool = make_pool(matcher.rig, recordings)
+    feats, valid, ident = compose_samples(pool, np.random.default_rng([seed, 1 << 29]), num_samples,
+                                          max_people=cfg.max_people, subset_probability=cfg.subset_probability,
+                                          min_views=cfg.min_views, keypoint_dropout=cfg.keypoint_dropout)  # fmt: skip
+    # Each view's skeletons first, padding after: the layout `count` describes.
+    order = np.argsort(~valid, axis=-1, kind="stable")
+    feats = np.take_along_axis(feats, order[..., None], axis=2)
+    valid = np.take_along_axis(valid, order, axis=-1)
+    ident = np.where(valid, np.take_along_axis(ident, order, axis=-1), -1)
+    rows, scores = [], []
+    for start in range(0, num_samples, frames_per_call):
+        sl = slice(start, min(num_samples, start + frames_per_call))
+        batch = build_graphs(feats[sl], valid[sl], num_graphs=frames_per_call)
+        r, sc = match_table(batch, match_scores(matcher, batch))
+        r[:, 0] += start
+        rows.append(r)
+        scores.append(sc)
+    return np.concatenate(rows), np.concatenate(scores), ident, valid.sum(-1)
 
 
 def propose_with_matcher(matcher: Matcher, detections: Detections, *, threshold: float = 0.5,

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from mvpose_jax.cameras import Rig, project_points
+from mvpose_jax.inference import propose_people
 from mvpose_jax.skeletons import Poses3D, evaluation_keypoints, get_layout
 
 AP_THRESHOLDS_MM = (25, 50, 75, 100, 125, 150)
@@ -326,3 +327,39 @@ def matching_scores(true_identity: np.ndarray, pred_identity: np.ndarray, count:
     out["detections"] = float(len(t))
     out["frames"] = float(len(count))
     return out
+
+
+PROPOSAL_THRESHOLDS = (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+def choose_proposal_threshold(
+    rows: np.ndarray,
+    scores: np.ndarray,
+    identity: np.ndarray,
+    count: np.ndarray,
+    *,
+    thresholds: tuple[float, ...] = PROPOSAL_THRESHOLDS,
+    min_views: int = 2,
+) -> tuple[float, dict[float, float]]:
+    """The proposal threshold with the best adjusted Rand index on labelled frames.
+
+    Meant for frames composed from held-out single-person recordings
+    (`inference.composed_match_table`): the proposal step's exclusivity (one skeleton per camera
+    per person) already rejects most wrong pairs, so the best threshold is often well below the
+    paper's 0.5, and the network's scores, fitted to 0/1 labels, need not be calibrated for it.
+    Ties go to the threshold nearest 0.5.
+
+    Args:
+      rows (M, 5), scores (M,): scored pairs; identity (F, C, P): true person of each skeleton
+        (-1 false detection); count (F, C).
+    Returns:
+      (the threshold, {threshold: ARI}).
+    """
+    count = np.asarray(count)
+    P = np.shape(identity)[2]
+    ari = {}
+    for th in thresholds:
+        pred = propose_people(rows, scores, count, num_skeletons=P, threshold=th, min_views=min_views)
+        ari[float(th)] = matching_scores(identity, pred.identity, count)["ari"]
+    best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - 0.5)))
+    return best, ari

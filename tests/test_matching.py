@@ -282,3 +282,48 @@ def test_geometric_baseline_groups_true_people(ring_rig):
 def test_budget_of_a_batch_is_a_bucket():
     b = graph_budget(3, 3, 1)
     assert (b.nodes, b.dets) == (64, 16)
+
+
+def test_single_frame_graph_cache_is_lru_and_bounded_by_bytes():
+    from mvpose_jax.inference import _frame_graphs, _GraphCache
+
+    def key(*counts):
+        return (np.array([counts], np.int64).tobytes(), 1, 3, 4, 1)
+
+    one = _GraphCache._size(_frame_graphs(*key(2, 2, 2)))
+    cache = _GraphCache(max_bytes=int(2.5 * one))  # room for two graphs of this size
+    a = cache(*key(2, 2, 2))
+    assert cache(*key(2, 2, 2)) is a  # a hit returns the stored graph
+    b = cache(*key(1, 2, 2))
+    assert cache(*key(2, 2, 2)) is a  # touched: key(1, 2, 2) is now the oldest
+    cache(*key(2, 1, 2))
+    assert len(cache) == 2
+    assert cache(*key(2, 2, 2)) is a  # kept
+    assert cache(*key(1, 2, 2)) is not b  # evicted, rebuilt
+    np.testing.assert_array_equal(cache(*key(1, 2, 2)).rows, b.rows)
+
+
+def test_composed_match_table_scores_the_composed_skeletons_with_their_identities(ring_rig):
+    from mvpose_jax.data.synthetic import generate_single_person_recordings
+    from mvpose_jax.inference import composed_match_table
+    from mvpose_jax.train import Matcher
+
+    recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
+    model = MatchingGAT(ring_rig.num_cameras, recs[0].num_keypoints, TINY, rngs=nnx.Rngs(0))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    config = MatcherConfig(gat=TINY, max_people=3, keypoint_dropout=0.3)
+    matcher = Matcher(graphdef, rest, params, ring_rig, config)
+    rows, scores, identity, count = composed_match_table(matcher, recs, num_samples=40, seed=1, frames_per_call=16)
+    S, C, Q = identity.shape
+    assert S == 40 and count.shape == (S, C)
+    present = np.arange(Q)[None, None] < count[..., None]
+    assert (identity[~present] == -1).all()
+    assert identity.max() < 3 and (identity[present] >= 0).any()
+    f, ca, sa, cb, sb = rows.T
+    assert (ca < cb).all() and (sa < count[f, ca]).all() and (sb < count[f, cb]).all()
+    # Every cross-view pair of present skeletons is scored once, and the same seed gives the same table.
+    want = sum(int(count[s, a]) * int(count[s, b]) for s in range(S) for a in range(C) for b in range(a + 1, C))
+    assert len(rows) == len(scores) == want
+    again = composed_match_table(matcher, recs, num_samples=40, seed=1, frames_per_call=16)
+    np.testing.assert_array_equal(again[0], rows)
+    np.testing.assert_allclose(again[1], scores)
