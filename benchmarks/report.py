@@ -197,6 +197,14 @@ def markdown(run: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _patterns(run: dict, bd: dict) -> str:
+    row = _row((run.get("latency") or {}).get("rows", []), views=bd["views"], people=bd["people"], model=bd["model"])
+    if not row or "count_patterns" not in row:
+        return ""
+    return (f" ({row['count_patterns']} patterns in these {row['frames']} frames; the frame-by-frame numbers "
+            f"are the steady state, every pattern met once in the warm-up)")
+
+
 def profile_notes(run: dict) -> list[str]:
     """Plain statements of where the target configuration's time goes, from the breakdown."""
     bd = (run.get("latency") or {}).get("breakdown")
@@ -215,7 +223,8 @@ def profile_notes(run: dict) -> list[str]:
             f"transfers, dispatch and match table; proposals {p['pp.propose_people (network scores)']:.2f} ms "
             f"({p['pp.propose_people (oracle scores)']:.2f} ms with oracle scores, which accept the true pairs). "
             f"A frame whose skeleton counts per view were not met before also builds its graph: "
-            f"{p['pp.graph_for_new_counts (build + to device)']:.2f} ms. The default propose_with_matcher: "
+            f"{p['pp.graph_for_new_counts (build + to device)']:.2f} ms{_patterns(run, bd)}. The default "
+            f"propose_with_matcher: "
             f"{p['pp.propose_with_matcher (default 32-frame chunk)']:.2f} ms."
         )  # fmt: skip
         row = _row((run.get("latency") or {}).get("rows", []), views=bd["views"], people=bd["people"],
