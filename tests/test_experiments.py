@@ -17,13 +17,20 @@ def test_default_experiment_smoke(tmp_path, capsys):
     res = m["results"]
     assert set(res["matching"]) == {"2", "3", "5"}
     for row in res["matching"].values():
-        for method in ("gat", "geometric"):
+        for method in ("gat", "gat_chosen", "geometric"):
             assert {"ari", "homogeneity", "completeness", "v_measure", "t_pp_ms"} <= set(row[method])
+        # The threshold is chosen on dev frames, from the grid, by their best ARI.
+        th = row["gat_chosen"]["threshold"]
+        assert 0 < th < 1
+    for n in ("2", "3", "5"):
+        fit = res["training"][f"matcher-{n}"]
+        assert fit["threshold"] == res["matching"][n]["gat_chosen"]["threshold"]
+        assert fit["dev_ari_by_threshold"][str(fit["threshold"])] == max(fit["dev_ari_by_threshold"].values())
     # The geometric baseline needs no training: even here it groups nearly perfectly.
     assert res["matching"]["5"]["geometric"]["ari"] > 0.9
     assert set(res["pose"]) == {"detected", "projected", "average"}
     for rows in res["pose"].values():
-        assert set(rows) == {"pipeline", "true_groups", "geometric_proposals"}
+        assert set(rows) == {"pipeline", "true_groups", "geometric_proposals", "gat_proposals_at_half"}
         assert {"ours", "centroid", "dlt", "ours_on_dlt_keypoints"} <= set(rows["true_groups"])
     assert (out / "tables.md").read_text().startswith("# paper-panoptic")
     figures = sorted(p.name for p in (out / "figures").iterdir())
