@@ -54,7 +54,6 @@ from mvpose_jax.inference import (
     group_people,
     members_from_identity,
     poses_of_members,
-    propose_people,
     run_pipeline,
     triangulate_grouped,
 )
@@ -254,18 +253,11 @@ def matching_rows(data: Data, matcher, cameras, threshold: float) -> dict:
     out["gat_chosen"]["threshold"] = threshold
     if len(cameras) > 1:
         # Diagnostic only (chosen on the test set, never a reported result): the proposal threshold.
-        rows, scores = geometric_match_table(rig_i, det, half_score_px=GEOMETRIC_HALF_SCORE_PX)
-        out["geometric"]["ari_by_threshold"] = {
-            str(th): round(matching_scores(ident, propose_people(rows, scores, det.count, num_skeletons=det.score.shape[2],
-                                                                 threshold=th).identity, np.asarray(det.count))["ari"], 5)
-            for th in (0.3, 0.5, 0.7)
-        }  # fmt: skip
-        rows, scores = gat_match_table(matcher, det)
-        out["gat"]["ari_by_threshold"] = {
-            str(th): round(matching_scores(ident, propose_people(rows, scores, det.count, num_skeletons=det.score.shape[2],
-                                                                 threshold=th).identity, np.asarray(det.count))["ari"], 5)
-            for th in (0.05, 0.1, 0.2, 0.3, 0.5)
-        }  # fmt: skip
+        tables = {"geometric": (geometric_match_table(rig_i, det, half_score_px=GEOMETRIC_HALF_SCORE_PX), (0.3, 0.5, 0.7)),
+                  "gat": (gat_match_table(matcher, det), (0.05, 0.1, 0.2, 0.3, 0.5))}  # fmt: skip
+        for method, ((rows, scores), grid) in tables.items():
+            ari = choose_proposal_threshold(rows, scores, ident, det.count, thresholds=grid)[1]
+            out[method]["ari_by_threshold"] = {str(th): round(a, 5) for th, a in ari.items()}
     out["test_frames"] = F
     return out
 

@@ -273,7 +273,7 @@ class _GraphCache:
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
-        self._entries: collections.OrderedDict[tuple, _FrameGraphs] = collections.OrderedDict()
+        self._entries: collections.OrderedDict[tuple, tuple[_FrameGraphs, int]] = collections.OrderedDict()
         self._bytes = 0
 
     @staticmethod
@@ -281,15 +281,15 @@ class _GraphCache:
         return sum(int(getattr(x, "nbytes", 0)) for x in jax.tree.leaves(g))
 
     def __call__(self, *key) -> _FrameGraphs:
-        g = self._entries.get(key)
-        if g is not None:
+        entry = self._entries.get(key)
+        if entry is not None:
             self._entries.move_to_end(key)
-            return g
+            return entry[0]
         g = _frame_graphs(*key)
-        self._entries[key] = g
-        self._bytes += self._size(g)
+        self._entries[key] = (g, self._size(g))
+        self._bytes += self._entries[key][1]
         while self._bytes > self.max_bytes and len(self._entries) > 1:
-            self._bytes -= self._size(self._entries.popitem(last=False)[1])
+            self._bytes -= self._entries.popitem(last=False)[1][1]
         return g
 
     def __len__(self) -> int:
