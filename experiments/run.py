@@ -46,18 +46,27 @@ from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.data.formats import select_cameras
 from mvpose_jax.data.synthetic import detection_variants, generate_recording, generate_single_person_recordings
 from mvpose_jax.features import main_skeletons, people_from_identity
+from mvpose_jax.cameras import up_vector
 from mvpose_jax.inference import (
-    composed_match_table,
+    composed_frames,
+    epipolar_match_distances,
     estimate_grouped,
     gat_match_table,
-    geometric_match_table,
     group_people,
     members_from_identity,
     poses_of_members,
     run_pipeline,
     triangulate_grouped,
 )
-from mvpose_jax.metrics import choose_proposal_threshold, match_people, matching_scores, pose_metrics, reprojection_errors
+from mvpose_jax.metrics import (
+    PCP_CLASSES,
+    choose_geometric_cutoff,
+    choose_proposal_threshold,
+    match_people,
+    matching_scores,
+    pose_metrics,
+    reprojection_errors,
+)
 from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.render import curves_figure, save_figure, skeleton_figure
 from mvpose_jax.skeletons import Detections, Poses3D, evaluation_keypoints
@@ -83,7 +92,6 @@ PAPER_TABLE7 = {  # ARP reprojection error, px, mean / median; cameras W0-W3 (wa
     "M_6/6": ((10.28, 8.23), (8.28, 6.80), (11.12, 8.41), (7.88, 6.40), (8.98, 6.97), (9.49, 7.51)),
     "M_2/2": ((45.73, 26.85), (290.63, 15.62), (29.78, 21.86), (31.94, 19.24), (4.50, 3.37), (4.50, 3.38)),
 }
-GEOMETRIC_HALF_SCORE_PX = 30.0
 ROBOT = ("orinbot_l", "orinbot_r")
 
 
@@ -158,16 +166,32 @@ SCALES = {
 # --------------------------------------------------------------------------- data
 
 
+# Seed streams (numpy SeedSequence entropy lists, so no two share random numbers):
+#   [train_seed, 1], [train_seed, 2]  single-person training and dev recordings (per training seed)
+#   [data_seed, 3, n]                 validation scenes with n people: every choice a person makes
+#                                     (steps, recipes, augmentation) is made on these; they were the
+#                                     test scenes until the measurement review, and were tuned on
+#   [data_seed, 5, n]                 test scenes: read for the reported tables only
+SPLITS = {"validation": 3, "test": 5}
+
+
 @dataclasses.dataclass
 class Data:
     rig: object
     train: list
     dev: list
-    tests: list  # multi-person recordings, one per entry of test_people
+    scenes: dict  # split -> multi-person recordings, one per entry of test_people
 
-    def test_detections(self, cameras, variant: str = "detected") -> tuple[Detections, np.ndarray, Poses3D]:
-        """All test frames as one recording: detections in ``cameras``, true identities, ground truth."""
-        recs = [select_cameras(detection_variants(t)[variant], list(cameras)) for t in self.tests]
+    def detections(self, split: str, cameras, variant: str = "detected"):
+        """All frames of a split's scenes as one recording.
+
+        Returns:
+          detections in ``cameras``, true identities (F, C, P), ground truth `Poses3D` and person
+          ids (F, G) (unique across scenes). The ground truth holds the people that at least one
+          camera (of the full rig) detected in the frame: a person nobody saw cannot be
+          annotated, and every person that is held counts, found or not.
+        """
+        recs = self.scenes[split]
         P = max(np.shape(r.detections.score)[2] for r in recs)
         G = max(r.ground_truth.valid.shape[1] for r in recs)
 
@@ -177,23 +201,34 @@ class Data:
             width[axis] = (0, n - a.shape[axis])
             return np.pad(a, width, constant_values=fill)
 
-        det = Detections(np.concatenate([pad(r.detections.xy, P, 2) for r in recs]),
-                         np.concatenate([pad(r.detections.score, P, 2) for r in recs]),
-                         np.concatenate([np.asarray(r.detections.count) for r in recs]))  # fmt: skip
-        ident = np.concatenate([pad(r.identity, P, 2, -1) for r in recs])
+        seen = []
+        for r in recs:
+            ident = np.asarray(r.identity)
+            g = np.arange(r.ground_truth.valid.shape[1])
+            seen.append(pad((ident[:, :, :, None] == g).any(axis=(1, 2)), G, 1, False))
+        chosen = [select_cameras(detection_variants(r)[variant], list(cameras)) for r in recs]
+        det = Detections(np.concatenate([pad(r.detections.xy, P, 2) for r in chosen]),
+                         np.concatenate([pad(r.detections.score, P, 2) for r in chosen]),
+                         np.concatenate([np.asarray(r.detections.count) for r in chosen]))  # fmt: skip
+        ident = np.concatenate([pad(r.identity, P, 2, -1) for r in chosen])
         gt = Poses3D(*(np.concatenate([pad(f, G, 1) for f in field]) for field in zip(*[r.ground_truth for r in recs])))
-        return det, ident, gt
+        gt = gt._replace(valid=gt.valid & np.concatenate(seen))
+        ids = np.concatenate([np.broadcast_to(i * G + np.arange(G), (r.num_frames, G)) for i, r in enumerate(recs)])
+        return det, ident, gt, ids
 
 
-def make_data(rig_name: str, sc: Scale, seed: int, progress: bool) -> Data:
-    rig = load_rig(rig_name)
-    # Seeds: training, dev and test data never share a generator stream.
+def make_scenes(rig, sc: Scale, data_seed: int) -> dict:
+    return {split: [generate_recording(rig, num_people=n, num_frames=sc.test_frames, seed=[data_seed, stream, n])
+                    for n in sc.test_people] for split, stream in SPLITS.items()}  # fmt: skip
+
+
+def make_data(rig, scenes: dict, sc: Scale, seed: int, progress: bool) -> Data:
+    """Training and dev recordings of one training seed, with the shared scenes."""
     train = generate_single_person_recordings(rig, num_recordings=sc.train_recordings, num_frames=sc.train_frames,
                                               seed=[seed, 1], progress=progress)  # fmt: skip
     dev = generate_single_person_recordings(rig, num_recordings=sc.dev_recordings, num_frames=sc.dev_frames,
                                             seed=[seed, 2])  # fmt: skip
-    tests = [generate_recording(rig, num_people=n, num_frames=sc.test_frames, seed=[seed, 3, n]) for n in sc.test_people]
-    return Data(rig, train, dev, tests)
+    return Data(rig, train, dev, scenes)
 
 
 # --------------------------------------------------------------------------- stages
@@ -205,13 +240,20 @@ def fit_matcher(data: Data, sc: Scale, cameras, seed: int, progress: bool):
     t0 = time.perf_counter()
     matcher, fit = train_matcher(data.rig, data.train, data.dev, config, progress=progress)
     seconds = time.perf_counter() - t0
-    # The proposal threshold, chosen on multi-person frames composed from the dev recordings (our
-    # addition; the paper's is 0.5): no test frame and no label beyond the composition's own.
-    composed = composed_match_table(matcher, data.dev, num_samples=sc.threshold_frames, seed=seed)
-    threshold, ari = choose_proposal_threshold(*composed)
+    # Both matchers' settings are chosen by one rule on multi-person frames composed from the dev
+    # recordings (no scene, no label beyond the composition's own): the GAT's proposal threshold
+    # (the paper's is 0.5) and the epipolar matcher's distance cutoff.
+    composed, identity = composed_frames(matcher.rig, data.dev, num_samples=sc.threshold_frames, seed=seed,
+                                         max_people=config.max_people, subset_probability=config.subset_probability,
+                                         min_views=config.min_views, keypoint_dropout=config.keypoint_dropout)  # fmt: skip
+    threshold, ari = choose_proposal_threshold(*gat_match_table(matcher, composed), identity, composed.count)
+    rows, distances = epipolar_match_distances(matcher.rig, composed)
+    cutoff, ari_geo = choose_geometric_cutoff(rows, distances, identity, composed.count)
     return matcher, {"train_seconds": round(seconds, 1), "train_steps": fit.steps,
                      "best_val_loss": fit.best_val_loss, "history": fit.history, "threshold": threshold,
-                     "dev_ari_by_threshold": {str(k): round(v, 5) for k, v in ari.items()}}  # fmt: skip
+                     "dev_ari_by_threshold": {str(k): round(v, 5) for k, v in ari.items()},
+                     "geometric_cutoff_px": cutoff,
+                     "dev_ari_by_cutoff_px": {str(k): round(v, 5) for k, v in ari_geo.items()}}  # fmt: skip
 
 
 def fit_estimator(data: Data, sc: Scale, train_cams, infer_cams, seed: int, progress: bool):
@@ -232,33 +274,40 @@ def fit_estimator(data: Data, sc: Scale, train_cams, infer_cams, seed: int, prog
                  "train_people": int(len(xy)), "best_val_loss": fit.best_val_loss, "history": fit.history}  # fmt: skip
 
 
-def matching_rows(data: Data, matcher, cameras, threshold: float) -> dict:
-    """The learned matcher (at the paper's threshold 0.5 and at the dev-chosen ``threshold``)
-    against the geometric baseline on the test frames (detected variant)."""
-    det, ident, _ = data.test_detections(cameras)
+MATCHING_SCORES = ("ari", "homogeneity", "completeness", "v_measure")
+
+
+def matching_rows(data: Data, split: str, matcher, cameras, fit: dict) -> dict:
+    """The learned matcher (at the paper's threshold 0.5 and at its dev-chosen threshold) against
+    the epipolar matcher (its dev-chosen cutoff) on a split's scenes (detected variant): per-frame
+    means (the paper's protocol) and pooled scores."""
+    det, ident, _, _ = data.detections(split, cameras)
     rig_i = data.rig.select(list(cameras))
     F = len(det.count)
     out = {}
-    methods = {"gat": dict(matcher=matcher), "gat_chosen": dict(matcher=matcher, threshold=threshold),
-               "geometric": dict(half_score_px=GEOMETRIC_HALF_SCORE_PX)}  # fmt: skip
+    methods = {"gat": dict(matcher=matcher), "gat_chosen": dict(matcher=matcher, threshold=fit["threshold"]),
+               "geometric": dict(half_score_px=fit["geometric_cutoff_px"])}  # fmt: skip
     for method, kwargs in methods.items():
-        run_pipeline(rig_i, det, **kwargs)  # warm-up: compile every shape the test set needs
+        run_pipeline(rig_i, det, **kwargs)  # warm-up: compile every shape the scenes need
         t0 = time.perf_counter()
         res = run_pipeline(rig_i, det, **kwargs)
         seconds = time.perf_counter() - t0
         s = matching_scores(ident, res.identity, np.asarray(det.count))
-        out[method] = {k: round(float(s[k]), 5) for k in ("ari", "homogeneity", "completeness", "v_measure")}
+        out[method] = {k: round(float(s[k]), 5) for k in MATCHING_SCORES + tuple(f"pooled_{m}" for m in MATCHING_SCORES)}
         out[method]["t_pp_ms"] = round(1000 * res.seconds["proposals"] / F, 3)
         out[method]["pipeline_ms_per_frame"] = round(1000 * seconds / F, 3)
-    out["gat_chosen"]["threshold"] = threshold
-    if len(cameras) > 1:
-        # Diagnostic only (chosen on the test set, never a reported result): the proposal threshold.
-        tables = {"geometric": (geometric_match_table(rig_i, det, half_score_px=GEOMETRIC_HALF_SCORE_PX), (0.3, 0.5, 0.7)),
-                  "gat": (gat_match_table(matcher, det), (0.05, 0.1, 0.2, 0.3, 0.5))}  # fmt: skip
-        for method, ((rows, scores), grid) in tables.items():
-            ari = choose_proposal_threshold(rows, scores, ident, det.count, thresholds=grid)[1]
-            out[method]["ari_by_threshold"] = {str(th): round(a, 5) for th, a in ari.items()}
-    out["test_frames"] = F
+    out["gat_chosen"]["threshold"] = fit["threshold"]
+    out["geometric"]["cutoff_px"] = fit["geometric_cutoff_px"]
+    if len(cameras) > 1 and split == "validation":
+        # Diagnostics for choosing (validation scenes only, never the test scenes): each matcher's
+        # per-frame ARI across its setting.
+        rows, scores = gat_match_table(matcher, det)
+        ari = choose_proposal_threshold(rows, scores, ident, det.count, thresholds=(0.05, 0.1, 0.2, 0.3, 0.5))[1]
+        out["gat"]["ari_by_threshold"] = {str(th): round(a, 5) for th, a in ari.items()}
+        rows, d = epipolar_match_distances(rig_i, det)
+        ari = choose_geometric_cutoff(rows, d, ident, det.count, cutoffs_px=(10.0, 20.0, 30.0, 50.0))[1]
+        out["geometric"]["ari_by_cutoff_px"] = {str(c): round(a, 5) for c, a in ari.items()}
+    out["frames"] = F
     return out
 
 
@@ -274,10 +323,9 @@ def _times(res, poses_seconds: float | None = None) -> dict:
     return {"t_pp_ms": 1000 * res.seconds["proposals"] / F, "t_3Dg_ms": 1000 * s3d / F, "t_3Di_ms": 1000 * s3d / people}
 
 
-def _compare(rig, det, gt, ours, members, ours_seconds=None) -> tuple[dict, dict]:
+def _compare(rig, det, gt, ours, members, scoring: dict, ours_seconds=None) -> tuple[dict, dict]:
     """Ours against both triangulations on the same person groups (``members``)."""
-    conf = ours.confidence
-    r = {"ours": {**pose_metrics(ours.poses, gt, confidence=conf), **(ours_seconds or {})}}
+    r = {"ours": {**pose_metrics(ours.poses, gt, confidence=ours.confidence, **scoring), **(ours_seconds or {})}}
     tris = {}
     for method in ("centroid", "dlt"):
         poses_of_members(rig, det, members, method=method)  # warm-up
@@ -288,10 +336,10 @@ def _compare(rig, det, gt, ours, members, ours_seconds=None) -> tuple[dict, dict
         times = {} if ours_seconds is None else {
             "t_pp_ms": ours_seconds["t_pp_ms"], "t_3Dg_ms": 1000 * t3d / F,
             "t_3Di_ms": 1000 * t3d / max(1, int(tri.valid.sum()))}  # fmt: skip
-        r[method] = {**pose_metrics(tri, gt, confidence=tconf), **times}
+        r[method] = {**pose_metrics(tri, gt, confidence=tconf, **scoring), **times}
         # Ours on exactly the keypoints this triangulation reconstructed (like with like).
         restricted = Poses3D(ours.poses.xyz, ours.poses.valid & tri.valid, tri.keypoint_valid & ours.poses.valid[..., None])
-        r[f"ours_on_{method}_keypoints"] = {"mpjpe_mm": pose_metrics(restricted, gt)["mpjpe_mm"]}
+        r[f"ours_on_{method}_keypoints"] = {"mpjpe_mm": pose_metrics(restricted, gt, **scoring)["mpjpe_mm"]}
         tris[method] = tri
     return r, tris
 
@@ -303,44 +351,51 @@ def _true_members(identity: np.ndarray, num_people: int, min_views: int) -> np.n
     return members
 
 
-def pose_rows(data: Data, matcher, estimator, threshold: float) -> tuple[dict, dict]:
-    """Table 6 twice: the whole pipeline (matcher proposals, then ours or triangulation on the
-    same proposals), and the 3D stage alone on the true groupings; plus ours behind the
-    geometric matcher."""
+def _rounded(d):
+    if isinstance(d, dict):
+        return {k: _rounded(v) for k, v in d.items()}
+    return round(float(d), 3)
+
+
+def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[dict, dict]:
+    """Table 6 twice on a split's scenes: the whole pipeline (matcher proposals, then ours or
+    triangulation on the same proposals), and the 3D stage alone on the true groupings; plus ours
+    behind the epipolar matcher and behind the GAT at the paper's threshold."""
     rig = data.rig
     rows, samples = {}, {}
     for variant in ("detected", "projected", "average"):
-        det, ident, gt = data.test_detections(rig.names, variant)
-        ours = _timed_pipeline(rig, det, matcher=matcher, estimator=estimator, threshold=threshold)
-        pipeline, tris = _compare(rig, det, gt, ours, ours.members, _times(ours))
+        det, ident, gt, ids = data.detections(split, rig.names, variant)
+        scoring = {"up": up_vector(rig), "person_ids": ids}
+        ours = _timed_pipeline(rig, det, matcher=matcher, estimator=estimator, threshold=fit["threshold"])
+        pipeline, tris = _compare(rig, det, gt, ours, ours.members, scoring, _times(ours))
         # The 3D stage alone: the true groupings (people seen in 2+ views), ours and triangulation.
         true_members = _true_members(ident, gt.valid.shape[1], min_views=2)
         true_poses, true_conf = poses_of_members(rig, det, true_members, estimator=estimator)
         true = type(ours)(true_poses, true_conf, true_members, ident, ours.cameras, {})
-        stage, true_tris = _compare(rig, det, gt, true, true_members)
+        stage, true_tris = _compare(rig, det, gt, true, true_members, scoring)
         samples[variant] = {"gt": gt, "pipeline": (ours, tris["centroid"]), "true groupings": (true, true_tris["centroid"])}
-        # Ours behind the geometric matcher (the 3D stage behind a strong non-learned matcher).
-        geo = run_pipeline(rig, det, estimator=estimator, half_score_px=GEOMETRIC_HALF_SCORE_PX)
-        behind_geo = pose_metrics(geo.poses, gt, confidence=geo.confidence)
+        # Ours and DLT behind the epipolar matcher (a strong non-learned matcher, its cutoff chosen
+        # on dev frames like the GAT's threshold).
+        geo = run_pipeline(rig, det, estimator=estimator, half_score_px=fit["geometric_cutoff_px"])
+        behind_geo, _ = _compare(rig, det, gt, geo, geo.members, scoring)
         # Ours behind the GAT at the paper's threshold: a lower threshold joins more true pairs
         # (ARI) but also a few wrong ones, and a wrong skeleton spoils a whole person's 3D.
         at_half = run_pipeline(rig, det, matcher=matcher, estimator=estimator, threshold=0.5)
-        behind_half = pose_metrics(at_half.poses, gt, confidence=at_half.confidence)
-        round_ = lambda d: {k: {m: round(float(v), 3) for m, v in x.items()} for k, x in d.items()}  # noqa: E731
-        rows[variant] = {"pipeline": round_(pipeline), "true_groups": round_(stage),
-                         "geometric_proposals": round_({"ours": behind_geo}),
-                         "gat_proposals_at_half": round_({"ours": behind_half})}  # fmt: skip
+        behind_half = pose_metrics(at_half.poses, gt, confidence=at_half.confidence, **scoring)
+        rows[variant] = {"pipeline": _rounded(pipeline), "true_groups": _rounded(stage),
+                         "geometric_proposals": _rounded({k: behind_geo[k] for k in ("ours", "dlt")}),
+                         "gat_proposals_at_half": _rounded({"ours": behind_half})}  # fmt: skip
     return rows, samples
 
 
-def arp_rows(data: Data, matcher6, estimators: dict, grouping: str = "true", threshold: float = 0.5) -> dict:
+def arp_rows(data: Data, split: str, matcher6, estimators: dict, grouping: str = "true", threshold: float = 0.5) -> dict:
     """Table 7: each model's people reprojected into every camera.
 
     grouping: "true" (the true skeleton groups, so that only the 3D stage is measured) or
     "proposals" (grouped by the 6-view matcher, the whole pipeline).
     """
     rig = data.rig
-    det, ident, gt = data.test_detections(rig.names)
+    det, ident, gt, ids = data.detections(split, rig.names)
     if grouping == "true":
         members = _true_members(ident, gt.valid.shape[1], min_views=1)
     else:
@@ -352,8 +407,9 @@ def arp_rows(data: Data, matcher6, estimators: dict, grouping: str = "true", thr
         poses, conf = estimate_grouped(est, p_xy[:, :, idx], p_sc[:, :, idx], min_views=1)
         v = poses.valid
         errors = reprojection_errors(rig, poses.xyz[v], poses.keypoint_valid[v], p_xy[v], p_sc[v])
-        out[name] = {"people": int(v.sum()), "reprojection": errors,
-                     "mpjpe_mm": round(pose_metrics(poses, gt, confidence=conf)["mpjpe_mm"], 3)}  # fmt: skip
+        m = pose_metrics(poses, gt, confidence=conf, up=up_vector(rig), person_ids=ids)
+        out[name] = {"people": int(v.sum()), "reprojection": errors, "mpjpe_mm": round(m["mpjpe_mm"], 3),
+                     "pcp": round(m["pcp"], 3)}  # fmt: skip
     return out
 
 
@@ -408,79 +464,127 @@ def _in_gt_order(pred: Poses3D, gt: Poses3D, f: int, g_list: np.ndarray, layout:
 # --------------------------------------------------------------------------- tables
 
 
-def _fmt(v, nd=2):
-    return "" if v is None else f"{v:.{nd}f}"
+def _get(r: dict, path: str):
+    for key in path.split("/"):
+        r = r[key]
+    return r
 
 
-def matching_table(rows: dict, paper: dict, title: str, training: dict) -> list[str]:
-    lines = [f"### {title}", "",
-             "| views | method | ARI | H | C | Vm | t_pp ms/frame | training s (steps) | paper ARI | paper H | "
-             "paper C | paper Vm |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
-    for views, r in rows.items():
+def _ms(runs: list[dict], path: str, nd: int = 2) -> str:
+    """A result across training seeds: ``mean ± sd`` (sample sd), or the value for one seed."""
+    v = np.array([float(_get(r, path)) for r in runs])
+    if len(v) == 1:
+        return f"{v[0]:.{nd}f}"
+    return f"{v.mean():.{nd}f} ± {v.std(ddof=1):.{nd}f}"
+
+
+def _seeds_line(runs: list[dict]) -> str:
+    n = len(runs)
+    return (f"One training seed ({runs[0]['seed']})." if n == 1 else
+            f"Mean ± sample standard deviation over {n} training seeds ({', '.join(str(r['seed']) for r in runs)}).")  # fmt: skip
+
+
+def matching_table(runs: list[dict], split: str, paper: dict, title: str) -> list[str]:
+    lines = [f"### {title}", "", _seeds_line(runs) + " ARI, H, C, Vm: means of per-frame scores (the paper's "
+             "protocol); pooled: all detections as one clustering.", "",
+             "| views | method | ARI | H | C | Vm | pooled ARI | pooled Vm | t_pp ms/frame | training s (steps) | "
+             "paper ARI | paper H | paper C | paper Vm |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for views in runs[0]["matching"][split]:
         p = paper.get(int(views))
-        fit = training[f"matcher-{views}"]
+        fit = [r["training"][f"matcher-{views}"] for r in runs]
+        thresholds = ", ".join(str(f["threshold"]) for f in fit)
+        cutoffs = ", ".join(f"{f['geometric_cutoff_px']:g}" for f in fit)
         names = {"gat": "ours (GAT, threshold 0.5: the paper's)",
-                 "gat_chosen": f"ours (GAT, threshold {r['gat_chosen']['threshold']} chosen on dev)",
-                 "geometric": "geometric baseline"}  # fmt: skip
+                 "gat_chosen": f"ours (GAT, threshold chosen on dev: {thresholds})",
+                 "geometric": f"epipolar (cutoff chosen on dev: {cutoffs} px)"}  # fmt: skip
         for m, name in names.items():
-            s = r[m]
+            row = f"matching/{split}/{views}/{m}"
             ref = " | ".join(f"{x:.4f}" for x in p) if (p and m == "gat") else " |  |  | "
-            train = "0 (none)" if m == "geometric" else f"{fit['train_seconds']:.0f} ({fit['train_steps']})"
-            lines.append(f"| {views} | {name} | {s['ari']:.4f} | "
-                         f"{s['homogeneity']:.4f} | {s['completeness']:.4f} | {s['v_measure']:.4f} | "
-                         f"{s['t_pp_ms']:.2f} | {train} | {ref} |")  # fmt: skip
+            steps = "/".join(str(f["train_steps"]) for f in fit[:1])
+            train = "0 (none)" if m == "geometric" else f"{np.mean([f['train_seconds'] for f in fit]):.0f} ({steps})"
+            cells = " | ".join(_ms(runs, f"{row}/{k}", 4) for k in (*MATCHING_SCORES, "pooled_ari", "pooled_v_measure"))
+            lines.append(f"| {views} | {name} | {cells} | {_ms(runs, f'{row}/t_pp_ms')} | {train} | {ref} |")
     return lines + [""]
 
 
-def pose_table(rows: dict) -> list[str]:
+POSE_NAMES = {"ours": "ours", "centroid": "triangulation (pairwise centroid, paper's)", "dlt": "triangulation (DLT)"}
+
+
+def pose_table(runs: list[dict], split: str) -> list[str]:
     lines = []
-    names = {"ours": "ours", "centroid": "triangulation (pairwise centroid, paper's)", "dlt": "triangulation (DLT)"}
     sections = (
-        ("pipeline", "### 3D (Table 6): the whole pipeline, panoptic5, 5 views (5-view GAT proposals at its "
+        ("pipeline", "3D (Table 6): the whole pipeline, panoptic5, 5 views (5-view GAT proposals at its "
                      "dev-chosen threshold; triangulation on the same proposals)", True),
-        ("true_groups", "### 3D, the estimator stage alone: true groupings (people seen in 2+ views)", False),
+        ("true_groups", "3D, the estimator stage alone: true groupings (people seen in 2+ views)", False),
     )
+    metric_cols = ("pcp", "mpjpe_mm", "map", "mean_recall", "completeness")
     for key, title, timed in sections:
-        lines += [title, "",
-                  "| variant | method | MPJPE mm | mAP | mR | PCP | complete % |" + (" t_pp ms | t_3Dg ms | t_3Di ms |" if timed else ""),
+        lines += [f"### {title}; {split} scenes", "", _seeds_line(runs) + " PCP over the 10 limbs, every "
+                  "person counted (a person no method found has every limb wrong).", "",
+                  "| variant | method | PCP | MPJPE mm | mAP | mR | complete % |" + (" t_pp ms | t_3Dg ms | t_3Di ms |" if timed else ""),
                   "|---|---|---|---|---|---|---|" + ("---|---|---|" if timed else "")]  # fmt: skip
-        for variant, by in rows.items():
-            r = by[key]
-            for k, label in names.items():
-                m = r[k]
-                times = (f" {_fmt(m.get('t_pp_ms'))} | {_fmt(m.get('t_3Dg_ms'))} | {_fmt(m.get('t_3Di_ms'))} |"
-                         if timed else "")  # fmt: skip
-                lines.append(f"| D-{variant} | {label} | {m['mpjpe_mm']:.2f} | {m['map']:.2f} | {m['mean_recall']:.2f} | "
-                             f"{m['pcp']:.2f} | {m['completeness']:.2f} |" + times)  # fmt: skip
-            for method in ("centroid", "dlt"):
-                lines.append(f"| D-{variant} | ours, on the keypoints {method} reconstructs | "
-                             f"{r[f'ours_on_{method}_keypoints']['mpjpe_mm']:.2f} | | | | |" + (" | | |" if timed else ""))
+        for variant in runs[0]["pose"][split]:
+            base = f"pose/{split}/{variant}"
+            rows = [(f"{base}/{key}/{k}", label, timed) for k, label in POSE_NAMES.items()]
             if key == "pipeline":
-                for other, label in (("gat_proposals_at_half", "ours, GAT proposals at threshold 0.5 (the paper's)"),
-                                     ("geometric_proposals", "ours, geometric proposals")):  # fmt: skip
-                    m = by[other]["ours"]
-                    lines.append(f"| D-{variant} | {label} | {m['mpjpe_mm']:.2f} | {m['map']:.2f} | "
-                                 f"{m['mean_recall']:.2f} | {m['pcp']:.2f} | {m['completeness']:.2f} | | | |")  # fmt: skip
+                rows += [(f"{base}/gat_proposals_at_half/ours", "ours, GAT proposals at threshold 0.5 (the paper's)", False),
+                         (f"{base}/geometric_proposals/ours", "ours, epipolar proposals", False),
+                         (f"{base}/geometric_proposals/dlt", "triangulation (DLT), epipolar proposals", False)]  # fmt: skip
+            for path, label, with_times in rows:
+                cells = " | ".join(_ms(runs, f"{path}/{k}") for k in metric_cols)
+                times = ""
+                if timed:
+                    times = (" " + " | ".join(_ms(runs, f"{path}/{k}") for k in ("t_pp_ms", "t_3Dg_ms", "t_3Di_ms")) + " |"
+                             if with_times else " | | |")  # fmt: skip
+                lines.append(f"| D-{variant} | {label} | {cells} |" + times)
+            for method in ("centroid", "dlt"):
+                lines.append(f"| D-{variant} | ours, on the keypoints {method} reconstructs | | "
+                             f"{_ms(runs, f'{base}/{key}/ours_on_{method}_keypoints/mpjpe_mm')} | | | |" + (" | | |" if timed else ""))
         lines.append("")
-    lines += ["Paper (CMU Panoptic, GPU; reference numbers, not ours):", "",
-              "| method | MPJPE mm | mAP | mR | t_pp ms | t_3Dg ms | t_3Di ms |", "|---|---|---|---|---|---|---|"]
-    for name, v in PAPER_TABLE6.items():
-        lines.append(f"| {name} | " + " | ".join(f"{x:.2f}" for x in v) + " |")
-    lines += ["", "AP and recall count a pose missing an evaluation keypoint as wrong; MPJPE is over the keypoints a",
-              "method produced (minimum-total-error assignment). Times are per frame, amortised over batched",
-              "chunks of 256 frames on this machine's CPU (the latency of one frame at a time is in",
-              "`python -m benchmarks.run`).", ""]  # fmt: skip
+    lines += pcp_limb_table(runs, split)
     return lines
 
 
-def arp_table(rows: dict, grouping: str, paper: bool = True) -> list[str]:
-    cams = list(next(iter(rows.values()))["reprojection"])
-    lines = [f"### Camera subsets (Table 7): reprojection error per camera, px, mean / median; {grouping}", "",
-             "| model | people | " + " | ".join(cams) + " | MPJPE mm |", "|---|---|" + "---|" * len(cams) + "---|"]
-    for name, m in rows.items():
-        cells = [f"{m['reprojection'][c]['mean']:.1f} / {m['reprojection'][c]['median']:.1f}" for c in cams]
-        lines.append(f"| {name} | {m['people']} | " + " | ".join(cells) + f" | {m['mpjpe_mm']:.1f} |")
+def pcp_limb_table(runs: list[dict], split: str, variant: str = "detected") -> list[str]:
+    """PCP per limb class and the spread over people (D-detected), as the multi-view papers give it."""
+    lines = [f"### PCP per limb and per person (D-{variant}; {split} scenes)", "",
+             "Per person: PCP of each ground-truth person over all their frames; the worst and the median "
+             "person (first seed).", "",
+             "| grouping | method | " + " | ".join(PCP_CLASSES) + " | all | worst person | median person |",
+             "|---|---|" + "---|" * (len(PCP_CLASSES) + 3)]  # fmt: skip
+    for key, grouping in (("pipeline", "GAT proposals"), ("true_groups", "true groups")):
+        for k, label in POSE_NAMES.items():
+            path = f"pose/{split}/{variant}/{key}/{k}"
+            cells = " | ".join(_ms(runs, f"{path}/pcp_by_limb/{c}", 1) for c in PCP_CLASSES)
+            people = np.array(list(_get(runs[0], f"{path}/pcp_by_person").values()), float)
+            spread = f"{people.min():.1f} | {np.median(people):.1f}" if people.size else " | "
+            lines.append(f"| {grouping} | {label} | {cells} | {_ms(runs, f'{path}/pcp', 1)} | {spread} |")
+    return lines + [""]
+
+
+def pose_papers_table() -> list[str]:
+    lines = ["Paper (CMU Panoptic, GPU; reference numbers, not ours):", "",
+             "| method | MPJPE mm | mAP | mR | t_pp ms | t_3Dg ms | t_3Di ms |", "|---|---|---|---|---|---|---|"]
+    for name, v in PAPER_TABLE6.items():
+        lines.append(f"| {name} | " + " | ".join(f"{x:.2f}" for x in v) + " |")
+    return lines + ["", "AP and recall count a pose missing an evaluation keypoint as wrong; MPJPE is over the keypoints a",
+                    "method produced (minimum-total-error assignment). Times are per frame, amortised over batched",
+                    "chunks of 256 frames on this machine's CPU (the latency of one frame at a time is in",
+                    "`python -m benchmarks.run`).", ""]  # fmt: skip
+
+
+def arp_table(runs: list[dict], key: str, grouping: str, paper: bool = True) -> list[str]:
+    first = runs[0][key]
+    cams = list(next(iter(first.values()))["reprojection"])
+    lines = [f"### Camera subsets (Table 7): reprojection error per camera, px, mean / median; {grouping}; test scenes", "",
+             _seeds_line(runs), "",
+             "| model | people | " + " | ".join(cams) + " | MPJPE mm | PCP |", "|---|---|" + "---|" * len(cams) + "---|---|"]  # fmt: skip
+    for name in first:
+        cells = [f"{_ms(runs, f'{key}/{name}/reprojection/{c}/mean', 1)} / {_ms(runs, f'{key}/{name}/reprojection/{c}/median', 1)}"
+                 for c in cams]  # fmt: skip
+        lines.append(f"| {name} | {_ms(runs, f'{key}/{name}/people', 0)} | " + " | ".join(cells)
+                     + f" | {_ms(runs, f'{key}/{name}/mpjpe_mm', 1)} | {_ms(runs, f'{key}/{name}/pcp', 1)} |")  # fmt: skip
     if paper:
         lines += ["", "Paper (ARP Laboratory, cameras W0-W3 walls, R0-R1 robot; reference numbers, not ours):", "",
                   "| model | W0 | W1 | W2 | W3 | R0 | R1 |", "|---|---|---|---|---|---|---|"]  # fmt: skip
@@ -489,64 +593,93 @@ def arp_table(rows: dict, grouping: str, paper: bool = True) -> list[str]:
     wall = [c for c in cams if c not in ROBOT]
     lines.append("")
     for stat in ("median", "mean"):
-        r26 = np.mean([rows["M_2/6"]["reprojection"][c][stat] for c in wall])
-        r22 = np.mean([rows["M_2/2"]["reprojection"][c][stat] for c in wall])
-        lines += [f"Wall cameras, mean of {stat}s: M_2/6 {r26:.1f} px, M_2/2 {r22:.1f} px ({r22 / r26:.2f}x).", ""]
+        r26 = [np.mean([r[key]["M_2/6"]["reprojection"][c][stat] for c in wall]) for r in runs]
+        r22 = [np.mean([r[key]["M_2/2"]["reprojection"][c][stat] for c in wall]) for r in runs]
+        ratio = np.array(r22) / np.array(r26)
+        lines += [f"Wall cameras, mean of {stat}s: M_2/6 {np.mean(r26):.1f} px, M_2/2 {np.mean(r22):.1f} px "
+                  f"({ratio.mean():.2f}x; per seed {', '.join(f'{x:.2f}' for x in ratio)}).", ""]  # fmt: skip
     return lines
 
 
 # --------------------------------------------------------------------------- experiments
 
 
-def paper_panoptic(sc: Scale, seed: int, out: Path, progress: bool) -> tuple[dict, list[str]]:
-    data = make_data("panoptic5", sc, seed, progress)
-    rig = data.rig
+def paper_panoptic(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool) -> tuple[list[dict], list[str]]:
+    rig = load_rig("panoptic5")
+    scenes = make_scenes(rig, sc, data_seed)
     views = {2: rig.names[:2], 3: rig.names[:3], 5: rig.names}
-    res = {"matching": {}, "training": {}}
-    matchers = {}
-    for n, cams in views.items():
-        print(f"== matcher, {n} views: {', '.join(cams)}", flush=True)
-        matchers[n], res["training"][f"matcher-{n}"] = fit_matcher(data, sc, cams, seed, progress)
-        res["matching"][str(n)] = matching_rows(data, matchers[n], cams, res["training"][f"matcher-{n}"]["threshold"])
-    print("== estimator, 5 views", flush=True)
-    est, res["training"]["estimator"] = fit_estimator(data, sc, rig.names, rig.names, seed, progress)
-    print("== evaluating the pipeline", flush=True)
-    res["pose"], samples = pose_rows(data, matchers[5], est, res["training"]["matcher-5"]["threshold"])
-    res["figures"] = sample_figures(samples, rig, data.tests[0].layout, out / "figures")
-    res["figures"].append(_curves(res["training"], out / "figures"))
-    lines = matching_table(res["matching"], PAPER_TABLE3, "Matching (Table 3): panoptic5, test frames with 1-8 people",
-                           res["training"])  # fmt: skip
-    lines += pose_table(res["pose"])
-    return res, lines
+    runs = []
+    for i, seed in enumerate(seeds):
+        data = make_data(rig, scenes, sc, seed, progress)
+        res = {"seed": seed, "matching": {s: {} for s in SPLITS}, "training": {}, "pose": {}}
+        matchers = {}
+        for n, cams in views.items():
+            print(f"== seed {seed}: matcher, {n} views: {', '.join(cams)}", flush=True)
+            matchers[n], fit = fit_matcher(data, sc, cams, seed, progress)
+            res["training"][f"matcher-{n}"] = fit
+            for split in SPLITS:
+                res["matching"][split][str(n)] = matching_rows(data, split, matchers[n], cams, fit)
+        print(f"== seed {seed}: estimator, 5 views", flush=True)
+        est, res["training"]["estimator"] = fit_estimator(data, sc, rig.names, rig.names, seed, progress)
+        print(f"== seed {seed}: evaluating the pipeline", flush=True)
+        for split in SPLITS:
+            res["pose"][split], samples = pose_rows(data, split, matchers[5], est, res["training"]["matcher-5"])
+            if i == 0 and split == "test":
+                res["figures"] = sample_figures(samples, rig, data.scenes["test"][0].layout, out / "figures")
+                res["figures"].append(_curves(res["training"], out / "figures"))
+        runs.append(res)
+        _save_partial(runs, out)
+    lines = ["## Test scenes (the reported results; read only for this table)", ""]
+    lines += matching_table(runs, "test", PAPER_TABLE3, "Matching (Table 3): panoptic5, test scenes with 1-8 people")
+    lines += pose_table(runs, "test") + pose_papers_table()
+    lines += ["## Validation scenes (where settings are chosen)", ""]
+    lines += matching_table(runs, "validation", PAPER_TABLE3, "Matching: panoptic5, validation scenes with 1-8 people")
+    lines += pose_table(runs, "validation")
+    return runs, lines
 
 
-def paper_arp(sc: Scale, seed: int, out: Path, progress: bool) -> tuple[dict, list[str]]:
-    data = make_data("arplab6", sc, seed, progress)
-    rig = data.rig
-    res = {"matching": {}, "training": {}}
-    matchers = {}
-    for n, cams in ((2, ROBOT), (6, rig.names)):
-        print(f"== matcher, {n} views", flush=True)
-        matchers[n], res["training"][f"matcher-{n}"] = fit_matcher(data, sc, cams, seed, progress)
-        res["matching"][str(n)] = matching_rows(data, matchers[n], cams, res["training"][f"matcher-{n}"]["threshold"])
+def paper_arp(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool) -> tuple[list[dict], list[str]]:
+    rig = load_rig("arplab6")
+    scenes = make_scenes(rig, sc, data_seed)
+    runs = []
     models = {"M_1/6": (rig.names, ROBOT[:1]), "M_2/6": (rig.names, ROBOT), "M_6/6": (rig.names, rig.names),
               "M_2/2": (ROBOT, ROBOT)}  # fmt: skip
-    estimators = {}
-    for name, (train_cams, infer_cams) in models.items():
-        print(f"== estimator {name}", flush=True)
-        estimators[name], res["training"][f"estimator {name}"] = fit_estimator(data, sc, train_cams, infer_cams,
-                                                                                seed, progress)  # fmt: skip
-    print("== evaluating", flush=True)
-    res["camera_subsets"] = arp_rows(data, matchers[6], estimators, "true")
-    res["camera_subsets_proposals"] = arp_rows(data, matchers[6], estimators, "proposals",
-                                               res["training"]["matcher-6"]["threshold"])
-    res["figures"] = [_curves(res["training"], out / "figures")]
-    lines = matching_table(res["matching"], PAPER_TABLE4, "Matching (Table 4): arplab6, test frames with 1-8 people",
-                           res["training"])  # fmt: skip
-    lines += arp_table(res["camera_subsets"], "true skeleton groups (the 3D stage alone)")
-    lines += arp_table(res["camera_subsets_proposals"], "grouped by the 6-view GAT proposals (whole pipeline)",
+    for i, seed in enumerate(seeds):
+        data = make_data(rig, scenes, sc, seed, progress)
+        res = {"seed": seed, "matching": {s: {} for s in SPLITS}, "training": {}}
+        matchers = {}
+        for n, cams in ((2, ROBOT), (6, rig.names)):
+            print(f"== seed {seed}: matcher, {n} views", flush=True)
+            matchers[n], fit = fit_matcher(data, sc, cams, seed, progress)
+            res["training"][f"matcher-{n}"] = fit
+            for split in SPLITS:
+                res["matching"][split][str(n)] = matching_rows(data, split, matchers[n], cams, fit)
+        estimators = {}
+        for name, (train_cams, infer_cams) in models.items():
+            print(f"== seed {seed}: estimator {name}", flush=True)
+            estimators[name], res["training"][f"estimator {name}"] = fit_estimator(data, sc, train_cams, infer_cams,
+                                                                                    seed, progress)  # fmt: skip
+        print(f"== seed {seed}: evaluating", flush=True)
+        res["camera_subsets"] = arp_rows(data, "test", matchers[6], estimators, "true")
+        res["camera_subsets_proposals"] = arp_rows(data, "test", matchers[6], estimators, "proposals",
+                                                   res["training"]["matcher-6"]["threshold"])  # fmt: skip
+        if i == 0:
+            res["figures"] = [_curves(res["training"], out / "figures")]
+        runs.append(res)
+        _save_partial(runs, out)
+    lines = ["## Test scenes (the reported results; read only for these tables)", ""]
+    lines += matching_table(runs, "test", PAPER_TABLE4, "Matching (Table 4): arplab6, test scenes with 1-8 people")
+    lines += arp_table(runs, "camera_subsets", "true skeleton groups (the 3D stage alone)")
+    lines += arp_table(runs, "camera_subsets_proposals", "grouped by the 6-view GAT proposals (whole pipeline)",
                        paper=False)  # fmt: skip
-    return res, lines
+    lines += ["## Validation scenes (where settings are chosen)", ""]
+    lines += matching_table(runs, "validation", PAPER_TABLE4, "Matching: arplab6, validation scenes with 1-8 people")
+    return runs, lines
+
+
+def _save_partial(runs: list[dict], out: Path) -> None:
+    """The seeds finished so far (a long multi-seed run keeps them if it is stopped)."""
+    atomic_write_text(out / "runs_partial.json", json.dumps(_jsonable(runs), indent=1) + "\n")
 
 
 def _curves(training: dict, folder: Path) -> str:
@@ -554,26 +687,27 @@ def _curves(training: dict, folder: Path) -> str:
     return str(save_figure(fig, folder / "training_curves.png"))
 
 
-def synthetic_summary(sc: Scale, seed: int, out: Path, progress: bool) -> tuple[dict, list[str]]:
+def synthetic_summary(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool) -> tuple[list[dict], list[str]]:
     """A recording's contents and the triangulation baseline on its true groupings (no training)."""
     rig = load_rig("panoptic5")
-    rec = generate_recording(rig, num_people=4, num_frames=max(30, 12 * sc.test_frames), seed=seed, progress=progress)
+    rec = generate_recording(rig, num_people=4, num_frames=max(30, 12 * sc.test_frames), seed=data_seed,
+                             progress=progress)  # fmt: skip
     ident = np.asarray(rec.identity)
     score = np.asarray(rec.detections.score)
     G = rec.ground_truth.valid.shape[1]
-    res = {"frames": rec.num_frames, "people": G, "variants": {}}
+    res = {"seed": data_seed, "frames": rec.num_frames, "people": G, "variants": {}}
     lines = ["### Triangulation on the true groupings, panoptic5 (4 people)", "",
-             "| variant | method | MPJPE mm | mAP | mR | complete % |", "|---|---|---|---|---|---|"]  # fmt: skip
+             "| variant | method | PCP | MPJPE mm | mAP | mR | complete % |", "|---|---|---|---|---|---|---|"]  # fmt: skip
     for name, variant in detection_variants(rec).items():
         xy, sc_ = people_from_identity(np.asarray(variant.detections.xy), score, ident, G)
         for method in ("centroid", "dlt"):
             poses, conf = triangulate_grouped(rig, xy, sc_, method)
-            m = pose_metrics(poses, rec.ground_truth, confidence=conf)
+            m = pose_metrics(poses, rec.ground_truth, confidence=conf, up=up_vector(rig))
             res["variants"].setdefault(name, {})[method] = m
-            lines.append(f"| D-{name} | {method} | {m['mpjpe_mm']:.2f} | {m['map']:.2f} | {m['mean_recall']:.2f} | "
-                         f"{m['completeness']:.2f} |")  # fmt: skip
+            lines.append(f"| D-{name} | {method} | {m['pcp']:.2f} | {m['mpjpe_mm']:.2f} | {m['map']:.2f} | "
+                         f"{m['mean_recall']:.2f} | {m['completeness']:.2f} |")  # fmt: skip
     save_recording(rec, out / "recording.json")
-    return res, lines + [""]
+    return [res], lines + [""]
 
 
 EXPERIMENTS = {"paper-panoptic": paper_panoptic, "paper-arp": paper_arp, "synthetic-summary": synthetic_summary}
@@ -594,7 +728,11 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", choices=("quick", "paper"), default="quick",
                     help="quick: small networks, minutes; paper: the paper's sizes and training lengths")  # fmt: skip
     ap.add_argument("--smoke", action="store_true", help="a seconds-long run of the same code (tests)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="the scenes' seed and the first training seed (default 0)")  # fmt: skip
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="training seeds (seed, seed+1, ...): tables give their mean ± sd (default 1; "
+                         "the reported tables use 3)")  # fmt: skip
     ap.add_argument("--out", type=Path, help="output folder (default results/<experiment>)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
@@ -603,16 +741,23 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     command = " ".join(["python -m experiments.run", *(argv if argv is not None else sys.argv[1:])]).strip()
     t0 = time.perf_counter()
-    res, lines = EXPERIMENTS[args.experiment](SCALES[scale], args.seed, out, not args.no_progress)
+    if args.seeds < 1:
+        ap.error("--seeds must be at least 1")
+    seeds = [args.seed + i for i in range(args.seeds)]
+    runs, lines = EXPERIMENTS[args.experiment](SCALES[scale], seeds, args.seed, out, not args.no_progress)
     seconds = time.perf_counter() - t0
-    meta = {"experiment": args.experiment, "scale": scale, "seed": args.seed, "command": command,
+    meta = {"experiment": args.experiment, "scale": scale, "seed": args.seed, "seeds": seeds, "command": command,
             "seconds": round(seconds, 1), "machine": machine()}  # fmt: skip
     head = [f"# {args.experiment} ({scale} scale)", "",
             f"Command: `{command}`; {seconds / 60:.1f} min on {meta['machine']['cpu']} "
             f"({meta['machine']['cores']} cores, jax {meta['machine']['jax']}, {meta['machine']['device']}).",
-            "Synthetic data on the paper's real camera geometry; trained from scratch in this run, no 3D labels.", ""]  # fmt: skip
+            "Synthetic data on the paper's real camera geometry; trained from scratch in this run, no 3D labels.",
+            "Splits: single-person training and dev recordings per training seed; multi-person validation scenes",
+            "(every setting a person picks is picked on them) and test scenes (read only for the reported",
+            f"tables), both from seed {args.seed}. Proposal settings (GAT threshold, epipolar cutoff) are chosen on",
+            "frames composed from the dev recordings.", ""]  # fmt: skip
     text = "\n".join(head + lines) + "\n"
-    atomic_write_text(out / "metrics.json", json.dumps({**meta, "results": _jsonable(res)}, indent=1) + "\n")
+    atomic_write_text(out / "metrics.json", json.dumps({**meta, "runs": _jsonable(runs)}, indent=1) + "\n")
     atomic_write_text(out / "tables.md", text)
     print(text)
     print(f"wrote {out}/metrics.json, tables.md and figures/")

@@ -299,6 +299,8 @@ class SkeletonPool:
     main: np.ndarray  # (T, C, P) bool, the main skeleton of its view (the recording's person)
     starts: np.ndarray  # (R,) first pooled frame of each recording
     lengths: np.ndarray  # (R,) frames of each recording
+    xy: np.ndarray | None = None  # (T, C, P, K, 2) the detections themselves, pixels
+    score: np.ndarray | None = None  # (T, C, P, K), 0 = missing
 
     @property
     def num_recordings(self) -> int:
@@ -317,7 +319,7 @@ def make_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
     """
     if not recordings:
         raise InputError("no recordings to train the matcher on", field="recordings")
-    feats, valid, main, lengths = [], [], [], []
+    feats, valid, main, lengths, raw_xy, raw_score = [], [], [], [], [], []
     K = None
     for r, rec in enumerate(recordings):
         missing = [c for c in rig.names if c not in rec.cameras]
@@ -337,6 +339,8 @@ def make_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
         best = n_kp.argmax(-1)
         is_main = (np.arange(score.shape[2])[None, None] == best[..., None]) & ok
         feats.append(detection_features(rig, xy, score))
+        raw_xy.append(xy)
+        raw_score.append(np.where(ok[..., None], score, 0.0))
         valid.append(ok)
         main.append(is_main)
         lengths.append(rec.num_frames)
@@ -351,6 +355,8 @@ def make_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
         main=np.concatenate([pad(m) for m in main]),
         starts=np.concatenate([[0], np.cumsum(lengths)[:-1]]),
         lengths=lengths,
+        xy=np.concatenate([pad(a) for a in raw_xy]),
+        score=np.concatenate([pad(a) for a in raw_score]),
     )
 
 
@@ -363,7 +369,8 @@ def compose_samples(
     subset_probability: float = 0.5,
     min_views: int = 2,
     keypoint_dropout: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    with_detections: bool = False,
+) -> tuple[np.ndarray, ...]:
     """Multi-person training frames from single-person ones (DESIGN.md §1.2), vectorised.
 
     Each sample takes ``n`` frames of ``n`` different recordings, ``n`` uniform in
@@ -378,7 +385,9 @@ def compose_samples(
 
     Returns:
       features (S, C, Q, K*10), valid (S, C, Q), identity (S, C, Q) with Q = n_max * P; identity
-      is the sample's person slot for main skeletons and -1 for false detections.
+      is the sample's person slot for main skeletons and -1 for false detections. With
+      ``with_detections`` also the composed skeletons themselves, xy (S, C, Q, K, 2) and score
+      (S, C, Q, K) (0 where dropped, missing or not valid), drawn with the same random numbers.
     """
     R = pool.num_recordings
     n_max = max(1, min(R, max_people))
@@ -401,6 +410,7 @@ def compose_samples(
     feats = to_views(pool.features[t]).reshape(S, C, n_max * P, KF)
     valid = to_views(pool.valid[t]) & active[:, None, :, None] & kept[:, :, None, None]
     main = to_views(pool.main[t])
+    keep = None
     if keypoint_dropout > 0:
         K = KF // NUM_KEYPOINT_FEATURES
         Q = n_max * P
@@ -413,7 +423,15 @@ def compose_samples(
         feats = (per_keypoint * keep[..., None]).reshape(S, C, Q, KF)
     slot = np.broadcast_to(np.arange(n_max)[None, None, :, None], main.shape)
     identity = np.where(main, slot, -1)
-    return feats, valid.reshape(S, C, n_max * P), identity.reshape(S, C, n_max * P)
+    valid = valid.reshape(S, C, n_max * P)
+    if not with_detections:
+        return feats, valid, identity.reshape(S, C, n_max * P)
+    K = pool.score.shape[-1]
+    xy = to_views(pool.xy[t]).reshape(S, C, n_max * P, K, 2)
+    score = to_views(pool.score[t]).reshape(S, C, n_max * P, K) * valid[..., None]
+    if keep is not None:
+        score = score * keep
+    return feats, valid, identity.reshape(S, C, n_max * P), xy, score
 
 
 def sample_batches(

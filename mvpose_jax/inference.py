@@ -402,16 +402,31 @@ def geometric_match_table(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The non-learned baseline: scores from the symmetric epipolar distance of skeleton pairs.
 
-    The distance of a pair is the mean, over keypoints seen in both views, of the symmetric
-    epipolar distance of the undistorted pixels; ``score = 2^(-d / half_score_px)`` is 0.5 at
-    ``half_score_px`` (so the proposal threshold 0.5 means ``d < half_score_px``), and 0 when fewer
-    than ``min_shared`` keypoints are shared.
+    ``score = 2^(-d / half_score_px)`` of the pair's distance d (`epipolar_match_distances`) is 0.5
+    at ``half_score_px`` (so the proposal threshold 0.5 means ``d < half_score_px``: the two
+    settings act only through that one cutoff), and 0 when fewer than ``min_shared`` keypoints
+    are shared.
 
     Args:
       rig: the C cameras of the detections, in their order.
       detections: xy (F, C, P, K, 2), score (F, C, P, K), count (F, C).
     Returns:
       rows (M, 5) and scores (M,), as `gat_match_table`.
+    """
+    rows, d = epipolar_match_distances(rig, detections, min_shared=min_shared, frames_per_call=frames_per_call)
+    return rows, np.exp2(-d / half_score_px).astype(np.float32)
+
+
+def epipolar_match_distances(
+    rig: Rig, detections: Detections, *, min_shared: int = 3, frames_per_call: int = FRAMES_PER_CALL
+) -> tuple[np.ndarray, np.ndarray]:
+    """The symmetric epipolar distance of every cross-view skeleton pair of every frame.
+
+    The distance of a pair is the mean, over keypoints seen in both views, of the symmetric
+    epipolar distance of the undistorted pixels; inf when fewer than ``min_shared`` are shared.
+
+    Returns:
+      rows (M, 5) as `gat_match_table`, distances (M,) pixels.
     """
     xy = np.asarray(detections.xy, np.float32)
     score = np.asarray(detections.score, np.float32)
@@ -432,8 +447,7 @@ def geometric_match_table(
     both = ok[:, pairs[:, 0], :, None] & ok[:, pairs[:, 1], None, :]  # (F, Q, P, P)
     f, q, pa, pb = np.nonzero(both)
     rows = np.stack([f, pairs[q, 0], pa, pairs[q, 1], pb], axis=1).astype(np.int64)
-    d = dist[q, f, pa, pb]
-    return rows, np.exp2(-d / half_score_px).astype(np.float32)
+    return rows, dist[q, f, pa, pb]
 
 
 class Proposals(NamedTuple):
@@ -539,44 +553,62 @@ def _proposals_from_roots(root: np.ndarray, ok: np.ndarray, min_views: int) -> P
     return Proposals(identity, [table[f, : num[f]] for f in range(F)])
 
 
+def composed_frames(
+    rig: Rig,
+    recordings: Sequence,
+    *,
+    num_samples: int = 1024,
+    seed: int = 0,
+    max_people: int = 8,
+    subset_probability: float = 0.5,
+    min_views: int = 2,
+    keypoint_dropout: float = 0.0,
+) -> tuple[Detections, np.ndarray]:
+    """Multi-person frames composed from single-person recordings, with their true identities.
+
+    Composed as the matcher's training composes them (`graphs.compose_samples`), so held-out
+    single-person recordings give a labelled multi-person set without a single label: the set
+    every proposal setting is chosen on (the GAT's threshold, the epipolar matcher's cutoff).
+
+    Args:
+      rig: the cameras to compose in (every recording must hold them).
+      recordings: single-person recordings.
+      num_samples: composed frames; the other settings as `graphs.compose_samples`.
+    Returns:
+      (`Detections` (S, C, Q, ...) with each view's skeletons first, identity (S, C, Q): the
+      frame's person of each skeleton, -1 for false detections and padding).
+    """
+    pool = make_pool(rig, recordings)
+    _, valid, ident, xy, score = compose_samples(
+        pool, np.random.default_rng([seed, 1 << 29]), num_samples, max_people=max_people,
+        subset_probability=subset_probability, min_views=min_views, keypoint_dropout=keypoint_dropout,
+        with_detections=True,
+    )  # fmt: skip
+    # Each view's skeletons first, padding after: the layout `count` describes.
+    order = np.argsort(~valid, axis=-1, kind="stable")
+    valid = np.take_along_axis(valid, order, axis=-1)
+    xy = np.take_along_axis(xy, order[..., None, None], axis=2)
+    score = np.take_along_axis(score, order[..., None], axis=2)
+    ident = np.where(valid, np.take_along_axis(ident, order, axis=-1), -1)
+    return Detections(xy.astype(np.float32), score.astype(np.float32), valid.sum(-1).astype(np.int32)), ident
+
+
 def composed_match_table(
     matcher: Matcher, recordings: Sequence, *, num_samples: int = 1024, seed: int = 0,
     frames_per_call: int = FRAMES_PER_CALL,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The matcher's scores on multi-person frames composed from single-person recordings.
+    """The matcher's scores on frames composed from single-person recordings (`composed_frames`,
+    with the matcher's own composition settings), for `metrics.choose_proposal_threshold`.
 
-    The frames are composed as training composes them (`graphs.compose_samples` with the
-    matcher's own settings), so their true identities come free: held-out single-person
-    recordings give a labelled multi-person set without a single label (for
-    `metrics.choose_proposal_threshold`).
-
-    Args:
-      matcher: a trained `Matcher`.
-      recordings: single-person recordings holding the matcher's cameras.
-      num_samples: composed frames.
     Returns:
-      rows (M, 5) and scores (M,) as `gat_match_table`, identity (S, C, Q) (the frame's person
-      of each skeleton, -1 for false detections and padding) and count (S, C).
+      rows (M, 5) and scores (M,) as `gat_match_table`, identity (S, C, Q) and count (S, C).
     """
     cfg = matcher.config
-    pool = make_pool(matcher.rig, recordings)
-    feats, valid, ident = compose_samples(pool, np.random.default_rng([seed, 1 << 29]), num_samples,
-                                          max_people=cfg.max_people, subset_probability=cfg.subset_probability,
-                                          min_views=cfg.min_views, keypoint_dropout=cfg.keypoint_dropout)  # fmt: skip
-    # Each view's skeletons first, padding after: the layout `count` describes.
-    order = np.argsort(~valid, axis=-1, kind="stable")
-    feats = np.take_along_axis(feats, order[..., None], axis=2)
-    valid = np.take_along_axis(valid, order, axis=-1)
-    ident = np.where(valid, np.take_along_axis(ident, order, axis=-1), -1)
-    rows, scores = [], []
-    for start in range(0, num_samples, frames_per_call):
-        sl = slice(start, min(num_samples, start + frames_per_call))
-        batch = build_graphs(feats[sl], valid[sl], num_graphs=frames_per_call)
-        r, sc = match_table(batch, match_scores(matcher, batch))
-        r[:, 0] += start
-        rows.append(r)
-        scores.append(sc)
-    return np.concatenate(rows), np.concatenate(scores), ident, valid.sum(-1)
+    det, ident = composed_frames(matcher.rig, recordings, num_samples=num_samples, seed=seed,
+                                 max_people=cfg.max_people, subset_probability=cfg.subset_probability,
+                                 min_views=cfg.min_views, keypoint_dropout=cfg.keypoint_dropout)  # fmt: skip
+    rows, scores = gat_match_table(matcher, det, frames_per_call=frames_per_call)
+    return rows, scores, ident, np.asarray(det.count)
 
 
 def propose_with_matcher(matcher: Matcher, detections: Detections, *, threshold: float = 0.5,

@@ -11,9 +11,13 @@
     the threshold and its ground truth is not taken yet. For AP and recall a prediction must be
     complete: a ground-truth evaluation keypoint it did not produce makes its error infinite
     (``require_complete``; this is what makes the paper's triangulation, 22.63 mm MPJPE, score
-    a lower mAP and mR than its network). PCP (a bone is correct when the mean error of its two
-    ends is at most half its length); completeness (share of ground-truth keypoints that got a
-    prediction).
+    a lower mAP and mR than its network); completeness (share of ground-truth keypoints that
+    got a prediction).
+  * `pcp_scores`: PCP over the literature's 10 limbs (head, torso, upper and lower arms and legs;
+    a limb is correct when the mean error of its two ends is at most half its true length), per
+    limb class and per person; every limb of a ground-truth person nobody predicted is wrong.
+  * Every frame counts: predictions must cover the ground truth's frames, and a frame where a
+    method proposed nobody scores its people as missed.
   * `reprojection_errors`: per camera, the pixel distances between projected predictions and the
     detections they came from (mean and median; the paper's Table 7, no ground truth needed).
 """
@@ -23,7 +27,6 @@ from __future__ import annotations
 import numpy as np
 
 from mvpose_jax.cameras import Rig, project_points
-from mvpose_jax.inference import propose_people
 from mvpose_jax.skeletons import Poses3D, evaluation_keypoints, get_layout
 
 AP_THRESHOLDS_MM = (25, 50, 75, 100, 125, 150)
@@ -83,53 +86,61 @@ def pose_metrics(
     confidence: np.ndarray | None = None,
     thresholds_mm: tuple[float, ...] = AP_THRESHOLDS_MM,
     require_complete: bool = True,
-) -> dict[str, float]:
-    """The paper's 3D metrics over a recording.
+    up: np.ndarray | None = None,
+    person_ids: np.ndarray | None = None,
+) -> dict:
+    """The paper's 3D metrics over a recording, every frame and every ground-truth person counted.
 
     Args:
-      pred: predicted `Poses3D` (F, P, K); keypoints not produced have keypoint_valid False.
-      gt: ground truth `Poses3D` (F, G, K).
+      pred: predicted `Poses3D` (F, P, K); keypoints not produced have keypoint_valid False, and a
+        non-finite keypoint counts as not produced. A frame with no prediction is a frame where
+        the method found nobody: its people count as missed, never skipped.
+      gt: ground truth `Poses3D` (F, G, K), the same F frames.
       layout: keypoint layout (the evaluation keypoints are all but eyes and ears).
       confidence: optional (F, P) ranking score of each prediction for AP (default: all equal,
         ranked by frame order).
       require_complete: for AP and recall, a prediction missing an evaluation keypoint of its
         ground truth is never correct.
+      up, person_ids: for PCP, see `pcp_scores`.
     Returns:
-      mpjpe_mm, ap_<th> (percent) per threshold, map, mean_recall (percent), pcp (percent),
-      completeness (percent), num_gt, num_pred.
+      mpjpe_mm, ap_<th> (percent) per threshold, map, mean_recall (percent), pcp (percent, 10
+      limbs, missed people's limbs wrong) with pcp_by_limb and pcp_by_person, completeness
+      (percent of ground-truth keypoints produced), num_gt, num_pred.
+    Raises:
+      ValueError when the predictions and the ground truth do not cover the same frames.
     """
-    pred = Poses3D(*(np.asarray(a) for a in pred))
+    pred = _finite_only(Poses3D(*(np.asarray(a) for a in pred)))
     gt = Poses3D(*(np.asarray(a) for a in gt))
+    if pred.valid.shape[0] != gt.valid.shape[0]:
+        raise ValueError(f"predictions cover {pred.valid.shape[0]} frames, the ground truth {gt.valid.shape[0]}: "
+                         "every frame must be scored")  # fmt: skip
     kps = evaluation_keypoints(layout)
-    lay = get_layout(layout)
-    bones = [(a, b) for a, b in lay.bones if a in kps and b in kps]
 
-    # MPJPE, PCP and completeness over the minimum-total-error matching.
-    errors, pcp_hits, pcp_total, produced, gt_kp_total = [], 0, 0, 0, 0
+    # MPJPE and completeness over the minimum-total-error matching.
+    errors, produced = [], 0
     matches = match_people(pred, gt, kps)
+    gt_kp_total = int(gt.keypoint_valid[gt.valid][:, kps].sum())
     for f, (pi, gi) in enumerate(matches):
-        gt_kp_total += int(gt.keypoint_valid[f][gt.valid[f]][:, kps].sum())
         for p, g in zip(pi, gi, strict=True):
             both = pred.keypoint_valid[f, p, kps] & gt.keypoint_valid[f, g, kps]
             d = np.linalg.norm(pred.xyz[f, p, kps] - gt.xyz[f, g, kps], axis=-1)
             errors.append(d[both])
             produced += int(both.sum())
-            for a, b in bones:
-                if gt.keypoint_valid[f, g, a] and gt.keypoint_valid[f, g, b]:
-                    pcp_total += 1
-                    if pred.keypoint_valid[f, p, a] and pred.keypoint_valid[f, p, b]:
-                        length = np.linalg.norm(gt.xyz[f, g, a] - gt.xyz[f, g, b])
-                        ea = np.linalg.norm(pred.xyz[f, p, a] - gt.xyz[f, g, a])
-                        eb = np.linalg.norm(pred.xyz[f, p, b] - gt.xyz[f, g, b])
-                        pcp_hits += int((ea + eb) / 2 <= 0.5 * length)
     all_err = np.concatenate(errors) if errors else np.zeros(0)
     out = {
         "mpjpe_mm": float(all_err.mean() * 1000) if all_err.size else float("nan"),
-        "pcp": 100.0 * pcp_hits / max(pcp_total, 1),
         "completeness": 100.0 * produced / max(gt_kp_total, 1),
     }
+    out.update(pcp_scores(pred, gt, matches, layout=layout, up=up, person_ids=person_ids))
     out.update(_ap_and_recall(pred, gt, kps, confidence, thresholds_mm, require_complete))
     return out
+
+
+def _finite_only(poses: Poses3D) -> Poses3D:
+    """A non-finite keypoint is one the method failed to produce (so it is scored as missing)."""
+    finite = np.isfinite(poses.xyz).all(-1)
+    kv = poses.keypoint_valid.astype(bool) & finite & poses.valid.astype(bool)[..., None]
+    return Poses3D(np.where(kv[..., None], poses.xyz, 0.0), poses.valid.astype(bool), kv)
 
 
 def _ap_and_recall(pred, gt, kps, confidence, thresholds_mm, require_complete):
@@ -190,6 +201,147 @@ def _average_precision(recall: np.ndarray, precision: np.ndarray) -> float:
         mpre[i] = max(mpre[i], mpre[i + 1])
     idx = np.flatnonzero(mrec[1:] != mrec[:-1])
     return float(np.sum((mrec[idx + 1] - mrec[idx]) * mpre[idx + 1]))
+
+
+# =========================================================================== PCP, 10 limbs
+# The limbs the multi-view literature scores (Shelf, Campus; Belagiannis et al., VoxelPose): head,
+# torso, upper and lower arms, upper and lower legs. Head and torso ends are not COCO keypoints;
+# they are derived from the nose, shoulders and hips as VoxelPose converts COCO poses to Shelf's:
+# the bottom of the head halfway from the shoulders' midpoint to the nose, the top of the head at
+# that offset scaled 0.75 across and 1.5 along the vertical, the torso from the hips' midpoint to
+# the bottom of the head.
+PCP_LIMBS = (
+    ("head", "head_bottom", "head_top"),
+    ("torso", "hip_mid", "head_bottom"),
+    ("l_upper_arm", "l_shoulder", "l_elbow"),
+    ("r_upper_arm", "r_shoulder", "r_elbow"),
+    ("l_lower_arm", "l_elbow", "l_wrist"),
+    ("r_lower_arm", "r_elbow", "r_wrist"),
+    ("l_upper_leg", "l_hip", "l_knee"),
+    ("r_upper_leg", "r_hip", "r_knee"),
+    ("l_lower_leg", "l_knee", "l_ankle"),
+    ("r_lower_leg", "r_knee", "r_ankle"),
+)
+PCP_CLASSES = {
+    "head": ("head",),
+    "torso": ("torso",),
+    "upper_arm": ("l_upper_arm", "r_upper_arm"),
+    "lower_arm": ("l_lower_arm", "r_lower_arm"),
+    "upper_leg": ("l_upper_leg", "r_upper_leg"),
+    "lower_leg": ("l_lower_leg", "r_lower_leg"),
+}
+
+
+def limb_endpoints(
+    xyz: np.ndarray, keypoint_valid: np.ndarray, layout: str, up: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two ends of each of the 10 PCP limbs (`PCP_LIMBS`).
+
+    Args:
+      xyz: (..., K, 3) keypoints; keypoint_valid: (..., K).
+      layout: their keypoint layout (needs nose, shoulders, elbows, wrists, hips, knees, ankles).
+      up: (..., 3) or (3,) unit vertical, for the top of the head.
+    Returns:
+      ends (..., 10, 2, 3) and valid (..., 10): a limb is valid when every keypoint its ends are
+      made of is.
+    """
+    lay = get_layout(layout)
+    xyz = np.asarray(xyz, np.float64)
+    kv = np.asarray(keypoint_valid, bool) & np.isfinite(xyz).all(-1)
+    point = {n: (xyz[..., lay.index(n), :], kv[..., lay.index(n)])
+             for n in ("nose", "l_shoulder", "r_shoulder", "l_hip", "r_hip")}  # fmt: skip
+
+    def mid(a: str, b: str):
+        return 0.5 * (point[a][0] + point[b][0]), point[a][1] & point[b][1]
+
+    shoulders, ok_s = mid("l_shoulder", "r_shoulder")
+    hips, ok_h = mid("l_hip", "r_hip")
+    nose, ok_n = point["nose"]
+    offset = nose - shoulders
+    up = np.broadcast_to(np.asarray(up, np.float64), offset.shape)
+    along = np.sum(offset * up, axis=-1, keepdims=True) * up
+    derived = {
+        "head_bottom": (shoulders + 0.5 * offset, ok_s & ok_n),
+        "head_top": (shoulders + 0.75 * (offset - along) + 1.5 * along, ok_s & ok_n),
+        "hip_mid": (hips, ok_h),
+    }
+
+    def get(name: str):
+        if name in derived:
+            return derived[name]
+        k = lay.index(name)
+        return xyz[..., k, :], kv[..., k]
+
+    ends, valid = [], []
+    for _, a, b in PCP_LIMBS:
+        (pa, va), (pb, vb) = get(a), get(b)
+        ends.append(np.stack([pa, pb], axis=-2))
+        valid.append(va & vb)
+    return np.stack(ends, axis=-3), np.stack(valid, axis=-1)
+
+
+def pcp_scores(
+    pred: Poses3D,
+    gt: Poses3D,
+    matches: list[tuple[np.ndarray, np.ndarray]],
+    *,
+    layout: str = "coco18",
+    up: np.ndarray | None = None,
+    person_ids: np.ndarray | None = None,
+) -> dict:
+    """Percentage of correct parts over the 10 limbs, counting every ground-truth person.
+
+    A limb of a ground-truth person is correct when the person was matched to a prediction that
+    has the limb and the mean of the errors of its two ends is at most half the true limb's length.
+    Every limb of a ground-truth person nobody predicted is wrong (the Shelf/Campus protocol), so a
+    method that drops people cannot score higher for it.
+
+    Args:
+      pred, gt: `Poses3D` (numpy) of the same F frames.
+      matches: per frame (pred_index, gt_index), as `match_people` returns.
+      up: (3,) world vertical for the head's top; None: each ground-truth person's own torso axis
+        (hips' midpoint to shoulders' midpoint), used for its prediction too.
+      person_ids: (F, G) int, who each ground-truth slot is (for the per-person scores); default
+        the slot index.
+    Returns:
+      {"pcp": %, "pcp_by_limb": {class: %}, "pcp_by_person": {id: %}, "pcp_limbs": counted limbs}.
+    """
+    lay = get_layout(layout)
+    gt_xyz = np.asarray(gt.xyz, np.float64)
+    gt_kv = np.asarray(gt.keypoint_valid, bool)
+    if up is None:
+        hips = 0.5 * (gt_xyz[..., lay.index("l_hip"), :] + gt_xyz[..., lay.index("r_hip"), :])
+        shoulders = 0.5 * (gt_xyz[..., lay.index("l_shoulder"), :] + gt_xyz[..., lay.index("r_shoulder"), :])
+        axis = shoulders - hips
+        gt_up = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
+    else:
+        u = np.asarray(up, np.float64)
+        gt_up = np.broadcast_to(u / np.linalg.norm(u), gt_xyz.shape[:-2] + (3,))
+    gt_ends, gt_ok = limb_endpoints(gt_xyz, gt_kv, lay, gt_up)  # (F, G, L, 2, 3), (F, G, L)
+    counted = gt_ok & np.asarray(gt.valid, bool)[..., None]
+    hit = np.zeros_like(counted)
+    for f, (pi, gi) in enumerate(matches):
+        if len(pi) == 0:
+            continue
+        ends, ok = limb_endpoints(pred.xyz[f][pi], pred.keypoint_valid[f][pi], lay, gt_up[f][gi])
+        truth = gt_ends[f][gi]
+        length = np.linalg.norm(truth[..., 0, :] - truth[..., 1, :], axis=-1)
+        err = np.linalg.norm(ends - truth, axis=-1).mean(-1)
+        with np.errstate(invalid="ignore"):
+            hit[f, gi] = ok & counted[f, gi] & (err <= 0.5 * length)
+    pct = lambda h, n: 100.0 * float(h) / max(float(n), 1.0)  # noqa: E731
+    names = [n for n, _, _ in PCP_LIMBS]
+    by_limb = {c: pct(hit[..., [names.index(m) for m in members]].sum(),
+                      counted[..., [names.index(m) for m in members]].sum())
+               for c, members in PCP_CLASSES.items()}  # fmt: skip
+    ids = np.broadcast_to(np.arange(counted.shape[1]), counted.shape[:2]) if person_ids is None else person_ids
+    ids = np.asarray(ids)
+    by_person = {}
+    for pid in np.unique(ids[counted.any(-1)]):
+        sel = ids == pid
+        by_person[int(pid)] = pct(hit[sel].sum(), counted[sel].sum())
+    return {"pcp": pct(hit.sum(), counted.sum()), "pcp_by_limb": by_limb, "pcp_by_person": by_person,
+            "pcp_limbs": int(counted.sum())}  # fmt: skip
 
 
 def reprojection_errors(
@@ -303,32 +455,41 @@ def detection_clusters(identity: np.ndarray, count: np.ndarray) -> np.ndarray:
 
 
 def matching_scores(true_identity: np.ndarray, pred_identity: np.ndarray, count: np.ndarray) -> dict[str, float]:
-    """Clustering scores of proposals against the truth, pooled over all detections of F frames.
+    """Clustering scores of proposals against the truth: per-frame means (the paper's) and pooled.
 
-    Pooled: every detection of the test set is one sample (labels made unique per frame), which is
-    how a dataset-level table is computed; ``frame_mean_*`` adds the mean of per-frame scores.
+    The paper's evaluation scores every frame's detections as one clustering and averages the
+    scores over frames (``ari``, ``homogeneity``, ``completeness``, ``v_measure``); a frame where
+    the method proposed nobody (every detection a singleton) counts like any other. Frames without
+    a single detection have nothing to cluster and are left out of the means (``frames`` counts
+    those scored). ``pooled_*`` scores all detections of all frames as one clustering (labels
+    made unique per frame), which is more lenient: a frame's errors weigh by its size.
 
     Args:
       true_identity: (F, C, P) true person of each detection (-1: false positive, a singleton).
       pred_identity: (F, C, P) proposed person (-1: in no proposal, a singleton).
       count: (F, C) detections per view.
     Returns:
-      {"ari", "homogeneity", "completeness", "v_measure", "frame_mean_ari", "frame_mean_v_measure",
-      "detections", "frames"}.
+      {"ari", "homogeneity", "completeness", "v_measure", "pooled_ari", "pooled_homogeneity",
+      "pooled_completeness", "pooled_v_measure", "detections", "frames"}.
     """
+    count = np.asarray(count)
+    true_identity, pred_identity = np.asarray(true_identity), np.asarray(pred_identity)
+    if true_identity.shape != pred_identity.shape or true_identity.shape[:2] != count.shape:
+        raise ValueError(f"identities {true_identity.shape} and {pred_identity.shape} do not cover "
+                         f"the same detections (count {count.shape})")  # fmt: skip
     t = detection_clusters(true_identity, count)
-    p = detection_clusters(pred_identity, count)
-    out = clustering_scores(t, p)
+    pooled = clustering_scores(t, detection_clusters(pred_identity, count))
     per = [clustering_scores(detection_clusters(true_identity[f : f + 1], count[f : f + 1]),
                              detection_clusters(pred_identity[f : f + 1], count[f : f + 1]))
-           for f in range(len(count))]  # fmt: skip
-    out["frame_mean_ari"] = float(np.mean([s["ari"] for s in per])) if per else 1.0
-    out["frame_mean_v_measure"] = float(np.mean([s["v_measure"] for s in per])) if per else 1.0
+           for f in np.flatnonzero(count.sum(-1) > 0)]  # fmt: skip
+    out = {k: float(np.mean([s[k] for s in per])) if per else 1.0 for k in CLUSTERING_SCORES}
+    out.update({f"pooled_{k}": pooled[k] for k in CLUSTERING_SCORES})
     out["detections"] = float(len(t))
-    out["frames"] = float(len(count))
+    out["frames"] = float(len(per))
     return out
 
 
+CLUSTERING_SCORES = ("ari", "homogeneity", "completeness", "v_measure")
 PROPOSAL_THRESHOLDS = (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 
 
@@ -341,7 +502,7 @@ def choose_proposal_threshold(
     thresholds: tuple[float, ...] = PROPOSAL_THRESHOLDS,
     min_views: int = 2,
 ) -> tuple[float, dict[float, float]]:
-    """The proposal threshold with the best adjusted Rand index on labelled frames.
+    """The proposal threshold with the best (per-frame) adjusted Rand index on labelled frames.
 
     Meant for frames composed from held-out single-person recordings
     (`inference.composed_match_table`): the proposal step's exclusivity (one skeleton per camera
@@ -355,11 +516,54 @@ def choose_proposal_threshold(
     Returns:
       (the threshold, {threshold: ARI}).
     """
+    ari = _ari_by_threshold(rows, scores, identity, count, thresholds, min_views)
+    best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - 0.5)))
+    return best, ari
+
+
+GEOMETRIC_CUTOFFS_PX = (4.0, 6.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0, 60.0, 80.0, 100.0)
+
+
+def choose_geometric_cutoff(
+    rows: np.ndarray,
+    distances_px: np.ndarray,
+    identity: np.ndarray,
+    count: np.ndarray,
+    *,
+    cutoffs_px: tuple[float, ...] = GEOMETRIC_CUTOFFS_PX,
+    prefer_px: float = 30.0,
+    min_views: int = 2,
+) -> tuple[float, dict[float, float]]:
+    """The epipolar matcher's setting, chosen by the GAT threshold's rule (best per-frame ARI).
+
+    The epipolar matcher's score ``2^(-d / half_score_px)`` orders pairs by their distance d
+    whatever ``half_score_px``, so with the proposal threshold it has one effective setting: the
+    distance under which a pair may join (``half_score_px`` at threshold 0.5). Ties go to the
+    cutoff nearest ``prefer_px`` (the pipeline's default).
+
+    Args:
+      rows (M, 5), distances_px (M,): `inference.epipolar_match_distances` of composed frames;
+        identity (F, C, P), count (F, C): their truth.
+    Returns:
+      (the cutoff in pixels, {cutoff: ARI}).
+    """
+    d = np.asarray(distances_px, np.float64)
+    # score > threshold  <=>  -d > -cutoff  <=>  d < cutoff; best first = nearest first.
+    by_neg = _ari_by_threshold(rows, -d, identity, count, tuple(-c for c in cutoffs_px), min_views)
+    ari = {-k: v for k, v in by_neg.items()}
+    best = max(ari, key=lambda c: (round(ari[c], 6), -abs(c - prefer_px)))
+    return best, ari
+
+
+def _ari_by_threshold(rows, scores, identity, count, thresholds, min_views) -> dict[float, float]:
+    # Proposals live above metrics in the layering; imported here so that the metrics of poses
+    # and clusterings load without the model stack.
+    from mvpose_jax.inference import propose_people
+
     count = np.asarray(count)
     P = np.shape(identity)[2]
     ari = {}
     for th in thresholds:
         pred = propose_people(rows, scores, count, num_skeletons=P, threshold=th, min_views=min_views)
         ari[float(th)] = matching_scores(identity, pred.identity, count)["ari"]
-    best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - 0.5)))
-    return best, ari
+    return ari

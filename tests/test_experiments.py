@@ -13,25 +13,37 @@ def test_default_experiment_smoke(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "Table 3" in text and "Table 6" in text and "paper" in text.lower()
     m = json.loads((out / "metrics.json").read_text())
-    assert m["experiment"] == "paper-panoptic" and m["scale"] == "smoke"
-    res = m["results"]
-    assert set(res["matching"]) == {"2", "3", "5"}
-    for row in res["matching"].values():
-        for method in ("gat", "gat_chosen", "geometric"):
-            assert {"ari", "homogeneity", "completeness", "v_measure", "t_pp_ms"} <= set(row[method])
-        # The threshold is chosen on dev frames, from the grid, by their best ARI.
-        th = row["gat_chosen"]["threshold"]
-        assert 0 < th < 1
+    assert m["experiment"] == "paper-panoptic" and m["scale"] == "smoke" and m["seeds"] == [0]
+    (res,) = m["runs"]
+    assert set(res["matching"]) == {"validation", "test"}
+    for split, rows in res["matching"].items():
+        assert set(rows) == {"2", "3", "5"}
+        for n, row in rows.items():
+            for method in ("gat", "gat_chosen", "geometric"):
+                scores = {"ari", "homogeneity", "completeness", "v_measure", "pooled_ari", "pooled_v_measure"}
+                assert scores | {"t_pp_ms"} <= set(row[method])
+            # Both matchers' settings are the ones chosen on dev frames (never on the scenes).
+            fit = res["training"][f"matcher-{n}"]
+            assert row["gat_chosen"]["threshold"] == fit["threshold"]
+            assert row["geometric"]["cutoff_px"] == fit["geometric_cutoff_px"]
+            # Threshold diagnostics are computed on validation scenes only.
+            assert ("ari_by_threshold" in row["gat"]) == (split == "validation")
     for n in ("2", "3", "5"):
         fit = res["training"][f"matcher-{n}"]
-        assert fit["threshold"] == res["matching"][n]["gat_chosen"]["threshold"]
+        assert 0 < fit["threshold"] < 1
         assert fit["dev_ari_by_threshold"][str(fit["threshold"])] == max(fit["dev_ari_by_threshold"].values())
+        assert fit["dev_ari_by_cutoff_px"][str(fit["geometric_cutoff_px"])] == max(fit["dev_ari_by_cutoff_px"].values())
     # The geometric baseline needs no training: even here it groups nearly perfectly.
-    assert res["matching"]["5"]["geometric"]["ari"] > 0.9
-    assert set(res["pose"]) == {"detected", "projected", "average"}
-    for rows in res["pose"].values():
-        assert set(rows) == {"pipeline", "true_groups", "geometric_proposals", "gat_proposals_at_half"}
-        assert {"ours", "centroid", "dlt", "ours_on_dlt_keypoints"} <= set(rows["true_groups"])
+    assert res["matching"]["test"]["5"]["geometric"]["ari"] > 0.9
+    for split in ("validation", "test"):
+        assert set(res["pose"][split]) == {"detected", "projected", "average"}
+        for rows in res["pose"][split].values():
+            assert set(rows) == {"pipeline", "true_groups", "geometric_proposals", "gat_proposals_at_half"}
+            assert {"ours", "centroid", "dlt", "ours_on_dlt_keypoints"} <= set(rows["true_groups"])
+            assert set(rows["true_groups"]["ours"]["pcp_by_limb"]) == {"head", "torso", "upper_arm", "lower_arm",
+                                                                       "upper_leg", "lower_leg"}  # fmt: skip
+    text = (out / "tables.md").read_text()
+    assert text.index("## Test scenes") < text.index("## Validation scenes")
     assert (out / "tables.md").read_text().startswith("# paper-panoptic")
     figures = sorted(p.name for p in (out / "figures").iterdir())
     assert "training_curves.png" in figures and any(f.startswith("frame_") for f in figures)
@@ -41,5 +53,5 @@ def test_synthetic_summary_smoke(tmp_path):
     out = tmp_path / "summary"
     assert main(["--experiment", "synthetic-summary", "--smoke", "--out", str(out), "--no-progress"]) == 0
     m = json.loads((out / "metrics.json").read_text())
-    assert set(m["results"]["variants"]) == {"detected", "projected", "average"}
+    assert set(m["runs"][0]["variants"]) == {"detected", "projected", "average"}
     assert (out / "recording.json").exists()

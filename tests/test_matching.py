@@ -327,3 +327,73 @@ def test_composed_match_table_scores_the_composed_skeletons_with_their_identitie
     again = composed_match_table(matcher, recs, num_samples=40, seed=1, frames_per_call=16)
     np.testing.assert_array_equal(again[0], rows)
     np.testing.assert_allclose(again[1], scores)
+
+
+def test_matching_scores_average_per_frame_and_pool_beside():
+    from sklearn import metrics as sk
+
+    # Frame 0: two people over 3 views, perfectly grouped (6 detections). Frame 1: one person in
+    # two views, split in two (2 detections). Frame 2: nobody proposed at all (3 detections of 2
+    # people, each left a singleton). Frame 3: no detection (nothing to score, left out).
+    true = np.full((4, 3, 2), -1)
+    pred = np.full((4, 3, 2), -1)
+    true[0] = [[0, 1], [1, 0], [0, 1]]
+    pred[0] = [[5, 6], [6, 5], [5, 6]]
+    true[1, :2, 0] = 0
+    pred[1, :2, 0] = [0, 1]
+    true[2, :, 0] = [0, 0, 1]
+    count = np.array([[2, 2, 2], [1, 1, 0], [1, 1, 1], [0, 0, 0]])
+    s = matching_scores(true, pred, count)
+
+    def frame_labels(a, f):
+        ok = np.arange(2)[None] < count[f][:, None]
+        x = a[f][ok]
+        return np.where(x >= 0, x, 100 + np.arange(len(x)))  # -1: a singleton each
+
+    frames = [0, 1, 2]
+    want = np.mean([sk.adjusted_rand_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames])
+    want_v = np.mean([sk.v_measure_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames])
+    assert s["ari"] == pytest.approx(want, abs=1e-12) and s["v_measure"] == pytest.approx(want_v, abs=1e-12)
+    assert s["frames"] == 3 and s["detections"] == 11
+    pooled_t = np.concatenate([frame_labels(true, f) + 1000 * f for f in frames])
+    pooled_p = np.concatenate([frame_labels(pred, f) + 1000 * f for f in frames])
+    assert s["pooled_ari"] == pytest.approx(sk.adjusted_rand_score(pooled_t, pooled_p), abs=1e-12)
+    # Pooling is more lenient: the big perfect frame outweighs the two small failed ones.
+    assert s["pooled_ari"] > s["ari"] + 0.2
+    # Frame 2, where nobody was proposed, is scored (ARI 0), not skipped.
+    without = matching_scores(true[:2], pred[:2], count[:2])
+    assert s["ari"] < without["ari"]
+
+
+def test_composed_frames_are_the_training_composition_as_detections(ring_rig):
+    from mvpose_jax.data.synthetic import generate_single_person_recordings
+    from mvpose_jax.graphs import compose_samples, detection_features, make_pool
+    from mvpose_jax.inference import composed_frames
+
+    recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
+    det, identity = composed_frames(ring_rig, recs, num_samples=30, seed=3, max_people=3, keypoint_dropout=0.4)
+    pool = make_pool(ring_rig, recs)
+    feats, valid, ident = compose_samples(pool, np.random.default_rng([3, 1 << 29]), 30, max_people=3,
+                                          keypoint_dropout=0.4)  # fmt: skip
+    # The same draws: per frame and view, the detections' features are the training features of
+    # the valid skeletons, in order, and the identities theirs.
+    ours = np.asarray(detection_features(ring_rig, det.xy, det.score))
+    count = np.asarray(det.count)
+    np.testing.assert_array_equal(count, valid.sum(-1))
+    for s in range(30):
+        for c in range(ring_rig.num_cameras):
+            n = count[s, c]
+            np.testing.assert_allclose(ours[s, c, :n], feats[s, c][valid[s, c]], atol=1e-6)
+            np.testing.assert_array_equal(identity[s, c, :n], ident[s, c][valid[s, c]])
+            assert (np.asarray(det.score)[s, c, n:] == 0).all() and (identity[s, c, n:] == -1).all()
+
+
+def test_epipolar_distances_give_the_geometric_scores(ring_rig):
+    from mvpose_jax.data.synthetic import generate_recording
+    from mvpose_jax.inference import epipolar_match_distances
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=3, seed=5)
+    rows, scores = geometric_match_table(ring_rig, rec.detections, half_score_px=25.0)
+    rows_d, d = epipolar_match_distances(ring_rig, rec.detections)
+    np.testing.assert_array_equal(rows, rows_d)
+    np.testing.assert_allclose(scores, np.exp2(-d / 25.0), rtol=1e-6)

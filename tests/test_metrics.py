@@ -72,20 +72,102 @@ def test_incomplete_predictions_score_mpjpe_on_what_they_have_but_fail_ap():
     assert m["mean_recall"] == pytest.approx(100.0)
 
 
-def test_pcp_half_limb_rule():
-    gt = _gt(F=1, G=1)
+def _standing(x=0.0, y=0.0):
+    """A hand-placed coco18 person standing at (x, y) with z up: (18, 3) metres."""
+    lay = get_layout("coco18")
+    at = {"nose": (0, 0.05, 1.60), "l_eye": (0.03, 0.06, 1.63), "r_eye": (-0.03, 0.06, 1.63),
+          "l_ear": (0.07, 0, 1.61), "r_ear": (-0.07, 0, 1.61), "l_shoulder": (0.2, 0, 1.45),
+          "r_shoulder": (-0.2, 0, 1.45), "l_elbow": (0.25, 0, 1.15), "r_elbow": (-0.25, 0, 1.15),
+          "l_wrist": (0.27, 0, 0.90), "r_wrist": (-0.27, 0, 0.90), "l_hip": (0.12, 0, 0.95),
+          "r_hip": (-0.12, 0, 0.95), "l_knee": (0.13, 0, 0.52), "r_knee": (-0.13, 0, 0.52),
+          "l_ankle": (0.13, 0, 0.10), "r_ankle": (-0.13, 0, 0.10), "neck": (0, 0, 1.45)}  # fmt: skip
+    return np.array([at[k] for k in lay.keypoints]) + [x, y, 0.0]
+
+
+def test_pcp_is_over_the_10_limbs_with_the_half_limb_rule():
+    gt = _poses(_standing()[None, None])
     lay = get_layout("coco18")
     a, b = lay.index("l_elbow"), lay.index("l_wrist")
-    pred = gt.xyz.copy()
     length = np.linalg.norm(gt.xyz[0, 0, a] - gt.xyz[0, 0, b])
+    pred = gt.xyz.copy()
     pred[0, 0, b] += [0.9 * length, 0, 0]  # the wrist off by 0.9 limb: mean of ends 0.45 < 0.5
-    m_ok = metrics.pose_metrics(_poses(pred), gt)
+    m_ok = metrics.pose_metrics(_poses(pred), gt, up=[0, 0, 1])
     pred[0, 0, b] += [0.2 * length, 0, 0]  # now 1.1 limb: 0.55 > 0.5, the forearm fails
-    m_bad = metrics.pose_metrics(_poses(pred), gt)
-    bones = [(x, y) for x, y in lay.bones if x in metrics.evaluation_keypoints("coco18")
-             and y in metrics.evaluation_keypoints("coco18")]  # fmt: skip
-    assert m_ok["pcp"] == pytest.approx(100.0)
-    assert m_bad["pcp"] == pytest.approx(100.0 * (len(bones) - 1) / len(bones))
+    m_bad = metrics.pose_metrics(_poses(pred), gt, up=[0, 0, 1])
+    assert m_ok["pcp"] == pytest.approx(100.0) and m_ok["pcp_limbs"] == 10
+    assert m_bad["pcp"] == pytest.approx(90.0)
+    assert m_bad["pcp_by_limb"]["lower_arm"] == pytest.approx(50.0)
+    assert all(m_bad["pcp_by_limb"][c] == 100.0 for c in ("head", "torso", "upper_arm", "upper_leg", "lower_leg"))
+
+
+@pytest.mark.parametrize("up", [[0, 0, 1], None])
+def test_pcp_head_and_torso_ends_in_closed_form(up):
+    # Shoulders' midpoint (0, 0, 1.45), nose (0, 0.05, 1.60): offset v = (0, 0.05, 0.15).
+    # Head bottom = mid + v/2 = (0, 0.025, 1.525); head top = mid + 0.75 v_across + 1.5 v_up =
+    # (0, 0.0375, 1.675); head length = |(0, 0.0125, 0.15)| = 0.1505.
+    person = _standing()
+    ends, ok = metrics.limb_endpoints(person, np.ones(18, bool), "coco18", np.array([0.0, 0, 1]))
+    names = [n for n, _, _ in metrics.PCP_LIMBS]
+    np.testing.assert_allclose(ends[names.index("head")], [[0, 0.025, 1.525], [0, 0.0375, 1.675]], atol=1e-12)
+    np.testing.assert_allclose(ends[names.index("torso")], [[0, 0, 0.95], [0, 0.025, 1.525]], atol=1e-12)
+    assert ok.all()
+    # Moving the nose by dx across moves the head's ends by dx/2 and 0.75 dx: mean error
+    # 0.625 dx, correct while 0.625 dx <= 0.1505 / 2, i.e. dx <= 0.1204.
+    gt = _poses(person[None, None])
+    nose = get_layout("coco18").index("nose")
+    for dx, correct in ((0.118, True), (0.123, False)):
+        pred = gt.xyz.copy()
+        pred[0, 0, nose, 0] += dx
+        m = metrics.pose_metrics(_poses(pred), gt, up=up)
+        assert m["pcp_by_limb"]["head"] == (100.0 if correct else 0.0), dx
+        assert m["pcp_by_limb"]["torso"] == 100.0
+
+
+def test_pcp_counts_every_limb_of_a_missed_person_as_wrong():
+    # Three people, one predicted perfectly: PCP 33.3, not 100 (the Shelf/Campus protocol).
+    gt = _poses(np.stack([_standing(0, 0), _standing(2, 0), _standing(0, 2)])[None])
+    pred = _poses(gt.xyz[:, 1:2])
+    m = metrics.pose_metrics(pred, gt, up=[0, 0, 1])
+    assert m["pcp"] == pytest.approx(100 / 3)
+    assert m["pcp_limbs"] == 30
+    assert m["pcp_by_person"] == {0: 0.0, 1: 100.0, 2: 0.0}
+    assert all(v == pytest.approx(100 / 3) for v in m["pcp_by_limb"].values())
+    assert m["mpjpe_mm"] == pytest.approx(0.0, abs=1e-6)  # MPJPE is over the matched person
+    assert m["completeness"] == pytest.approx(100 / 3)
+    assert m["mean_recall"] == pytest.approx(100 / 3)
+
+
+def test_pcp_per_person_follows_the_given_identities():
+    gt = _poses(np.stack([_standing(0, 0), _standing(2, 0)])[None].repeat(2, axis=0))
+    pred = gt.xyz.copy()
+    pred[1, 0] += 1.0  # frame 1: slot 0's prediction is a metre off (every limb wrong)
+    ids = np.array([[7, 8], [8, 7]])  # slot 0 is person 7 in frame 0, person 8 in frame 1
+    m = metrics.pose_metrics(_poses(pred), gt, up=[0, 0, 1], person_ids=ids)
+    assert m["pcp_by_person"] == {7: 100.0, 8: 50.0}
+    assert m["pcp"] == pytest.approx(75.0)
+
+
+def test_every_frame_counts_a_frame_with_nobody_predicted_is_a_miss():
+    gt = _poses(np.stack([_standing(0, 0), _standing(2, 0)])[None].repeat(2, axis=0))
+    valid = np.array([[True, True], [False, False]])  # the method found nobody in frame 1
+    m = metrics.pose_metrics(_poses(gt.xyz, valid=valid), gt, up=[0, 0, 1])
+    assert m["pcp"] == pytest.approx(50.0)
+    assert m["mean_recall"] == pytest.approx(50.0)
+    assert m["completeness"] == pytest.approx(50.0)
+    with pytest.raises(ValueError, match="every frame"):  # a dropped frame is never skipped silently
+        metrics.pose_metrics(_poses(gt.xyz[:1]), gt)
+
+
+def test_non_finite_keypoints_count_as_not_produced():
+    gt = _poses(_standing()[None, None])
+    pred = gt.xyz.copy()
+    wrist = get_layout("coco18").index("l_wrist")
+    pred[0, 0, wrist] = np.nan
+    m = metrics.pose_metrics(_poses(pred), gt, up=[0, 0, 1])
+    assert np.isfinite(m["mpjpe_mm"]) and m["mpjpe_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert m["pcp"] == pytest.approx(90.0)  # the forearm without its wrist is wrong
+    assert m["completeness"] == pytest.approx(100 * 13 / 14)
+    assert m["mean_recall"] == 0.0  # incomplete poses fail AP and recall
 
 
 def test_missing_people_lower_recall():
@@ -124,3 +206,21 @@ def test_choose_proposal_threshold_takes_the_band_that_separates_true_from_false
     assert best == 0.2
     assert ari[0.1] == ari[0.15] == ari[0.2] == pytest.approx(1.0)
     assert ari[0.05] < 1.0 and ari[0.3] < 1.0 and ari[0.5] < 1.0
+
+
+def test_choose_geometric_cutoff_is_a_pixel_distance_with_the_same_rule():
+    # The frame of the threshold test, with distances instead of scores: A-A at 7 px, the false
+    # pairs at 13, 18 and 22 px. Cutoffs from 8 to 12 px keep A-A alone (ARI 1); 12 is nearest 30.
+    identity = np.array([[[0, 1], [0, -1]]])
+    count = np.array([[2, 2]])
+    rows = np.array([[0, 0, 0, 1, 0], [0, 0, 1, 1, 1], [0, 0, 0, 1, 1], [0, 0, 1, 1, 0]])
+    d = np.array([7.0, 13.0, 18.0, 22.0])
+    best, ari = metrics.choose_geometric_cutoff(rows, d, identity, count)
+    assert best == 12.0
+    assert ari[8.0] == ari[10.0] == ari[12.0] == pytest.approx(1.0)
+    assert ari[6.0] < 1.0 and ari[15.0] < 1.0
+    # The same as the GAT rule applied to the pipeline's scores 2^(-d / cutoff) at threshold 0.5.
+    from mvpose_jax.inference import propose_people
+
+    p = propose_people(rows, np.exp2(-d / best), count, num_skeletons=2, threshold=0.5)
+    assert metrics.matching_scores(identity, p.identity, count)["ari"] == pytest.approx(1.0)
