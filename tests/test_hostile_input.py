@@ -1,9 +1,10 @@
 """Hostile input: every reader loads a mutated file correctly or raises the project's own error.
 
 Each strategy starts from VALID files written by the project's own writers (a small synthetic
-recording on the panoptic5 rig, as native JSON, original JSON, npz and an OpenPose folder, and
-the rig as native JSON, CMU Panoptic JSON and anipose TOML) and mutates them: truncation, flipped,
-inserted and deleted bytes (non-UTF-8 included), JSON values replaced by hostile ones (huge,
+recording on the panoptic5 rig, as native JSON, original JSON, npz and an OpenPose folder, the
+rig as native JSON, CMU Panoptic JSON and anipose TOML, and its ground truth as the ``poses.npz``
+that ``infer`` writes) and mutates them: truncation, flipped, inserted and deleted bytes
+(non-UTF-8 included), JSON values replaced by hostile ones (huge,
 non-finite, negative, wrong types, nested, null, digit strings beyond Python's int limit, deep
 nesting), deleted keys, lists grown far beyond their size, npz members of the wrong dtype or
 shape or with headers declaring 10^9-element arrays, and OpenPose folders with files missing,
@@ -28,6 +29,7 @@ import os
 import shutil
 import signal
 import tomllib
+import tracemalloc
 import zipfile
 from collections.abc import Callable
 from functools import partial
@@ -58,6 +60,7 @@ from mvpose_jax.data import (
 from mvpose_jax.data import files as files_module
 from mvpose_jax.data.calibration import load_rig, save_rig
 from mvpose_jax.data.formats import check_recording
+from mvpose_jax.data.poses import PoseResults, load_poses, save_poses
 from mvpose_jax.data.synthetic import generate_recording
 from mvpose_jax.errors import InputError, MvposeError
 
@@ -91,6 +94,7 @@ def valid(tmp_path_factory) -> dict:
     save_rig(rig, d / "rig.json")
     (d / "panoptic.json").write_text(json.dumps(_panoptic_dict(rig)))
     (d / "calib.toml").write_text(_toml_text(rig))
+    save_poses(_poses_of(rec), d)
     out = {
         name: (d / file).read_bytes()
         for name, file in (
@@ -100,6 +104,7 @@ def valid(tmp_path_factory) -> dict:
             ("calib_native", "rig.json"),
             ("calib_panoptic", "panoptic.json"),
             ("calib_toml", "calib.toml"),
+            ("poses", "poses.npz"),
         )
     }
     root = d / "openpose"
@@ -116,6 +121,17 @@ def valid(tmp_path_factory) -> dict:
             assert not isinstance(_outcome(reader, path), MvposeError), (name, reader)
     assert not isinstance(_outcome(load_recording, root), MvposeError)
     return out
+
+
+def _poses_of(rec: Recording) -> PoseResults:
+    """The recording's ground truth as the poses ``infer`` would write for a perfect match."""
+    gt, identity = rec.ground_truth, np.asarray(rec.identity)
+    F, G = np.shape(gt.valid)
+    members = np.full((F, G, len(rec.cameras)), -1, np.int32)
+    f, c, p = np.nonzero(identity >= 0)
+    members[f, identity[f, c, p], c] = p
+    confidence = np.asarray(gt.valid, np.float32)
+    return PoseResults(gt, confidence, members, identity, rec.cameras, rec.layout, rec.timestamps)
 
 
 class _Valid(dict):
@@ -201,7 +217,7 @@ def _dump_toml(doc) -> str:
 
 # --------------------------------------------------------------------------- readers
 
-FILE_KINDS = ("native", "original", "npz", "calib_native", "calib_panoptic", "calib_toml")
+FILE_KINDS = ("native", "original", "npz", "calib_native", "calib_panoptic", "calib_toml", "poses")
 SUFFIX = {
     "native": ".json",
     "original": ".json",
@@ -209,6 +225,7 @@ SUFFIX = {
     "calib_native": ".json",
     "calib_panoptic": ".json",
     "calib_toml": ".toml",
+    "poses": ".npz",
 }
 READERS: dict[str, list[Callable]] = {
     "native": [load_recording, read_native, read_native_rig],
@@ -217,6 +234,7 @@ READERS: dict[str, list[Callable]] = {
     "calib_native": [load_rig],
     "calib_panoptic": [load_rig, partial(load_rig, cameras=PANOPTIC_CAMERAS[::-1])],
     "calib_toml": [load_rig, partial(load_rig, translation_scale=1e-3)],
+    "poses": [load_poses],
 }
 OPENPOSE_READERS: list[Callable] = [
     load_recording,
@@ -262,6 +280,9 @@ def _outcome(reader: Callable, path: Path, **kwargs):
     elif isinstance(result, Rig):
         for field in ("K", "dist", "R", "t", "size"):
             assert np.isfinite(np.asarray(getattr(result, field))).all(), field
+    elif isinstance(result, PoseResults):  # shapes agree: PoseResults checks them itself
+        assert result.poses.xyz.dtype == np.float32 and np.isfinite(result.poses.xyz).all()
+        assert np.isfinite(result.confidence).all()
     else:
         assert result is None and reader is read_native_rig, result
     return result
@@ -557,6 +578,15 @@ _HEADERS = [
     "{" * 3000,
 ]
 
+# What happens to one member: a new array, one axis resized, a raw header, an object array, gone.
+member_edits = st.one_of(
+    st.tuples(st.just("array"), npz_dtypes, shapes),
+    st.tuples(st.just("reshape"), st.integers(0, 5), st.integers(0, 10**6)),
+    st.tuples(st.just("header"), st.sampled_from(_HEADERS), st.binary(max_size=64)),
+    st.tuples(st.just("object"), st.none(), st.none()),
+    st.tuples(st.just("delete"), st.none(), st.none()),
+)
+
 
 @HOSTILE
 @given(
@@ -564,20 +594,47 @@ _HEADERS = [
         ["version", "layout", "cameras", "xy", "score", "count", "identity", "gt_xyz", "gt_valid",
          "gt_keypoint_valid", "timestamps", "image_names", "projected", "extra"]
     ),  # fmt: skip
-    action=st.one_of(
-        st.tuples(st.just("array"), npz_dtypes, shapes),
-        st.tuples(st.just("reshape"), st.integers(0, 5), st.integers(0, 10**6)),
-        st.tuples(st.just("header"), st.sampled_from(_HEADERS), st.binary(max_size=64)),
-        st.tuples(st.just("object"), st.none(), st.none()),
-        st.tuples(st.just("delete"), st.none(), st.none()),
-    ),
+    action=member_edits,
     fill=fill_values,
 )
 def test_mutated_npz_members(valid, tmp_path_factory, member, action, fill):
+    _read_all("npz", _mutate_member(valid, tmp_path_factory, "npz", member, action, fill))
+
+
+# The members poses.npz must have (timestamps is optional).
+POSES_MEMBERS = (
+    "xyz",
+    "valid",
+    "keypoint_valid",
+    "confidence",
+    "members",
+    "identity",
+    "cameras",
+    "layout",
+)
+
+
+@HOSTILE
+@given(
+    member=st.sampled_from([*POSES_MEMBERS, "timestamps", "extra"]),
+    action=member_edits,
+    fill=fill_values,
+)
+def test_mutated_poses_members(valid, tmp_path_factory, member, action, fill):
+    _read_all("poses", _mutate_member(valid, tmp_path_factory, "poses", member, action, fill))
+
+
+def _members_of(valid, tmp_path_factory, source: str) -> dict[str, np.ndarray]:
+    """The arrays of a valid archive (``source`` "npz" or "poses")."""
     src = _work(tmp_path_factory) / "valid.npz"
-    src.write_bytes(valid["npz"])
+    src.write_bytes(valid[source])
     with np.load(src, allow_pickle=False) as archive:
-        arrays = {name: archive[name] for name in archive.files}
+        return {name: archive[name] for name in archive.files}
+
+
+def _mutate_member(valid, tmp_path_factory, source: str, member: str, action, fill) -> Path:
+    """A copy of the valid ``source`` archive with ``member`` edited (`member_edits`); its path."""
+    arrays = _members_of(valid, tmp_path_factory, source)
     raw_members: dict[str, bytes] = {}
     kind, a, b = action
     if kind == "array":
@@ -605,7 +662,7 @@ def test_mutated_npz_members(valid, tmp_path_factory, member, action, fill):
         with zipfile.ZipFile(path, "a") as z:
             for name, data in raw_members.items():
                 z.writestr(f"{name}.npy", data)
-    _read_all("npz", path)
+    return path
 
 
 def test_npz_declared_sizes_are_not_allocated(valid, tmp_path_factory):
@@ -622,6 +679,79 @@ def test_npz_declared_sizes_are_not_allocated(valid, tmp_path_factory):
         e = _outcome(read_npz, path)
         assert isinstance(e, InputError) and e.field == "xy", e
         assert "MemoryError" not in str(e)
+
+
+def test_poses_declared_sizes_are_not_allocated(valid, tmp_path_factory):
+    """poses.npz too: a header declaring a huge array (4 GB, 134 GiB, 4e20 bytes) is refused from
+    its size, naming the member, and nothing near that size is allocated (numpy reports its
+    buffers to tracemalloc), so no MemoryError can escape."""
+    for header in _HEADERS[:4]:
+        arrays = _members_of(valid, tmp_path_factory, "poses")
+        del arrays["xyz"]
+        path = _work(tmp_path_factory) / "poses.npz"
+        np.savez(path, **arrays)
+        with zipfile.ZipFile(path, "a") as z:
+            z.writestr("xyz.npy", _npy_bytes(header, b"\0" * 16))
+        tracemalloc.start()
+        try:
+            e = _outcome(load_poses, path)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert isinstance(e, InputError) and e.field == "xyz", e
+        assert "MemoryError" not in str(e)
+        assert peak < 2**24, f"{peak} bytes allocated reading a {path.stat().st_size}-byte file"
+
+
+class _Plant:
+    """Unpickling it makes a folder: evidence that a reader ran code from the file."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+    def __reduce__(self):
+        return os.mkdir, (self.path,)
+
+
+def test_poses_pickled_members_are_refused_unread(valid, tmp_path_factory, tmp_path):
+    marker = tmp_path / "unpickled"
+    path = _work(tmp_path_factory) / "poses.npz"
+    for member in (*POSES_MEMBERS, "timestamps", "extra"):
+        arrays = _members_of(valid, tmp_path_factory, "poses")
+        arrays[member] = np.array([_Plant(str(marker)), None], dtype=object)
+        np.savez(path, **arrays)  # pickles the object array
+        e = _outcome(load_poses, path)
+        assert isinstance(e, InputError) and e.field == member, (member, e)
+        assert "object arrays are refused" in str(e)
+        assert not marker.exists(), f"{member}: the pickle ran"
+    # The plant works: unpickling the last file's member does make the folder.
+    with np.load(path, allow_pickle=True) as archive:
+        archive["extra"]
+    assert marker.is_dir()
+
+
+def test_poses_truncated_files_are_refused(valid, tmp_path_factory):
+    """Cut short (which loses the zip directory at the end, and members from mid-file on), the
+    file is an InputError naming it, read directly or from its folder (more: test_mutated_bytes)."""
+    data = valid["poses"]
+    folder = _work(tmp_path_factory) / "cut"
+    folder.mkdir(exist_ok=True)
+    path = folder / "poses.npz"
+    for cut in (0, 1, 4, 30, 100, len(data) // 2, len(data) - 22, len(data) - 1):
+        path.write_bytes(data[:cut])
+        for target in (path, folder):
+            e = _outcome(load_poses, target)
+            assert isinstance(e, InputError) and Path(e.file) == path, (cut, e)
+
+
+@pytest.mark.parametrize("member", POSES_MEMBERS)
+def test_poses_missing_members_are_named(valid, tmp_path_factory, member):
+    arrays = _members_of(valid, tmp_path_factory, "poses")
+    del arrays[member]
+    path = _work(tmp_path_factory) / "poses.npz"
+    np.savez(path, **arrays)
+    e = _outcome(load_poses, path)
+    assert isinstance(e, InputError) and e.field == member and "missing" in str(e), e
 
 
 def test_sparse_files_cannot_ask_for_huge_arrays(tmp_path):

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import os
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -198,12 +199,23 @@ def read_npz(path: str | os.PathLike) -> Recording:
     )
 
 
-def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Every member of the archive, loaded and checked for presence; InputError on any failure.
+def load_npz_members(
+    path: str | os.PathLike, names: Sequence[str] | None = None
+) -> dict[str, np.ndarray]:
+    """Every member of a ``.npz`` archive, by name (without ``.npy``), read as untrusted bytes.
 
     Each member's ``.npy`` header is read first and its declared shape and dtype checked against
     the bytes the member holds, so a header declaring a huge array is refused before anything is
-    allocated, and object (pickled) arrays are refused before they are read.
+    allocated, and object (pickled) arrays are refused before they are read. The recording reader
+    (`read_npz`) and the poses reader (`data.poses.load_poses`) both read through here.
+
+    Args:
+      path: the archive.
+      names: the member names allowed; any other member is an error. None: any name.
+    Raises:
+      InputError naming the file (and the member, where one is to blame): a missing, empty,
+      truncated or non-zip file, a single ``.npy``, an unknown or repeated member, a header that
+      does not describe the member's bytes, object arrays, a member that does not read.
     """
     p = Path(path)
     try:
@@ -232,11 +244,9 @@ def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
     with archive:
         for info in archive.infolist():
             name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-            if name not in _REQUIRED and name not in _OPTIONAL:
+            if names is not None and name not in names:
                 raise InputError(
-                    f"unknown member; members are {list(_REQUIRED + _OPTIONAL)}",
-                    file=path,
-                    field=name,
+                    f"unknown member; members are {list(names)}", file=path, field=name
                 )
             if name in out:
                 raise InputError("member appears twice", file=path, field=name)
@@ -251,6 +261,12 @@ def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
                 raise InputError(
                     f"cannot read member ({type(e).__name__}: {e})", file=path, field=name
                 ) from None
+    return out
+
+
+def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """A recording's members: known names only, the required ones (and ground truth) complete."""
+    out = load_npz_members(path, _REQUIRED + _OPTIONAL)
     for name in _REQUIRED:
         if name not in out:
             raise InputError("missing member", file=path, field=name)

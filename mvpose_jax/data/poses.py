@@ -6,7 +6,8 @@ Two files with the same content:
   ``keypoint_valid`` (F, G, K), ``confidence`` (F, G), ``members`` (F, G, C) int32 (each person's
   skeleton index in each camera of ``cameras``, -1 none), ``identity`` (F, C, P) int32 (each
   detected skeleton's person, -1 none), ``cameras`` (C,) str, ``layout`` () str; optional
-  ``timestamps`` (F,). Read without pickle.
+  ``timestamps`` (F,). Read without pickle, each member's header checked against its bytes
+  (`data.npz.load_npz_members`).
 * ``poses.json``, for people and other tools::
 
     {"format": "mvpose-jax.poses", "version": 1, "units": "metres", "layout": "coco18",
@@ -29,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from mvpose_jax.data.files import atomic_open, read_json
+from mvpose_jax.data.npz import load_npz_members
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D, get_layout
 
@@ -124,18 +126,16 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
         path = path / "poses.npz"
     if path.suffix.lower() == ".json":
         return _poses_from_json(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise InputError("no such file", file=path) from None
-    except (OSError, ValueError, EOFError) as e:
-        raise InputError(f"not a readable npz file ({e})", file=path) from None
+    # Untrusted bytes: the checked member reader refuses a header that does not describe its
+    # member's bytes (so a declared huge array allocates nothing) and object (pickled) arrays.
+    data = load_npz_members(path)
     needed = ("xyz", "valid", "keypoint_valid", "confidence", "members", "identity", "cameras", "layout")
     missing = [k for k in needed if k not in data]
     if missing:
         raise InputError(f"not a poses file: missing {missing}", file=path, field=missing[0])
     for field in ("xyz", "confidence"):
+        if data[field].dtype.kind not in "biuf":  # np.isfinite has no answer for text or bytes
+            raise InputError(f"expected numbers, got {data[field].dtype}", file=path, field=field)
         if not np.isfinite(data[field]).all():
             raise InputError("non-finite values", file=path, field=field)
     try:
