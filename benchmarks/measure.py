@@ -27,32 +27,14 @@ from benchmarks import scenes
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.synthetic import generate_single_person_recordings
-from mvpose_jax.features import assemble_features, estimator_inputs, main_skeletons
-from mvpose_jax.graphs import build_graphs, detection_features, graph_budget, make_pool, match_table, sample_batches
-from mvpose_jax.inference import (
-    bucket_size,
-    estimate_grouped,
-    gat_match_table,
-    group_people,
-    members_from_identity,
-    poses_of_members,
-    predict_people,
-    propose_people,
-    propose_with_matcher,
-    triangulate_grouped,
-)
+from mvpose_jax.features import assemble_features, estimator_inputs, single_person_samples
+from mvpose_jax.graphs import build_graphs, detection_features, graph_budget, make_pool, match_table, next_power_of_two, sample_batches
+from mvpose_jax.inference import estimate_grouped, gat_match_table, group_people, members_from_identity, poses_of_members, predict_people, propose_with_matcher, triangulate_grouped
+from mvpose_jax.proposals import propose_people
 from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
 from mvpose_jax.skeletons import Detections
-from mvpose_jax.train import (
-    EstimatorConfig,
-    MatcherConfig,
-    estimator_loss_fn,
-    init_train_state,
-    make_estimator_batch,
-    make_optimizer,
-    make_train_step,
-    matcher_loss_fn,
-)
+from mvpose_jax.train import estimator_loss_fn, init_train_state, make_estimator_batch, make_optimizer, make_train_step, matcher_loss_fn
+from mvpose_jax.trained import EstimatorConfig, MatcherConfig
 
 # The configuration the targets are stated for (DESIGN.md §5 and the tracker issue).
 TARGET_VIEWS, TARGET_PEOPLE, TARGET_MODEL = 5, 4, "paper"
@@ -300,7 +282,7 @@ def latency(tier: Tier) -> dict:
                     "t_total": summary(np.asarray(pp) + np.asarray(g3)),
                     "graph_budget_nodes": sorted({_budget(det, f).nodes for f in frames}),
                     "count_patterns": len({det.count[f].tobytes() for f in frames}),
-                    "people_bucket": bucket_size(n),
+                    "people_bucket": next_power_of_two(n),
                 })  # fmt: skip
                 if (V, n, size) == target:
                     breakdown = _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3dg)
@@ -438,7 +420,7 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
     feature_fn = jax.jit(lambda r, xy, s: assemble_features(estimator_inputs(r, xy, s), (s > 0).any(axis=-1)))
     mlp_fn = jax.jit(lambda params, x: to_world(nnx.merge(graphdef, params, rest)(x), centre, radius))
     grouped = {f: group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1]) for f in frames}
-    bucket = bucket_size(n)
+    bucket = next_power_of_two(n)
 
     def padded(f, rows_):
         xy, sc = grouped[f][0][0], grouped[f][1][0]  # (G, C, K, 2), (G, C, K)
@@ -500,7 +482,7 @@ def offline(tier: Tier) -> dict:
         flops = mlp_flops(estimator.params)
         t2m, t3m = float(np.median(t2)), float(np.median(t3))
         # The MLP alone on the people of one chunk (padded to its bucket), device-resident input.
-        rows = bucket_size(tier.offline_chunk * n)
+        rows = next_power_of_two(tier.offline_chunk * n)
         feats = jnp.zeros((rows, C, K, 14), jnp.float32)
         mlp = jax.jit(lambda p, x: nnx.merge(estimator.graphdef, p, estimator.rest)(x))
         t_mlp = float(np.median(repeat(mlp, estimator.params, feats, n=max(2, tier.offline_repeats))))
@@ -542,13 +524,11 @@ def offline(tier: Tier) -> dict:
 def training(tier: Tier) -> dict:
     """Samples/s and compile time of one train step of each model (panoptic5, single-person data)."""
     rig = load_rig(scenes.PANOPTIC)
-    C, K = rig.num_cameras, 18
+    K = 18
     num_rec = 8  # the matcher composes up to 8 people from 8 different recordings
     recs = generate_single_person_recordings(rig, num_recordings=num_rec,
                                              num_frames=max(8, -(-tier.train_batch // num_rec) * 2), seed=3)  # fmt: skip
-    mains = [main_skeletons(np.asarray(r.detections.xy), np.asarray(r.detections.score)) for r in recs]
-    xy = np.concatenate([m[0] for m in mains])
-    score = np.concatenate([m[1] for m in mains])
+    xy, score = single_person_samples(recs)
     out = {"estimator": {}, "matcher": {}}
     for size in tier.model_sizes:
         mlp, gat = scenes.MODEL_SIZES[size]

@@ -95,10 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     run["seconds"] = time.perf_counter() - start
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from mvpose_jax.data.files import atomic_write_text
+    from mvpose_jax.data.files import atomic_write_text, to_jsonable
 
     text = markdown(run)
-    atomic_write_text(out / "run.json", json.dumps(run, indent=1, default=_jsonable) + "\n")
+    atomic_write_text(out / "run.json", json.dumps(to_jsonable(run), indent=1) + "\n")
     atomic_write_text(out / "run.md", text)
     print(text)
     print(f"wrote {out / 'run.json'} and {out / 'run.md'} ({run['seconds']:.0f} s)")
@@ -144,6 +144,7 @@ def _in_process(group: str, tier: str) -> tuple[dict | None, dict | None, str | 
 
 def _child(group: str, tier: str, out: Path) -> int:
     from benchmarks.measure import GROUPS, TIERS
+    from mvpose_jax.data.files import to_jsonable
 
     import jax
 
@@ -151,7 +152,7 @@ def _child(group: str, tier: str, out: Path) -> int:
     rss = _current_rss_mb()
     result = GROUPS[group](TIERS[tier])
     memory = {"maxrss_mb": _rss_mb(), "rss_after_import_mb": rss, "device_peak_mb": _device_peak_mb()}
-    out.write_text(json.dumps({"result": result, "memory": memory}, default=_jsonable))
+    out.write_text(json.dumps(to_jsonable({"result": result, "memory": memory})))
     return 0
 
 
@@ -229,16 +230,6 @@ def _git() -> dict:
             return ""
 
     return {"commit": git("rev-parse", "HEAD") or "unknown", "dirty": bool(git("status", "--porcelain", "-uno"))}
-
-
-def _jsonable(value):
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON-serialisable: {type(value).__name__}")
 
 
 if __name__ == "__main__":

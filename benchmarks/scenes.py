@@ -3,7 +3,7 @@ paper's OpenCV triangulation written out as the comparison row.
 
 Models get random weights: timings do not depend on the values of the weights (the one place where
 they matter, how many pairs the proposal step accepts, is measured separately with oracle scores).
-They are built exactly as `train.load_estimator` / `train.load_matcher` build them, so the timed
+They are built exactly as `trained.load_estimator` / `trained.load_matcher` build them, so the timed
 calls see the same pytrees as after loading a checkpoint.
 """
 
@@ -23,7 +23,7 @@ from mvpose_jax.data.formats import select_cameras
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.data.synthetic import generate_recording
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
-from mvpose_jax.train import Estimator, EstimatorConfig, Matcher, MatcherConfig
+from mvpose_jax.trained import Estimator, EstimatorConfig, Matcher, MatcherConfig
 
 # Camera subsets of the five Panoptic cameras for 2 and 3 views (the paper's Table 3 uses subsets
 # of these too); 8 views come from a ring rig with Panoptic's lenses.
@@ -79,7 +79,7 @@ def recording(num_views: int, num_people: int, num_frames: int, seed: int = 0) -
 
 
 def estimator_for(rig: Rig, num_keypoints: int, mlp: MLPConfig) -> Estimator:
-    """An untrained `Estimator` for ``rig``'s cameras, built as `train.load_estimator` builds it."""
+    """An untrained `Estimator` for ``rig``'s cameras, built as `trained.load_estimator` builds it."""
     config = EstimatorConfig(train_cameras=rig.names, infer_cameras=rig.names, mlp=mlp)
     graphdef, rest, params = _split(lambda: PoseMLP(rig.num_cameras, num_keypoints, config.mlp, rngs=nnx.Rngs(0)))
     # The normalised frame as trained estimators carry it (computed once, not on every call).
@@ -87,7 +87,7 @@ def estimator_for(rig: Rig, num_keypoints: int, mlp: MLPConfig) -> Estimator:
 
 
 def matcher_for(rig: Rig, num_keypoints: int, gat: GATConfig) -> Matcher:
-    """An untrained `Matcher` for ``rig``'s cameras, built as `train.load_matcher` builds it."""
+    """An untrained `Matcher` for ``rig``'s cameras, built as `trained.load_matcher` builds it."""
     config = MatcherConfig(cameras=rig.names, gat=gat)
     graphdef, rest, params = _split(lambda: MatchingGAT(rig.num_cameras, num_keypoints, config.gat,
                                                         rngs=nnx.Rngs(0)))  # fmt: skip

@@ -42,35 +42,19 @@ import numpy as np
 
 from mvpose_jax.data import save_recording
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.files import atomic_write_text
+from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.formats import select_cameras
 from mvpose_jax.data.synthetic import detection_variants, generate_recording, generate_single_person_recordings
-from mvpose_jax.features import main_skeletons, people_from_identity
+from mvpose_jax.features import people_from_identity, single_person_samples
 from mvpose_jax.cameras import up_vector
-from mvpose_jax.inference import (
-    composed_frames,
-    epipolar_match_distances,
-    estimate_grouped,
-    gat_match_table,
-    group_people,
-    members_from_identity,
-    poses_of_members,
-    run_pipeline,
-    triangulate_grouped,
-)
-from mvpose_jax.metrics import (
-    PCP_CLASSES,
-    choose_geometric_cutoff,
-    choose_proposal_threshold,
-    match_people,
-    matching_scores,
-    pose_metrics,
-    reprojection_errors,
-)
+from mvpose_jax.inference import composed_frames, epipolar_match_distances, estimate_grouped, gat_match_table, group_people, members_from_identity, poses_of_members, run_pipeline, triangulate_grouped
+from mvpose_jax.metrics import PCP_CLASSES, match_people, matching_scores, pose_metrics, reprojection_errors
+from mvpose_jax.proposals import choose_geometric_cutoff, choose_proposal_threshold
 from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.render import curves_figure, save_figure, skeleton_figure
 from mvpose_jax.skeletons import Detections, Poses3D, evaluation_keypoints
-from mvpose_jax.train import MATCHER_TRAIN, EstimatorConfig, MatcherConfig, TrainConfig, train_estimator, train_matcher
+from mvpose_jax.train import train_estimator, train_matcher
+from mvpose_jax.trained import MATCHER_TRAIN, EstimatorConfig, MatcherConfig, TrainConfig
 
 # The paper's numbers (reference only; never mixed into ours).
 PAPER_TABLE3 = {  # CMU Panoptic matching, by views: ARI, H, C, Vm
@@ -257,14 +241,8 @@ def fit_matcher(data: Data, sc: Scale, cameras, seed: int, progress: bool):
 
 
 def fit_estimator(data: Data, sc: Scale, train_cams, infer_cams, seed: int, progress: bool):
-    idx = [data.rig.names.index(c) for c in train_cams]
-
-    def samples(recs):
-        ms = [main_skeletons(np.asarray(r.detections.xy)[:, idx], np.asarray(r.detections.score)[:, idx]) for r in recs]
-        return np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms])
-
-    xy, score = samples(data.train)
-    dev_xy, dev_score = samples(data.dev)
+    xy, score = single_person_samples(data.train, train_cams)
+    dev_xy, dev_score = single_person_samples(data.dev, train_cams)
     config = dataclasses.replace(sc.estimator, train_cameras=tuple(train_cams), infer_cameras=tuple(infer_cams),
                                  train=dataclasses.replace(sc.estimator.train, seed=seed))  # fmt: skip
     t0 = time.perf_counter()
@@ -679,7 +657,7 @@ def paper_arp(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: 
 
 def _save_partial(runs: list[dict], out: Path) -> None:
     """The seeds finished so far (a long multi-seed run keeps them if it is stopped)."""
-    atomic_write_text(out / "runs_partial.json", json.dumps(_jsonable(runs), indent=1) + "\n")
+    atomic_write_text(out / "runs_partial.json", json.dumps(to_jsonable(runs), indent=1) + "\n")
 
 
 def _curves(training: dict, folder: Path) -> str:
@@ -757,21 +735,11 @@ def main(argv=None) -> int:
             f"tables), both from seed {args.seed}. Proposal settings (GAT threshold, epipolar cutoff) are chosen on",
             "frames composed from the dev recordings.", ""]  # fmt: skip
     text = "\n".join(head + lines) + "\n"
-    atomic_write_text(out / "metrics.json", json.dumps({**meta, "runs": _jsonable(runs)}, indent=1) + "\n")
+    atomic_write_text(out / "metrics.json", json.dumps({**meta, "runs": to_jsonable(runs)}, indent=1) + "\n")
     atomic_write_text(out / "tables.md", text)
     print(text)
     print(f"wrote {out}/metrics.json, tables.md and figures/")
     return 0
-
-
-def _jsonable(v):
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    return v
 
 
 if __name__ == "__main__":

@@ -151,7 +151,10 @@ def _train_matcher(args: argparse.Namespace) -> int:
 
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
-    from mvpose_jax.train import MatcherConfig, train_matcher
+    from mvpose_jax.inference import choose_matcher_threshold
+    from mvpose_jax.proposals import write_proposal_threshold
+    from mvpose_jax.train import train_matcher
+    from mvpose_jax.trained import MatcherConfig
 
     # Before anything touches a device: a multi-host run must join its coordinator first.
     initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
@@ -178,50 +181,11 @@ def _train_matcher(args: argparse.Namespace) -> int:
     import jax
 
     if jax.process_index() == 0:
-        threshold, ari = save_proposal_threshold(matcher, dev_recs, args.out, seed=args.seed)
+        threshold, ari, composed = choose_matcher_threshold(matcher, dev_recs, seed=args.seed)
+        write_proposal_threshold(args.out, threshold, ari, composed)
         print(f"proposal threshold {threshold} (ARI {ari[threshold]:.4f} on multi-person frames composed from "
               f"--dev; 0.5: {ari[0.5]:.4f}), used by `infer --matcher {args.out}`")  # fmt: skip
     return 0
-
-
-PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
-
-
-def save_proposal_threshold(matcher, dev_recordings, folder: str, *, seed: int = 0,
-                            num_samples: int = 1024) -> tuple[float, dict]:
-    """Chooses the matcher's proposal threshold on frames composed from the dev recordings and
-    writes it beside the checkpoints (`PROPOSAL_THRESHOLD_FILE`)."""
-    import json
-    from pathlib import Path
-
-    from mvpose_jax.data.files import atomic_write_text
-    from mvpose_jax.inference import composed_match_table
-    from mvpose_jax.metrics import choose_proposal_threshold
-
-    rows, scores, identity, count = composed_match_table(matcher, dev_recordings, num_samples=num_samples, seed=seed)
-    threshold, ari = choose_proposal_threshold(rows, scores, identity, count)
-    record = {"threshold": threshold, "ari_by_threshold": {str(k): round(v, 6) for k, v in ari.items()},
-              "composed_frames": int(len(count)),
-              "how": "the best adjusted Rand index of the proposals on multi-person frames composed from the "
-                     "dev recordings (inference.composed_match_table, metrics.choose_proposal_threshold)"}  # fmt: skip
-    atomic_write_text(Path(folder) / PROPOSAL_THRESHOLD_FILE, json.dumps(record, indent=1) + "\n")
-    return threshold, ari
-
-
-def matcher_threshold(folder: str | None, given: float | None) -> float:
-    """The proposal threshold: ``given``, else the matcher folder's chosen one, else the paper's 0.5."""
-    import json
-    from pathlib import Path
-
-    if given is not None:
-        return given
-    path = Path(folder) / PROPOSAL_THRESHOLD_FILE if folder else None
-    if path is None or not path.exists():
-        return 0.5
-    try:
-        return float(json.loads(path.read_text())["threshold"])
-    except (ValueError, KeyError, TypeError) as e:
-        raise InputError(f"unreadable proposal threshold ({e})", file=path, field="threshold") from e
 
 
 def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
@@ -248,13 +212,13 @@ def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
     _train_estimator_arguments,
 )
 def _train_estimator(args: argparse.Namespace) -> int:
-    import numpy as np
 
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.features import main_skeletons
+    from mvpose_jax.features import single_person_samples
     from mvpose_jax.models import MLPConfig
     from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
-    from mvpose_jax.train import EstimatorConfig, TrainConfig, train_estimator
+    from mvpose_jax.train import train_estimator
+    from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
     # Before anything touches a device: a multi-host run must join its coordinator first.
     initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
@@ -264,21 +228,9 @@ def _train_estimator(args: argparse.Namespace) -> int:
     for c in train_cams:
         rig.camera_index(c)  # unknown names fail here, naming the camera
 
-    def samples(recordings):
-        xy, score = [], []
-        for rec in recordings:
-            missing = [c for c in train_cams if c not in rec.cameras]
-            if missing:
-                raise InputError(f"recording lacks training cameras {missing}", field="cameras")
-            idx = [rec.cameras.index(c) for c in train_cams]
-            m_xy, m_score = main_skeletons(np.asarray(rec.detections.xy)[:, idx], np.asarray(rec.detections.score)[:, idx])
-            xy.append(m_xy)
-            score.append(m_score)
-        return np.concatenate(xy), np.concatenate(score)
-
-    xy, score = samples(_recordings_in(args.train, args.layout))
+    xy, score = single_person_samples(_recordings_in(args.train, args.layout), train_cams)
     if args.dev:
-        dev_xy, dev_score = samples(_recordings_in(args.dev, args.layout))
+        dev_xy, dev_score = single_person_samples(_recordings_in(args.dev, args.layout), train_cams)
     else:
         n = max(1, len(xy) // 10)
         xy, score, dev_xy, dev_score = xy[:-n], score[:-n], xy[-n:], score[-n:]
@@ -359,7 +311,8 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.data.poses import PoseResults, save_poses
     from mvpose_jax.inference import run_pipeline
-    from mvpose_jax.train import load_estimator, load_matcher
+    from mvpose_jax.proposals import read_proposal_threshold
+    from mvpose_jax.trained import load_estimator, load_matcher
 
     rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
     rec, rig = _load_detections(args, rig_all)
@@ -368,7 +321,7 @@ def _infer(args: argparse.Namespace) -> int:
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
     res = run_pipeline(rig, rec.detections, matcher=matcher, estimator=estimator, method=args.method,
-                       threshold=matcher_threshold(args.matcher, args.threshold), min_views=args.min_views,
+                       threshold=read_proposal_threshold(args.matcher, args.threshold), min_views=args.min_views,
                        half_score_px=args.half_score_px,
                        chunk_frames=args.chunk_frames, progress=True)  # fmt: skip
     out = PoseResults(res.poses, res.confidence, res.members, res.identity, res.cameras, rec.layout, rec.timestamps)

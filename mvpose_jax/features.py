@@ -15,7 +15,8 @@ recomputed from the views actually kept.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -28,26 +29,30 @@ from mvpose_jax.cameras import (
     pixel_rays,
     rig_centre_and_radius,
 )
+from mvpose_jax.errors import InputError
 from mvpose_jax.triangulate import camera_pairs, centroid_of_pairs, triangulate_pairs
+
+if TYPE_CHECKING:
+    from mvpose_jax.data.recording import Recording
 
 NUM_KEYPOINT_FEATURES = 10
 NUM_ESTIMATOR_FEATURES = 14
 
 
 @jax.jit
-def keypoint_features(rig: Rig, xy: jax.Array, score: jax.Array, frame=None) -> jax.Array:
+def keypoint_features(rig: Rig, xy: jax.Array, score: jax.Array, normalisation=None) -> jax.Array:
     """The 10 per-(camera, keypoint) numbers.
 
     Args:
       rig: the C cameras the detections come from.
       xy: (C, ..., K, 2) distorted pixels.
       score: (C, ..., K) detection scores; 0 = missing.
-      frame: (centre (3,), radius ()) of the normalised frame; default the rig's own
+      normalisation: (centre (3,), radius ()) of the normalised space; default the rig's own
         (`cameras.rig_centre_and_radius`).
     Returns:
       (C, ..., K, 10) features, all zeros where the keypoint is missing.
     """
-    centre, radius = rig_centre_and_radius(rig) if frame is None else frame
+    centre, radius = rig_centre_and_radius(rig) if normalisation is None else normalisation
     seen = score > 0
     # Missing keypoints may carry junk coordinates: replace before any geometry touches them.
     xy = jnp.where(seen[..., None], xy, 0.5 * rig.size.reshape((-1,) + (1,) * (xy.ndim - 2) + (2,)))
@@ -78,20 +83,20 @@ class EstimatorInputs(NamedTuple):
 
 
 @jax.jit
-def estimator_inputs(rig: Rig, xy: jax.Array, score: jax.Array, frame=None) -> EstimatorInputs:
+def estimator_inputs(rig: Rig, xy: jax.Array, score: jax.Array, normalisation=None) -> EstimatorInputs:
     """Per-person inputs of the 3D estimator, before view selection.
 
     Args:
       rig: the C inference cameras (C_i).
       xy: (N, C, K, 2) each person's detections in each camera (pixels).
       score: (N, C, K) scores; 0 = missing (a whole view missing is all zeros).
-      frame: (centre, radius) of the normalised frame. An estimator uses its TRAINING rig's
+      normalisation: (centre, radius) of the normalised space. An estimator uses its TRAINING rig's
         (the space people were recorded in): a compact inference rig (one camera, a stereo
         pair) spans almost nothing itself. Default: ``rig``'s own.
     Returns:
       `EstimatorInputs`.
     """
-    centre, radius = rig_centre_and_radius(rig) if frame is None else frame
+    centre, radius = rig_centre_and_radius(rig) if normalisation is None else normalisation
     keypoint = jnp.moveaxis(keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0), (centre, radius)),
                             0, 1)  # fmt: skip
     pair_xyz, pair_ok = triangulate_pairs(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))
@@ -144,6 +149,35 @@ def main_skeletons(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.nd
     main_score = np.take_along_axis(score, take, axis=2)[:, :, 0]
     main_xy = np.take_along_axis(xy, take[..., None], axis=2)[:, :, 0]
     return main_xy, main_score
+
+
+def single_person_samples(
+    recordings: Sequence[Recording], cameras: Sequence[str] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The estimator's training people: every frame's main skeletons (`main_skeletons`) of
+    single-person recordings, concatenated.
+
+    Args:
+      recordings: single-person recordings.
+      cameras: the camera names to take, in this order (default: the first recording's).
+    Returns:
+      xy (N, C, K, 2) and score (N, C, K), N the frames of all recordings.
+    Raises:
+      InputError naming the recording and camera when one lacks a camera.
+    """
+    if not recordings:
+        raise InputError("no recordings to take training people from", field="recordings")
+    cameras = list(recordings[0].cameras if cameras is None else cameras)
+    xy, score = [], []
+    for r, rec in enumerate(recordings):
+        missing = [c for c in cameras if c not in rec.cameras]
+        if missing:
+            raise InputError(f"recording {r} lacks cameras {missing}", camera=missing[0], field="cameras")
+        idx = [list(rec.cameras).index(c) for c in cameras]
+        m_xy, m_score = main_skeletons(np.asarray(rec.detections.xy)[:, idx], np.asarray(rec.detections.score)[:, idx])
+        xy.append(m_xy)
+        score.append(m_score)
+    return np.concatenate(xy), np.concatenate(score)
 
 
 def people_from_identity(

@@ -33,6 +33,7 @@ rows, E edges, G graphs (padded), R recordings, T pooled frames.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -81,6 +82,9 @@ class Budget:
 
 
 def next_power_of_two(n: int) -> int:
+    """The smallest power of two >= n (1 for n <= 1): padded sizes of people and frame batches,
+    so a single frame's few people are not padded to a batch (the MLP's cost grows with the
+    rows) and a long recording still compiles only log2(N) shapes."""
     return 1 << max(0, int(n - 1).bit_length())
 
 
@@ -448,3 +452,85 @@ def sample_batches(
         sl = slice(b * graphs_per_batch, (b + 1) * graphs_per_batch)
         out.append(build_graphs(feats[sl], valid[sl], identity[sl]))
     return out
+
+
+# --------------------------------------------------------------------------- splitting for devices
+
+
+def split_graph_batch(batch: GraphBatch, num_shards: int) -> tuple[GraphBatch, np.ndarray]:
+    """Splits a padded graph batch by whole graphs into ``num_shards`` batches of one budget, stacked.
+
+    A graph batch cannot be cut along its node axis (edges, detection rows and pairs hold global
+    node ids), so each shard gets whole graphs: the F real graphs in order, ceil(F / S) per shard
+    (the last shards may hold fewer, or none), re-indexed from 0 and padded as
+    `graphs.build_graphs` pads (one padding graph holding every padding node and edge, then empty
+    graphs) to the largest shard's power-of-two budget. The GAT never mixes graphs and padding
+    never changes real nodes' outputs, so every real node scores as in the whole batch. One shard
+    is the batch itself when it was built with as many graphs as frames (training batches).
+    Host-side numpy.
+
+    Args:
+      batch: a `GraphBatch` (numpy or jax arrays).
+      num_shards: S >= 1, usually the device count.
+    Returns:
+      (the shards as one `GraphBatch` whose leaves have a leading (S,) axis; origin (S, N_s)
+      int64: each shard node's id in ``batch``, -1 for padding).
+    """
+    b = jax.tree.map(np.asarray, batch)
+    g = b.graphs
+    n_node, n_edge = g.n_node.astype(np.int64), g.n_edge.astype(np.int64)
+    nonempty = np.nonzero(n_node)[0]
+    # jraph's rule: the last non-empty graph is the padding graph (it holds >= 1 padding node);
+    # it and the empty graphs after it are padding, every graph before it is real.
+    F = int(nonempty[-1]) if len(nonempty) else 0
+    per = max(1, math.ceil(F / num_shards))
+    node_start = np.concatenate([[0], np.cumsum(n_node)])
+    edge_start = np.concatenate([[0], np.cumsum(n_edge)])
+    real_dets = int(np.asarray(b.det_mask).sum())
+    det_node = b.det_node[:real_dets]  # real rows come first, in node order
+
+    ranges = []
+    for s in range(num_shards):
+        g0, g1 = min(F, s * per), min(F, (s + 1) * per)
+        n0, n1 = int(node_start[g0]), int(node_start[g1])
+        d0, d1 = (int(i) for i in np.searchsorted(det_node, [n0, n1]))
+        ranges.append((g0, g1, n0, n1, int(edge_start[g0]), int(edge_start[g1]), d0, d1))
+    max_nodes = max(r[3] - r[2] for r in ranges)
+    max_dets = max(r[7] - r[6] for r in ranges)
+    budget = graph_budget(max_dets, max_nodes - max_dets, per)
+    N, E, D, G = budget.nodes, budget.edges, budget.dets, budget.graphs
+
+    shards, origin = [], np.full((num_shards, N), -1, np.int64)
+    for s, (g0, g1, n0, n1, e0, e1, d0, d1) in enumerate(ranges):
+        n, e, d, k = n1 - n0, e1 - e0, d1 - d0, g1 - g0
+        pad_node = n  # the first padding node: padding edges and rows point at it (as in jraph)
+
+        def fill(a, size, value, count, start, shift=0):
+            out = np.full((size,) + a.shape[1:], value, a.dtype)
+            out[:count] = a[start : start + count] - shift
+            return out
+
+        counts = lambda a, total, used: np.concatenate([a[g0:g1], [total - used], np.zeros(G - k - 1, a.dtype)])  # noqa: E731
+        graphs = g._replace(
+            nodes=fill(g.nodes, N, 0, n, n0),
+            senders=fill(g.senders, E, pad_node, e, e0, n0),
+            receivers=fill(g.receivers, E, pad_node, e, e0, n0),
+            n_node=counts(g.n_node, N, n).astype(g.n_node.dtype),
+            n_edge=counts(g.n_edge, E, e).astype(g.n_edge.dtype),
+        )
+        pair = fill(b.pair, N, -1, n, n0)
+        pair[:n] = np.where(b.pair[n0:n1] >= 0, b.pair[n0:n1] - n0, -1)
+        shards.append(GraphBatch(
+            graphs=graphs,
+            det_features=fill(b.det_features, D, 0, d, d0),
+            det_node=fill(b.det_node, D, pad_node, d, d0, n0),
+            det_mask=np.arange(D) < d,
+            node_mask=np.arange(N) < n,
+            is_match=fill(b.is_match, N, False, n, n0),
+            label=fill(b.label, N, 0, n, n0),
+            pair=pair,
+            node_camera=fill(b.node_camera, N, -1, n, n0),
+            node_skeleton=fill(b.node_skeleton, N, -1, n, n0),
+        ))  # fmt: skip
+        origin[s, :n] = np.arange(n0, n1)
+    return jax.tree.map(lambda *a: np.stack(a), *shards), origin

@@ -22,21 +22,12 @@ from flax import nnx
 from mvpose_jax.cameras import Rig, undistort_points
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estimator_inputs, keypoint_features
-from mvpose_jax.graphs import GraphBatch, build_graphs, compose_samples, make_pool, match_table
+from mvpose_jax.graphs import GraphBatch, build_graphs, compose_samples, make_pool, match_table, next_power_of_two
 from mvpose_jax.models import to_world
 from mvpose_jax.skeletons import Detections, Poses3D
-from mvpose_jax.train import Estimator, Matcher
+from mvpose_jax.proposals import Proposals, choose_proposal_threshold, propose_people
+from mvpose_jax.trained import Estimator, Matcher
 from mvpose_jax.triangulate import camera_pairs, triangulate_pairwise_centroid, triangulate_points
-
-# Powers of two from 1: a single frame's few people are not padded to a batch (the MLP's cost
-# grows with the rows), and a long recording still compiles only log2(N) shapes.
-MIN_BUCKET = 1
-
-
-def bucket_size(n: int, minimum: int = MIN_BUCKET) -> int:
-    """The padded batch size for n items: the next power of two, at least ``minimum``."""
-    return max(minimum, 1 << max(0, int(n - 1).bit_length()))
-
 
 # Models are called through jit-compiled functions with their NNX GraphDef closed over, one per
 # GraphDef: passed as a static argument, a GraphDef is hashed on every call, and hashing one
@@ -65,15 +56,15 @@ def bound_model_fn(fn: Callable, graphdef) -> Callable:
     return jitted
 
 
-def _predict_fn(graphdef, rest, params, rig: Rig, frame, xy, score):
-    centre, radius = frame
-    inputs = estimator_inputs(rig, xy, score, frame)
+def _predict_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score):
+    centre, radius = normalisation
+    inputs = estimator_inputs(rig, xy, score, normalisation)
     feats = assemble_features(inputs, (score > 0).any(axis=-1))
     return to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
 
 
-def _predict(graphdef, rest, params, rig: Rig, frame, xy, score):
-    return bound_model_fn(_predict_fn, graphdef)(rest, params, rig, frame, xy, score)
+def _predict(graphdef, rest, params, rig: Rig, normalisation, xy, score):
+    return bound_model_fn(_predict_fn, graphdef)(rest, params, rig, normalisation, xy, score)
 
 
 def predict_people(
@@ -105,14 +96,14 @@ def predict_people(
 
 
 def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, C, K, 2) / (N, C, K) zero-padded to `bucket_size(N)` people, float32 numpy.
+    """(N, C, K, 2) / (N, C, K) zero-padded to `graphs.next_power_of_two(N)` people, float32 numpy.
 
     Host arrays: the jitted call they go to moves them to the device itself, for less than an
     explicit transfer per array costs.
     """
     n = len(xy)
-    xy_p = np.zeros((bucket_size(n),) + np.shape(xy)[1:], np.float32)
-    score_p = np.zeros((bucket_size(n),) + np.shape(score)[1:], np.float32)
+    xy_p = np.zeros((next_power_of_two(n),) + np.shape(xy)[1:], np.float32)
+    score_p = np.zeros((next_power_of_two(n),) + np.shape(score)[1:], np.float32)
     xy_p[:n], score_p[:n] = xy, score
     return xy_p, score_p
 
@@ -216,14 +207,15 @@ def match_scores(matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh
     """The matcher's (N,) node scores for a padded batch of graphs (one jit call).
 
     With a data ``mesh`` (`parallel.make_data_mesh`) the graphs are split, whole, over its
-    devices (`train.split_graph_batch`: one padded block per device, graphs padded to a multiple
+    devices (`graphs.split_graph_batch`: one padded block per device, graphs padded to a multiple
     of the device count) and the scores put back in ``batch``'s node order; padding nodes score 0.
     """
     if mesh is None:
         return np.asarray(_match_scores(matcher.graphdef, matcher.rest, matcher.params, batch))
     # Local imports: this function is the only place inference needs the mesh helpers.
     from mvpose_jax.parallel import mesh_size, replicate, shard_batch, to_host
-    from mvpose_jax.train import split_graph_batch, stacked_match_scores
+    from mvpose_jax.graphs import split_graph_batch
+    from mvpose_jax.models import stacked_match_scores
 
     stacked, origin = split_graph_batch(batch, mesh_size(mesh))  # (S, ...), origin (S, N_s)
     out = stacked_match_scores(matcher.graphdef, matcher.rest, replicate(mesh, matcher.params),
@@ -346,7 +338,7 @@ def gat_match_table(
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
         # A short (or single-frame) chunk is padded only to the next power of two of frames.
-        n_graphs = min(frames_per_call, bucket_size(stop - start))
+        n_graphs = min(frames_per_call, next_power_of_two(stop - start))
         xy_c, score_c = xy[start:stop], score[start:stop]
         if n_graphs > stop - start:
             xy_c = np.concatenate([xy_c, np.zeros((n_graphs - (stop - start),) + xy.shape[1:], np.float32)])
@@ -438,7 +430,7 @@ def epipolar_match_distances(
     dist = []
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
-        pad = [(0, min(frames_per_call, bucket_size(stop - start)) - (stop - start))] + [(0, 0)] * 3
+        pad = [(0, min(frames_per_call, next_power_of_two(stop - start)) - (stop - start))] + [(0, 0)] * 3
         xy_c = np.moveaxis(np.pad(xy[start:stop], pad + [(0, 0)]), 1, 0)
         sc_c = np.moveaxis(np.pad(score[start:stop], pad), 1, 0)
         dist.append(np.asarray(_epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared))[:, : stop - start])
@@ -448,109 +440,6 @@ def epipolar_match_distances(
     f, q, pa, pb = np.nonzero(both)
     rows = np.stack([f, pairs[q, 0], pa, pairs[q, 1], pb], axis=1).astype(np.int64)
     return rows, dist[q, f, pa, pb]
-
-
-class Proposals(NamedTuple):
-    """People proposed in F frames of C views (P skeletons per view, padded)."""
-
-    identity: np.ndarray  # (F, C, P) int32: the person (0.. within its frame) of each skeleton, -1 none
-    people: list[np.ndarray]  # per frame (num_people, C) int32: each person's skeleton per view, -1 none
-
-
-def propose_people(
-    rows: np.ndarray,
-    scores: np.ndarray,
-    count: np.ndarray,
-    *,
-    num_skeletons: int | None = None,
-    threshold: float = 0.5,
-    min_views: int = 2,
-) -> Proposals:
-    """Groups skeletons into people from scored cross-view pairs (DESIGN.md §1.2).
-
-    Pairs scoring above ``threshold`` are taken best first; each joins its two skeletons' groups
-    unless the joined group would hold two skeletons of one camera. A person is a group of at
-    least ``min_views`` skeletons. With a single camera every skeleton is its own person.
-
-    Args:
-      rows: (M, 5) int ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``.
-      scores: (M,) pair scores.
-      count: (F, C) skeletons per view.
-      num_skeletons: P, the padded skeleton axis of the output (default ``count.max()``).
-    Returns:
-      `Proposals`.
-    """
-    count = np.asarray(count)
-    F, C = count.shape
-    P = max(1, int(count.max(initial=0)) if num_skeletons is None else num_skeletons)
-    if C > 62:
-        raise InputError("proposals support at most 62 cameras", field="cameras")
-    ok = np.arange(P)[None, None] < count[..., None]  # (F, C, P)
-    n = F * C * P
-    rows = np.asarray(rows, np.int64).reshape(-1, 5)
-    scores = np.asarray(scores).reshape(-1)
-    if C == 1:
-        parent = np.arange(n)
-    else:
-        keep = scores > threshold
-        rows, scores = rows[keep], scores[keep]
-        order = np.argsort(-scores, kind="stable")
-        a = ((rows[order, 0] * C + rows[order, 1]) * P + rows[order, 2]).tolist()
-        b = ((rows[order, 0] * C + rows[order, 3]) * P + rows[order, 4]).tolist()
-        parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
-    return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
-
-
-def union_find_exclusive(num_items: int, a: list[int], b: list[int], group: np.ndarray) -> np.ndarray:
-    """Greedy union-find that never joins two items of the same group (camera).
-
-    Args:
-      num_items: items 0..n-1.
-      a, b: the pairs to join, in order (best first).
-      group: (n,) int in 0..62, the camera of each item.
-    Returns:
-      (n,) the root of every item's set.
-    """
-    parent = list(range(num_items))
-    cams = [1 << int(g) for g in np.asarray(group).tolist()]  # camera bitmask of each root
-
-    def find(x: int) -> int:
-        root = x
-        while parent[root] != root:
-            root = parent[root]
-        while parent[x] != root:  # path compression
-            parent[x], x = root, parent[x]
-        return root
-
-    for x, y in zip(a, b, strict=True):
-        rx, ry = find(x), find(y)
-        if rx == ry or cams[rx] & cams[ry]:
-            continue
-        if rx > ry:
-            rx, ry = ry, rx
-        parent[ry] = rx
-        cams[rx] |= cams[ry]
-    return np.array([find(x) for x in range(num_items)], np.int64)
-
-
-def _proposals_from_roots(root: np.ndarray, ok: np.ndarray, min_views: int) -> Proposals:
-    F, C, P = ok.shape
-    flat_root = np.where(ok, root, -1).reshape(-1)
-    size = np.bincount(flat_root[flat_root >= 0], minlength=F * C * P)
-    person = ok.reshape(-1) & (size[np.maximum(flat_root, 0)] >= min_views)
-    identity = np.full(F * C * P, -1, np.int64)
-    frame = np.arange(F * C * P) // (C * P)
-    # Number each frame's people 0.. in the order of their first skeleton (camera, then index).
-    key = frame[person] * (F * C * P) + flat_root[person]
-    uniq, inverse = np.unique(key, return_inverse=True)
-    first_of_frame = np.searchsorted(uniq // (F * C * P), np.arange(F))
-    identity[person] = inverse - first_of_frame[frame[person]]
-    identity = identity.reshape(F, C, P).astype(np.int32)
-    num = np.bincount(uniq // (F * C * P), minlength=F)
-    table = np.full((F, max(1, int(num.max(initial=0))), C), -1, np.int32)
-    f_i, c_i, p_i = np.nonzero(identity >= 0)
-    table[f_i, identity[f_i, c_i, p_i], c_i] = p_i
-    return Proposals(identity, [table[f, : num[f]] for f in range(F)])
 
 
 def composed_frames(
@@ -609,6 +498,19 @@ def composed_match_table(
                                  min_views=cfg.min_views, keypoint_dropout=cfg.keypoint_dropout)  # fmt: skip
     rows, scores = gat_match_table(matcher, det, frames_per_call=frames_per_call)
     return rows, scores, ident, np.asarray(det.count)
+
+
+def choose_matcher_threshold(matcher: Matcher, dev_recordings: Sequence, *, num_samples: int = 1024,
+                             seed: int = 0) -> tuple[float, dict[float, float], int]:  # fmt: skip
+    """A matcher's proposal threshold, chosen on frames composed from held-out single-person
+    recordings (`composed_match_table`, `proposals.choose_proposal_threshold`).
+
+    Returns:
+      (the threshold, {threshold: per-frame ARI}, number of composed frames).
+    """
+    rows, scores, identity, count = composed_match_table(matcher, dev_recordings, num_samples=num_samples, seed=seed)
+    threshold, ari = choose_proposal_threshold(rows, scores, identity, count)
+    return threshold, ari, len(count)
 
 
 def propose_with_matcher(matcher: Matcher, detections: Detections, *, threshold: float = 0.5,

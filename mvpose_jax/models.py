@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -317,3 +318,15 @@ class MatchingGAT(nnx.Module):
             h = layer(h, graphs)
         return jax.nn.sigmoid(h[:, 0])
 
+
+@functools.partial(jax.jit, static_argnums=0)
+def stacked_match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
+    """The matcher's node scores for S graph batches stacked on a leading axis (one per device).
+
+    Args:
+      batch: a `GraphBatch` whose every leaf has a leading (S,) axis (`split_graph_batch`),
+        split over the devices along it (`parallel.shard_batch`).
+    Returns:
+      (S, N) scores, split like ``batch``.
+    """
+    return jax.vmap(lambda b: nnx.merge(graphdef, params, rest)(b))(batch)

@@ -1,9 +1,10 @@
-"""Training: train states, jit-compiled steps, the fit loop, early stopping, orbax checkpoints.
+"""Training: train states, jit-compiled steps, the fit loop, early stopping, resuming.
 
 Shape of every model's training (STYLE.md §4): an explicit `TrainState` pytree; one pure step
 ``(state, batch) -> (state, metrics)`` compiled once; a Python `fit` loop that evaluates every
 ``eval_every`` epochs, stops after ``patience`` checks without improvement, keeps the best
-parameters, and checkpoints best and latest with orbax (the only orbax import in the package).
+parameters, and checkpoints best and latest (`checkpoints.Checkpoints`). The configs and the
+trained-model bundles it returns live in `trained`, which inference uses without this module.
 
 Data parallelism (``TrainConfig.num_devices``, `parallel`): the batch is split along a ``"data"``
 mesh axis, parameters and optimiser state are replicated. The estimator's batch has a leading
@@ -34,7 +35,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -43,13 +44,18 @@ import optax
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
-from mvpose_jax.data.recording import Recording
+from mvpose_jax.checkpoints import Checkpoints
+from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
-from mvpose_jax.graphs import GraphBatch, graph_budget, make_pool, sample_batches
+from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches, split_graph_batch
 from mvpose_jax.losses import masked_mean, match_mse, reprojection_error_l1
-from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP, to_world
+from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
 from mvpose_jax.parallel import make_data_mesh, mesh_size, replicate, replicated, shard_batch
+from mvpose_jax.trained import Estimator, EstimatorConfig, Matcher, MatcherConfig, TrainConfig
+
+if TYPE_CHECKING:
+    from mvpose_jax.data.recording import Recording
 
 
 class TrainState(NamedTuple):
@@ -58,48 +64,6 @@ class TrainState(NamedTuple):
     step: jax.Array  # () int32
     params: nnx.State  # trainable nnx.Param leaves
     opt_state: optax.OptState
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """Optimisation settings (defaults: the paper's for the 3D estimator).
-
-    Attributes:
-      learning_rate: Adam's step size (paper 1e-4).
-      clip_norm: global gradient-norm clip (paper 10).
-      batch_size: seed samples per step (augmented ones come on top).
-      max_epochs: hard limit on passes over the training set.
-      max_steps: optional hard limit on steps (None: epochs decide).
-      eval_every: validate every this many epochs.
-      patience: stop after this many validations without improvement (paper 20).
-      seed: seeds initialisation, shuffling and augmentation.
-      final_lr_fraction: 1.0 keeps the step size constant (the paper); below 1 it decays on a
-        cosine to this fraction of ``learning_rate`` at the last step (shorter CPU runs).
-      num_devices: None (default): one device, no mesh. n >= 1: data-parallel over the first n
-        devices (of every process, `parallel.make_data_mesh`): the batch is split over them,
-        parameters and optimiser state are replicated. The estimator needs ``batch_size``
-        divisible by n; the matcher splits its graphs as evenly as they go.
-      checkpoint_every_steps: with a checkpoint folder, also save the latest state every this
-        many steps (besides each validation), so a killed run loses at most this many steps;
-        0: only at validations.
-      max_to_keep: latest checkpoints kept (older ones are deleted after a newer one is written).
-
-    ``num_devices``, ``checkpoint_every_steps`` and ``max_to_keep`` change how a run is executed,
-    not what it computes: a resumed run may change them (and its length), nothing else.
-    """
-
-    learning_rate: float = 1e-4
-    clip_norm: float = 10.0
-    batch_size: int = 256
-    max_epochs: int = 10_000
-    max_steps: int | None = None
-    eval_every: int = 1
-    patience: int = 20
-    seed: int = 0
-    final_lr_fraction: float = 1.0
-    num_devices: int | None = None
-    checkpoint_every_steps: int = 500
-    max_to_keep: int = 3
 
 
 def make_optimizer(config: TrainConfig, steps_per_epoch: int = 1) -> optax.GradientTransformation:
@@ -173,136 +137,6 @@ def stacked_loss_fn(loss_fn: Callable) -> Callable:
         return per_item, mask, aux
 
     return lifted
-
-
-# --------------------------------------------------------------------------- checkpoints
-
-
-class Checkpoints:
-    """Best and latest checkpoints of a run (orbax), each with the run's config as JSON.
-
-    ``directory/best`` keeps the state with the lowest validation loss; ``directory/latest`` the
-    ``max_to_keep`` newest states, each with the fit loop's own state (`FitProgress`, item
-    ``fit``) so that a run continues exactly. Every checkpoint is written atomically by orbax (a
-    temporary folder, renamed when complete): a run killed while saving leaves the previous
-    checkpoints intact. Reading a damaged or mismatched checkpoint raises `InputError`.
-    """
-
-    def __init__(self, directory: str | Path, *, max_to_keep: int = 3):
-        import orbax.checkpoint as ocp
-
-        self._ocp = ocp
-        self.directory = Path(directory).absolute()
-        opts = dict(enable_async_checkpointing=False)
-        # Handlers named up front (not only item names): the state's array metadata can then be
-        # read before a restore, to refuse another model's checkpoint without reading its arrays.
-        handlers = lambda *json_items: {"state": ocp.StandardCheckpointHandler(),  # noqa: E731
-                                        **{k: ocp.JsonCheckpointHandler() for k in json_items}}  # fmt: skip
-        self.best = ocp.CheckpointManager(
-            self.directory / "best",
-            options=ocp.CheckpointManagerOptions(
-                max_to_keep=1, best_fn=lambda m: m["val_loss"], best_mode="min", **opts
-            ),
-            item_handlers=handlers("config"),
-        )
-        self.latest = ocp.CheckpointManager(
-            self.directory / "latest",
-            options=ocp.CheckpointManagerOptions(max_to_keep=max(1, max_to_keep), **opts),
-            item_handlers=handlers("config", "fit"),
-        )
-
-    def _args(self, state, config, progress=None):
-        ocp = self._ocp
-        items = dict(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config))
-        if progress is not None:
-            items["fit"] = ocp.args.JsonSave(progress)
-        return ocp.args.Composite(**items)
-
-    def save_latest(self, state: TrainState, config: dict, progress: dict | None = None) -> None:
-        """Saves ``state`` (and the fit loop's ``progress``, `FitProgress.to_json`) as the newest."""
-        step = int(state.step)
-        if step in self.latest.all_steps():
-            self.latest.delete(step)  # the newer call knows more (e.g. the validation it just ran)
-        self.latest.save(step, args=self._args(state, config, progress), force=True)
-
-    def save_best(self, state: TrainState, config: dict, val_loss: float) -> None:
-        step = int(state.step)
-        if step in self.best.all_steps():
-            return  # a resumed run passing the step again: the same state (runs are deterministic)
-        self.best.save(step, args=self._args(state, config), metrics={"val_loss": float(val_loss)}, force=True)
-
-    def restore(
-        self, abstract_state: TrainState, which: str = "best", step: int | None = None
-    ) -> tuple[TrainState, dict]:
-        """Restores ``which`` ("best" or "latest"; its newest, or ``step``) against an abstract target.
-
-        Raises:
-          InputError when there is no such checkpoint, it holds another model (shapes differ) or
-          it cannot be read (damaged files).
-        """
-        ocp = self._ocp
-        manager, step = self._step(which, step)
-        self._check_shapes(manager, step, which, abstract_state)
-        args = ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state), config=ocp.args.JsonRestore())
-        out = self._read(manager, step, which, args)
-        state = out.state
-        if all(getattr(a, "sharding", None) is None for a in jax.tree.leaves(abstract_state)):
-            state = jax.device_put(state)  # committed, like `init_train_state` (no recompile)
-        return state, dict(out.config)
-
-    def read_config(self, which: str = "best", step: int | None = None) -> dict:
-        """The run config saved with the ``which`` checkpoint (to rebuild the model first)."""
-        manager, step = self._step(which, step)
-        out = self._read(manager, step, which, self._ocp.args.Composite(config=self._ocp.args.JsonRestore()))
-        return dict(out.config)
-
-    def read_progress(self, step: int | None = None) -> dict | None:
-        """The fit loop's state saved with a latest checkpoint (None: a checkpoint without one)."""
-        manager, step = self._step("latest", step)
-        if not (self.directory / "latest" / str(step) / "fit").exists():
-            return None
-        out = self._read(manager, step, "latest", self._ocp.args.Composite(fit=self._ocp.args.JsonRestore()))
-        return dict(out.fit)
-
-    def close(self) -> None:
-        self.best.close()
-        self.latest.close()
-
-    def _step(self, which: str, step: int | None):
-        manager = self.best if which == "best" else self.latest
-        if step is None:
-            step = manager.best_step() if which == "best" else manager.latest_step()
-        if step is None:
-            raise InputError(f"no {which} checkpoint", file=self.directory / which)
-        return manager, step
-
-    def _check_shapes(self, manager, step: int, which: str, abstract_state) -> None:
-        try:
-            meta = manager.item_metadata(step)["state"]
-            saved = {_path_names(p): tuple(m.shape) for p, m in jax.tree_util.tree_flatten_with_path(meta)[0]
-                     if hasattr(m, "shape")}  # fmt: skip
-        except Exception:  # unreadable metadata: the restore itself reports the damage
-            return
-        wanted = {_path_names(p): tuple(a.shape) for p, a in jax.tree_util.tree_flatten_with_path(abstract_state)[0]}
-        if not saved or saved == wanted:
-            return
-        diff = [f"{'.'.join(k)}: checkpoint {saved.get(k, 'absent')}, model {wanted.get(k, 'absent')}"
-                for k in sorted(set(saved) | set(wanted), key=lambda k: (k[0] != "params", k))  # params first
-                if saved.get(k) != wanted.get(k)]  # fmt: skip
-        raise InputError(f"checkpoint holds another model ({'; '.join(diff[:3])}{'; ...' if len(diff) > 3 else ''})",
-                         file=self.directory / which / str(step))  # fmt: skip
-
-    def _read(self, manager, step: int, which: str, args):
-        try:
-            return manager.restore(step, args=args)
-        except Exception as e:  # orbax and tensorstore raise bare Exception on damaged files
-            detail = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else ''}"
-            if "not compatible with the stored shape" in str(e):
-                reason = "checkpoint holds another model (array shapes differ; "
-            else:
-                reason = "checkpoint is damaged or unreadable ("
-                reason += "" if which == "best" else "delete this step's folder to use the one before; "
-            raise InputError(f"{reason}{detail})", file=self.directory / which / str(step)) from e
 
 
 # --------------------------------------------------------------------------- the fit loop
@@ -544,11 +378,6 @@ def resume_state(checkpoints: Checkpoints, state: TrainState, run_config: dict) 
     return Resumed(latest, best, progress.best_val_loss, progress)
 
 
-def _path_names(path) -> tuple[str, ...]:
-    """A pytree path as plain names (attribute, key or index), comparable across containers."""
-    return tuple(str(getattr(k, "name", getattr(k, "key", getattr(k, "idx", k)))) for k in path)
-
-
 def _sharding_of(a):
     sharding = getattr(a, "sharding", None)
     # Only mesh shardings travel to the restore target: a single-device array restores as today.
@@ -560,7 +389,7 @@ _EXECUTION_KEYS = ("max_steps", "max_epochs", "num_devices", "checkpoint_every_s
 
 
 def _without_length(config: dict) -> dict:
-    config = json.loads(json.dumps(_jsonable(config)))  # tuples -> lists, as saved
+    config = json.loads(json.dumps(to_jsonable(config)))  # tuples -> lists, as saved
     for key in _EXECUTION_KEYS:
         config.get("train", {}).pop(key, None)
     return config
@@ -626,47 +455,6 @@ def random_view_subsets(key: jax.Array, available: jax.Array, num: int) -> tuple
     rank = jnp.argsort(jnp.argsort(-priority, axis=-1), axis=-1)  # 0 = highest priority
     masks = (rank < size[..., None]) & available[None]
     return masks, jnp.broadcast_to(n_avail >= 2, (num, N))
-
-
-@dataclasses.dataclass(frozen=True)
-class EstimatorConfig:
-    """A 3D estimator: its cameras, network and training.
-
-    Attributes:
-      train_cameras: names of C_t (None: every camera of the rig).
-      infer_cameras: names of C_i, a subset of C_t (None: C_t).
-      mlp: the network.
-      train: optimisation.
-      num_augment: derived view-subset samples per seed sample (paper: up to 4).
-      loss_power: the per-sample loss is e_d ** loss_power, e_d the summed Manhattan
-        reprojection error; 2 is the paper's. 1 weighs every sample alike, so a few samples
-        with gross detector errors (swapped limbs, a false positive taken for the person)
-        cannot drown the rest.
-    """
-
-    train_cameras: tuple[str, ...] | None = None
-    infer_cameras: tuple[str, ...] | None = None
-    mlp: MLPConfig = MLPConfig()
-    train: TrainConfig = TrainConfig()
-    num_augment: int = 4
-    loss_power: float = 2.0
-
-
-class Estimator(NamedTuple):
-    """A trained 3D estimator: what inference needs."""
-
-    graphdef: Any
-    rest: Any
-    params: Any
-    rig_infer: Rig
-    config: EstimatorConfig
-    # (centre (3,), radius ()) of the normalised frame: the TRAINING rig's (see
-    # `features.estimator_inputs`); None: the inference rig's own (checkpoints before it).
-    frame: tuple[Any, Any] | None = None
-
-    @property
-    def normalisation(self) -> tuple[Any, Any]:
-        return rig_centre_and_radius(self.rig_infer) if self.frame is None else self.frame
 
 
 def estimator_loss_fn(rig_train: Rig, rig_infer: Rig, num_augment: int, loss_power: float = 2.0):
@@ -764,7 +552,7 @@ def train_estimator(
     def evaluate(state):
         return {k: float(v) for k, v in eval_loss(state.params, dev_data).items()}
 
-    run_config = _jsonable(dataclasses.asdict(config))
+    run_config = to_jsonable(dataclasses.asdict(config))
     # What restoring needs beyond the config: the resolved cameras and the keypoint count.
     run_config.update(train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K))
     centre, radius = rig_centre_and_radius(rig_train)
@@ -774,51 +562,6 @@ def train_estimator(
                             checkpoint_dir=checkpoint_dir, run_config=run_config, resume=resume, desc="estimator",
                             progress=progress)  # fmt: skip
     return Estimator(graphdef, rest, result.state.params, rig_infer, config, (centre, radius)), result
-
-
-def estimator_config_from_dict(d: dict) -> EstimatorConfig:
-    """Rebuilds an `EstimatorConfig` from its saved JSON form (`dataclasses.asdict`)."""
-    tup = lambda v: None if v is None else tuple(v)  # noqa: E731
-    try:
-        mlp = MLPConfig(**{**d["mlp"], "widths": tuple(d["mlp"]["widths"])})
-        return EstimatorConfig(
-            train_cameras=tup(d["train_cameras"]), infer_cameras=tup(d["infer_cameras"]), mlp=mlp,
-            train=TrainConfig(**d["train"]), num_augment=d["num_augment"], loss_power=d["loss_power"],
-        )  # fmt: skip
-    except (KeyError, TypeError) as e:
-        raise InputError(f"not an estimator config ({e})", field="config") from None
-
-
-def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Estimator:
-    """Restores an estimator saved by `train_estimator` (its config comes with the checkpoint).
-
-    Args:
-      directory: the ``checkpoint_dir`` of training.
-      rig: a rig holding the estimator's inference cameras (by name).
-    """
-    checkpoints = Checkpoints(directory)
-    try:
-        saved = checkpoints.read_config(which)
-        config = estimator_config_from_dict(saved)
-        if "num_keypoints" not in saved:
-            raise InputError("checkpoint config lacks num_keypoints", file=directory, field="config")
-        rig_infer = rig.select(list(config.infer_cameras or config.train_cameras or rig.names))
-        K = int(saved["num_keypoints"])
-        model = PoseMLP(rig_infer.num_cameras, K, config.mlp, rngs=nnx.Rngs(0))
-        graphdef, rest, state = init_train_state(model, make_optimizer(config.train))
-        state, _ = checkpoints.restore(jax.eval_shape(lambda: state), which)
-    finally:
-        checkpoints.close()
-    # Checkpoints from before the frame was saved normalised in the inference rig's own frame:
-    # resolve it here, once, not on every call (`Estimator.normalisation`).
-    frame = rig_centre_and_radius(rig_infer)
-    if "frame" in saved:
-        f = np.asarray(saved["frame"], np.float32)
-        if f.shape != (4,) or not np.isfinite(f).all() or f[3] <= 0:
-            raise InputError("the saved normalisation frame is not [cx, cy, cz, radius > 0]", file=directory,
-                             field="config.frame")  # fmt: skip
-        frame = (jnp.asarray(f[:3]), jnp.asarray(f[3]))
-    return Estimator(graphdef, rest, state.params, rig_infer, config, frame)
 
 
 def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, data: EstimatorBatch):
@@ -862,14 +605,6 @@ def _fit_resumable(state, train_step, epoch_batches, evaluate, config: TrainConf
             checkpoints.close()
 
 
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    return value
-
-
 # =========================================================================== skeleton matching
 # (DESIGN.md §1.2) Self-supervised: labels come from composing single-person recordings.
 
@@ -877,60 +612,6 @@ def _jsonable(value):
 # The paper's matcher optimisation: Adam 1e-4, 15 graphs per batch, validation every 5 epochs,
 # early stop after 5 checks without improvement. (Gradient clipping at 10 is ours; it only acts
 # on rare spikes.)
-MATCHER_TRAIN = TrainConfig(learning_rate=1e-4, batch_size=15, max_epochs=1000, eval_every=5, patience=5)
-
-
-@dataclasses.dataclass(frozen=True)
-class MatcherConfig:
-    """A skeleton matcher: its cameras, network, training and training-sample composition.
-
-    Attributes:
-      cameras: names of the inference cameras C_i (None: every camera of the rig).
-      gat: the network.
-      train: optimisation; ``batch_size`` counts graphs (frames) per step.
-      max_people: most single-person frames composed into one training frame. The paper draws
-        up to the number of recordings; we cap it (default 8, the largest test scene) so graph
-        sizes stay those of real scenes however many recordings there are.
-      samples_per_epoch: composed training frames per epoch (samples are streamed, never stored).
-      num_dev_samples: composed validation frames, drawn once from the dev recordings.
-      subset_probability: share of samples that keep only a random subset of the views.
-      min_views: the smallest view subset kept by augmentation.
-      keypoint_dropout: largest per-skeleton keypoint-drop rate of the missing-keypoint
-        augmentation (`graphs.compose_samples`); 0 = none (the paper).
-    """
-
-    cameras: tuple[str, ...] | None = None
-    gat: GATConfig = GATConfig()
-    train: TrainConfig = MATCHER_TRAIN
-    max_people: int = 8
-    samples_per_epoch: int = 1500
-    num_dev_samples: int = 300
-    subset_probability: float = 0.5
-    min_views: int = 2
-    keypoint_dropout: float = 0.0
-
-    @property
-    def steps_per_epoch(self) -> int:
-        return max(1, self.samples_per_epoch // self.train.batch_size)
-
-    @classmethod
-    def quick(cls, cameras: tuple[str, ...] | None = None) -> MatcherConfig:
-        """The small network, a larger step size and short epochs (tests, quick experiments)."""
-        train = dataclasses.replace(MATCHER_TRAIN, learning_rate=1e-3, max_epochs=50, eval_every=2)
-        return cls(cameras=cameras, gat=GATConfig.quick(), train=train, samples_per_epoch=300,
-                   num_dev_samples=90)  # fmt: skip
-
-
-class Matcher(NamedTuple):
-    """A trained skeleton matcher: what inference needs."""
-
-    graphdef: Any
-    rest: Any
-    params: Any
-    rig: Rig  # the inference cameras C_i, in the order of the features' camera slots
-    config: MatcherConfig
-
-
 def matcher_loss_fn(model: MatchingGAT, batch: GraphBatch, key) -> tuple[jax.Array, jax.Array, dict]:
     """``loss_fn(model, batch, key)`` of the matcher for `make_train_step`: MSE on match nodes."""
     del key  # augmentation happens on the host, when samples are composed
@@ -1003,143 +684,11 @@ def train_matcher(
         n = max(total["count"], 1.0)
         return {"val_loss": total["sq_error"] / n, "val_accuracy": total["correct"] / n}
 
-    run_config = {**_jsonable(dataclasses.asdict(config)), "num_keypoints": K}
+    run_config = {**to_jsonable(dataclasses.asdict(config)), "num_keypoints": K}
     result = _fit_resumable(state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
                             checkpoint_dir=checkpoint_dir, run_config=run_config, resume=resume, desc="matcher",
                             progress=progress)  # fmt: skip
     return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def stacked_match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
-    """The matcher's node scores for S graph batches stacked on a leading axis (one per device).
-
-    Args:
-      batch: a `GraphBatch` whose every leaf has a leading (S,) axis (`split_graph_batch`),
-        split over the devices along it (`parallel.shard_batch`).
-    Returns:
-      (S, N) scores, split like ``batch``.
-    """
-    return jax.vmap(lambda b: nnx.merge(graphdef, params, rest)(b))(batch)
-
-
-def split_graph_batch(batch: GraphBatch, num_shards: int) -> tuple[GraphBatch, np.ndarray]:
-    """Splits a padded graph batch by whole graphs into ``num_shards`` batches of one budget, stacked.
-
-    A graph batch cannot be cut along its node axis (edges, detection rows and pairs hold global
-    node ids), so each shard gets whole graphs: the F real graphs in order, ceil(F / S) per shard
-    (the last shards may hold fewer, or none), re-indexed from 0 and padded as
-    `graphs.build_graphs` pads (one padding graph holding every padding node and edge, then empty
-    graphs) to the largest shard's power-of-two budget. The GAT never mixes graphs and padding
-    never changes real nodes' outputs, so every real node scores as in the whole batch. One shard
-    is the batch itself when it was built with as many graphs as frames (training batches).
-    Host-side numpy.
-
-    Args:
-      batch: a `GraphBatch` (numpy or jax arrays).
-      num_shards: S >= 1, usually the device count.
-    Returns:
-      (the shards as one `GraphBatch` whose leaves have a leading (S,) axis; origin (S, N_s)
-      int64: each shard node's id in ``batch``, -1 for padding).
-    """
-    b = jax.tree.map(np.asarray, batch)
-    g = b.graphs
-    n_node, n_edge = g.n_node.astype(np.int64), g.n_edge.astype(np.int64)
-    nonempty = np.nonzero(n_node)[0]
-    # jraph's rule: the last non-empty graph is the padding graph (it holds >= 1 padding node);
-    # it and the empty graphs after it are padding, every graph before it is real.
-    F = int(nonempty[-1]) if len(nonempty) else 0
-    per = max(1, math.ceil(F / num_shards))
-    node_start = np.concatenate([[0], np.cumsum(n_node)])
-    edge_start = np.concatenate([[0], np.cumsum(n_edge)])
-    real_dets = int(np.asarray(b.det_mask).sum())
-    det_node = b.det_node[:real_dets]  # real rows come first, in node order
-
-    ranges = []
-    for s in range(num_shards):
-        g0, g1 = min(F, s * per), min(F, (s + 1) * per)
-        n0, n1 = int(node_start[g0]), int(node_start[g1])
-        d0, d1 = (int(i) for i in np.searchsorted(det_node, [n0, n1]))
-        ranges.append((g0, g1, n0, n1, int(edge_start[g0]), int(edge_start[g1]), d0, d1))
-    max_nodes = max(r[3] - r[2] for r in ranges)
-    max_dets = max(r[7] - r[6] for r in ranges)
-    budget = graph_budget(max_dets, max_nodes - max_dets, per)
-    N, E, D, G = budget.nodes, budget.edges, budget.dets, budget.graphs
-
-    shards, origin = [], np.full((num_shards, N), -1, np.int64)
-    for s, (g0, g1, n0, n1, e0, e1, d0, d1) in enumerate(ranges):
-        n, e, d, k = n1 - n0, e1 - e0, d1 - d0, g1 - g0
-        pad_node = n  # the first padding node: padding edges and rows point at it (as in jraph)
-
-        def fill(a, size, value, count, start, shift=0):
-            out = np.full((size,) + a.shape[1:], value, a.dtype)
-            out[:count] = a[start : start + count] - shift
-            return out
-
-        counts = lambda a, total, used: np.concatenate([a[g0:g1], [total - used], np.zeros(G - k - 1, a.dtype)])  # noqa: E731
-        graphs = g._replace(
-            nodes=fill(g.nodes, N, 0, n, n0),
-            senders=fill(g.senders, E, pad_node, e, e0, n0),
-            receivers=fill(g.receivers, E, pad_node, e, e0, n0),
-            n_node=counts(g.n_node, N, n).astype(g.n_node.dtype),
-            n_edge=counts(g.n_edge, E, e).astype(g.n_edge.dtype),
-        )
-        pair = fill(b.pair, N, -1, n, n0)
-        pair[:n] = np.where(b.pair[n0:n1] >= 0, b.pair[n0:n1] - n0, -1)
-        shards.append(GraphBatch(
-            graphs=graphs,
-            det_features=fill(b.det_features, D, 0, d, d0),
-            det_node=fill(b.det_node, D, pad_node, d, d0, n0),
-            det_mask=np.arange(D) < d,
-            node_mask=np.arange(N) < n,
-            is_match=fill(b.is_match, N, False, n, n0),
-            label=fill(b.label, N, 0, n, n0),
-            pair=pair,
-            node_camera=fill(b.node_camera, N, -1, n, n0),
-            node_skeleton=fill(b.node_skeleton, N, -1, n, n0),
-        ))  # fmt: skip
-        origin[s, :n] = np.arange(n0, n1)
-    return jax.tree.map(lambda *a: np.stack(a), *shards), origin
-
-
-def matcher_config_from_dict(d: dict) -> MatcherConfig:
-    """Rebuilds a `MatcherConfig` from its saved JSON form (`dataclasses.asdict`)."""
-    try:
-        gat = GATConfig(**{**d["gat"], "widths": tuple(d["gat"]["widths"]), "heads": tuple(d["gat"]["heads"])})
-        fields = {f.name for f in dataclasses.fields(MatcherConfig)} - {"cameras", "gat", "train"}
-        return MatcherConfig(cameras=None if d["cameras"] is None else tuple(d["cameras"]), gat=gat,
-                             train=TrainConfig(**d["train"]), **{k: d[k] for k in fields if k in d})  # fmt: skip
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"not a matcher config ({e})", field="config") from None
-
-
-def load_matcher(directory: str | Path, rig: Rig, config: MatcherConfig | None = None,
-                 num_keypoints: int | None = None, which: str = "best") -> Matcher:  # fmt: skip
-    """Restores a matcher saved by `train_matcher`.
-
-    ``config`` and ``num_keypoints`` default to those saved with the checkpoint (checkpoints of
-    older runs lack the keypoint count and need it passed).
-    """
-    if config is None or num_keypoints is None:
-        checkpoints = Checkpoints(directory)
-        try:
-            saved = checkpoints.read_config(which)
-        finally:
-            checkpoints.close()
-        config = config or matcher_config_from_dict(saved)
-        if num_keypoints is None:
-            if "num_keypoints" not in saved:
-                raise InputError("checkpoint config lacks num_keypoints; pass it", file=directory, field="config")
-            num_keypoints = int(saved["num_keypoints"])
-    rig_infer = rig.select(list(config.cameras or rig.names))
-    model = MatchingGAT(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
-    graphdef, rest, state = init_train_state(model, make_optimizer(config.train, config.steps_per_epoch))
-    checkpoints = Checkpoints(directory)
-    try:
-        state, _ = checkpoints.restore(jax.eval_shape(lambda: state), which)
-    finally:
-        checkpoints.close()
-    return Matcher(graphdef, rest, state.params, rig_infer, config)
 
 
 def _matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:

@@ -127,32 +127,3 @@ def test_every_command_explains_every_option(name, capsys):
     for opt in options - {"--help"}:
         # every option is followed by some help text somewhere after its first mention
         assert re.search(re.escape(opt) + r"[^\n]*\n?\s+\S", text), opt
-
-
-def test_train_matcher_threshold_is_written_and_read_back_by_infer(tmp_path):
-    from flax import nnx
-
-    from mvpose_jax.cli import PROPOSAL_THRESHOLD_FILE, matcher_threshold, save_proposal_threshold
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
-    from mvpose_jax.errors import InputError
-    from mvpose_jax.metrics import PROPOSAL_THRESHOLDS
-    from mvpose_jax.models import GATConfig, MatchingGAT
-    from mvpose_jax.train import Matcher, MatcherConfig
-
-    rig = load_rig("panoptic5")
-    recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=3, seed=5)
-    tiny = GATConfig(widths=(8, 1), heads=(2, 1))
-    graphdef, params, rest = nnx.split(MatchingGAT(rig.num_cameras, recs[0].num_keypoints, tiny, rngs=nnx.Rngs(0)),
-                                       nnx.Param, ...)  # fmt: skip
-    matcher = Matcher(graphdef, rest, params, rig, MatcherConfig(gat=tiny, max_people=3))
-    threshold, ari = save_proposal_threshold(matcher, recs, str(tmp_path), num_samples=24)
-    assert threshold in PROPOSAL_THRESHOLDS and ari[threshold] == max(ari.values())
-    record = json.loads((tmp_path / PROPOSAL_THRESHOLD_FILE).read_text())
-    assert record["threshold"] == threshold and record["composed_frames"] == 24
-    assert matcher_threshold(str(tmp_path), None) == threshold
-    assert matcher_threshold(str(tmp_path), 0.7) == 0.7  # --threshold wins
-    assert matcher_threshold(None, None) == 0.5  # geometric matcher: the paper's
-    assert matcher_threshold(str(tmp_path / "elsewhere"), None) == 0.5  # a folder without the file
-    (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text("{")
-    with pytest.raises(InputError, match=PROPOSAL_THRESHOLD_FILE):
-        matcher_threshold(str(tmp_path), None)

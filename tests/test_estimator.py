@@ -10,16 +10,11 @@ import numpy as np
 import pytest
 
 from mvpose_jax.data.synthetic import SyntheticConfig, generate_single_person_recordings
-from mvpose_jax.features import main_skeletons
+from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import predict_people
 from mvpose_jax.models import MLPConfig, PoseMLP, count_params
-from mvpose_jax.train import (
-    EstimatorConfig,
-    TrainConfig,
-    load_estimator,
-    random_view_subsets,
-    train_estimator,
-)
+from mvpose_jax.train import random_view_subsets, train_estimator
+from mvpose_jax.trained import EstimatorConfig, TrainConfig, load_estimator
 
 from flax import nnx
 
@@ -31,8 +26,7 @@ def clean_samples():
     rig = load_preset("panoptic5")
     cfg = SyntheticConfig().replace(detector=SyntheticConfig().detector.clean())
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=16, seed=0, config=cfg)
-    ms = [main_skeletons(np.asarray(r.detections.xy), np.asarray(r.detections.score)) for r in recs]
-    return rig, np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms])
+    return (rig, *single_person_samples(recs))
 
 
 def test_small_paper_style_mlp_fits_a_small_set(clean_samples, tmp_path):
@@ -139,7 +133,8 @@ def test_resumed_training_ends_where_an_uninterrupted_run_does(clean_samples, tm
     run(8, tmp_path / "b")  # "killed" after 2 epochs ...
     resumed, fit = run(12, tmp_path / "b", resume=True)  # ... and resumed
     assert fit.steps == 12
-    from mvpose_jax.train import Checkpoints, init_train_state, make_optimizer
+    from mvpose_jax.checkpoints import Checkpoints
+    from mvpose_jax.train import init_train_state, make_optimizer
     latest = []
     for folder in ("a", "b"):
         ck = Checkpoints(tmp_path / folder)

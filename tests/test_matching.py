@@ -12,26 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mvpose_jax.graphs import Budget, build_graphs, dense_node_features, detection_features, graph_budget, match_table
-from mvpose_jax.inference import (
-    _match_scores,
-    _match_scores_fn,
-    bound_model_fn,
-    gat_match_table,
-    geometric_match_table,
-    match_scores,
-    propose_people,
-    union_find_exclusive,
-)
+from mvpose_jax.inference import _match_scores, _match_scores_fn, bound_model_fn, gat_match_table, geometric_match_table, match_scores
+from mvpose_jax.proposals import propose_people, union_find_exclusive
 from mvpose_jax.metrics import clustering_scores, detection_clusters, matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT
-from mvpose_jax.train import (
-    MatcherConfig,
-    init_train_state,
-    make_optimizer,
-    make_train_step,
-    matcher_loss_fn,
-    train_matcher,
-)
+from mvpose_jax.train import init_train_state, make_optimizer, make_train_step, matcher_loss_fn, train_matcher
+from mvpose_jax.trained import MatcherConfig
 
 C, K = 3, 4
 TINY = GATConfig(widths=(8, 8, 1), heads=(2, 2, 1))
@@ -131,7 +117,7 @@ def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
     """The fused path (features in the GAT's jit, graphs cached by count) gives the two-step numbers."""
     from mvpose_jax.data.synthetic import generate_recording
     from mvpose_jax.skeletons import Detections
-    from mvpose_jax.train import Matcher
+    from mvpose_jax.trained import Matcher
 
     rec = generate_recording(ring_rig, num_people=3, num_frames=5, seed=4)
     d = rec.detections
@@ -163,7 +149,7 @@ def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
 
 def test_train_matcher_quick_runs_and_checkpoints(ring_rig, tmp_path):
     from mvpose_jax.data.synthetic import generate_single_person_recordings
-    from mvpose_jax.train import load_matcher
+    from mvpose_jax.trained import load_matcher
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=4, num_frames=5, seed=1)
     cfg = MatcherConfig.quick()
@@ -306,7 +292,7 @@ def test_single_frame_graph_cache_is_lru_and_bounded_by_bytes():
 def test_composed_match_table_scores_the_composed_skeletons_with_their_identities(ring_rig):
     from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.inference import composed_match_table
-    from mvpose_jax.train import Matcher
+    from mvpose_jax.trained import Matcher
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
     model = MatchingGAT(ring_rig.num_cameras, recs[0].num_keypoints, TINY, rngs=nnx.Rngs(0))

@@ -189,38 +189,3 @@ def test_reprojection_errors_per_camera(ring_rig):
     assert err["cam1"]["mean"] == pytest.approx(5.0, abs=1e-3)
     assert err["cam1"]["median"] == pytest.approx(5.0, abs=1e-3)
     assert err["cam2"]["count"] == 0 and np.isnan(err["cam2"]["mean"])
-
-
-def test_choose_proposal_threshold_takes_the_band_that_separates_true_from_false_pairs():
-    # Camera 0 sees people A and B, camera 1 sees A and a false detection X.
-    identity = np.array([[[0, 1], [0, -1]]])
-    count = np.array([[2, 2]])
-    rows = np.array([[0, 0, 0, 1, 0],   # A-A, true
-                     [0, 0, 1, 1, 1],   # B-X, false
-                     [0, 0, 0, 1, 1],   # A-X, false
-                     [0, 0, 1, 1, 0]])  # B-A, false  # fmt: skip
-    scores = np.array([0.3, 0.1, 0.05, 0.04])
-    best, ari = metrics.choose_proposal_threshold(rows, scores, identity, count)
-    # A pair is taken when its score is above the threshold: from 0.1 (B-X refused) to below 0.3
-    # (A-A taken) every threshold is perfect, and 0.2 is the nearest to 0.5.
-    assert best == 0.2
-    assert ari[0.1] == ari[0.15] == ari[0.2] == pytest.approx(1.0)
-    assert ari[0.05] < 1.0 and ari[0.3] < 1.0 and ari[0.5] < 1.0
-
-
-def test_choose_geometric_cutoff_is_a_pixel_distance_with_the_same_rule():
-    # The frame of the threshold test, with distances instead of scores: A-A at 7 px, the false
-    # pairs at 13, 18 and 22 px. Cutoffs from 8 to 12 px keep A-A alone (ARI 1); 12 is nearest 30.
-    identity = np.array([[[0, 1], [0, -1]]])
-    count = np.array([[2, 2]])
-    rows = np.array([[0, 0, 0, 1, 0], [0, 0, 1, 1, 1], [0, 0, 0, 1, 1], [0, 0, 1, 1, 0]])
-    d = np.array([7.0, 13.0, 18.0, 22.0])
-    best, ari = metrics.choose_geometric_cutoff(rows, d, identity, count)
-    assert best == 12.0
-    assert ari[8.0] == ari[10.0] == ari[12.0] == pytest.approx(1.0)
-    assert ari[6.0] < 1.0 and ari[15.0] < 1.0
-    # The same as the GAT rule applied to the pipeline's scores 2^(-d / cutoff) at threshold 0.5.
-    from mvpose_jax.inference import propose_people
-
-    p = propose_people(rows, np.exp2(-d / best), count, num_skeletons=2, threshold=0.5)
-    assert metrics.matching_scores(identity, p.identity, count)["ari"] == pytest.approx(1.0)

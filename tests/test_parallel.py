@@ -22,7 +22,8 @@ from flax import nnx
 
 from mvpose_jax.graphs import build_graphs
 from mvpose_jax.models import GATConfig, MatchingGAT
-from mvpose_jax.train import split_graph_batch, stacked_match_scores
+from mvpose_jax.graphs import split_graph_batch
+from mvpose_jax.models import stacked_match_scores
 
 ROOT = Path(__file__).resolve().parents[1]
 NUM_DEVICES = 4
@@ -44,11 +45,12 @@ def _worker() -> None:
     from mvpose_jax.data.calibration import load_preset
     from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.errors import InputError
-    from mvpose_jax.features import main_skeletons
+    from mvpose_jax.features import single_person_samples
     from mvpose_jax.inference import match_scores, predict_people
     from mvpose_jax.models import MLPConfig
     from mvpose_jax.parallel import make_data_mesh
-    from mvpose_jax.train import EstimatorConfig, MatcherConfig, TrainConfig, train_estimator, train_matcher
+    from mvpose_jax.train import train_estimator, train_matcher
+    from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 
     assert jax.device_count() == NUM_DEVICES, jax.devices()
     report = {}
@@ -56,8 +58,7 @@ def _worker() -> None:
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=6, seed=0)
 
     # The estimator: 24 people, batch 24 = one step per epoch, so the history has each step.
-    ms = [main_skeletons(np.asarray(r.detections.xy), np.asarray(r.detections.score)) for r in recs]
-    xy, score = np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms])
+    xy, score = single_person_samples(recs)
     est_cfg = EstimatorConfig(mlp=MLPConfig(widths=(32,), output="residual"), num_augment=2,
                               train=TrainConfig(learning_rate=1e-3, batch_size=24, max_steps=3, patience=100))  # fmt: skip
     est = {}

@@ -11,12 +11,13 @@ from mvpose_jax.cameras import make_rig
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.synthetic import generate_recording, generate_single_person_recordings
 from mvpose_jax.errors import InputError
-from mvpose_jax.features import main_skeletons
+from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import members_from_identity, poses_of_members, run_pipeline
 from mvpose_jax.metrics import matching_scores, pose_metrics
 from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.skeletons import Detections
-from mvpose_jax.train import EstimatorConfig, MatcherConfig, TrainConfig, train_estimator, train_matcher
+from mvpose_jax.train import train_estimator, train_matcher
+from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 
 
 @pytest.fixture(scope="module")
@@ -33,8 +34,7 @@ def models():
     train = dataclasses.replace(TrainConfig(), learning_rate=1e-3, batch_size=8, max_steps=4, eval_every=1)
     matcher, _ = train_matcher(rig, recs[:3], recs[3:], MatcherConfig(gat=GATConfig.quick(), train=train,
                                samples_per_epoch=16, num_dev_samples=8), progress=False)  # fmt: skip
-    ms = [main_skeletons(np.asarray(r.detections.xy), np.asarray(r.detections.score)) for r in recs]
-    xy, score = np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms])
+    xy, score = single_person_samples(recs)
     config = EstimatorConfig(mlp=MLPConfig(widths=(32,), output="residual"),
                              train=TrainConfig(batch_size=16, max_steps=4, learning_rate=1e-3))  # fmt: skip
     estimator, _ = train_estimator(rig, xy[:60], score[:60], xy[60:], score[60:], config, progress=False)

@@ -23,7 +23,9 @@ import pytest
 
 from mvpose_jax.errors import InputError
 from mvpose_jax.models import MLPConfig
-from mvpose_jax.train import Checkpoints, EstimatorConfig, TrainConfig, train_estimator
+from mvpose_jax.checkpoints import Checkpoints
+from mvpose_jax.train import train_estimator
+from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 # 64 people, 8 per step: 8 steps per epoch, validation every 2 epochs (steps 16, 32, 48, 60),
@@ -39,12 +41,11 @@ KILL_AT = 18  # a checkpoint at or after this step: after the first validation (
 def _samples():
     from mvpose_jax.data.calibration import load_preset
     from mvpose_jax.data.synthetic import generate_single_person_recordings
-    from mvpose_jax.features import main_skeletons
+    from mvpose_jax.features import single_person_samples
 
     rig = load_preset("panoptic5").select(["trackera", "trackerb", "trackerc"])
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=16, seed=0)
-    ms = [main_skeletons(np.asarray(r.detections.xy), np.asarray(r.detections.score)) for r in recs]
-    return rig, np.concatenate([m[0] for m in ms]), np.concatenate([m[1] for m in ms])
+    return (rig, *single_person_samples(recs))
 
 
 def _train(folder, config=CONFIG, resume=False, data=None):

@@ -115,3 +115,19 @@ class _NonFinite(ValueError):
 
 def _reject_constant(name: str):
     raise _NonFinite(name)
+
+
+def to_jsonable(value: Any) -> Any:
+    """``value`` with tuples as lists, dict keys as strings and numpy scalars and arrays as Python
+    numbers and lists, as JSON holds it (so a config compares equal to its saved form)."""
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value
