@@ -138,6 +138,12 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
             raise InputError(f"expected numbers, got {data[field].dtype}", file=path, field=field)
         if not np.isfinite(data[field]).all():
             raise InputError("non-finite values", file=path, field=field)
+    for field in ("members", "identity"):  # skeleton indices: a float (or NaN) is no index
+        if data[field].dtype.kind not in "iu":
+            raise InputError(f"expected integers, got {data[field].dtype}", file=path, field=field)
+    for field in ("valid", "keypoint_valid"):
+        if data[field].dtype.kind not in "biu":
+            raise InputError(f"expected booleans, got {data[field].dtype}", file=path, field=field)
     try:
         return PoseResults(
             Poses3D(data["xyz"].astype(np.float32), data["valid"].astype(bool), data["keypoint_valid"].astype(bool)),
