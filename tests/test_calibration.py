@@ -11,6 +11,7 @@ import pytest
 from mvpose_jax.cameras import camera_centres
 from mvpose_jax.data import calibration
 from mvpose_jax.errors import InputError
+from tests.helpers import panoptic_dict, toml_text
 
 
 def _assert_same_rig(a, b, atol=1e-6):
@@ -39,23 +40,10 @@ def test_native_round_trip(preset_rig, tmp_path):
     assert sub.names == (preset_rig.names[2], preset_rig.names[0])
 
 
-def _panoptic_dict(rig):
-    """A CMU Panoptic calibration (t in cm as a column, 'distCoef', 'resolution') plus a VGA decoy."""
-    cams = [
-        {"name": f"00_{c:02d}", "type": "hd", "resolution": np.asarray(rig.size[c]).astype(int).tolist(),
-         "K": np.asarray(rig.K[c], np.float64).tolist(), "distCoef": np.asarray(rig.dist[c], np.float64).tolist(),
-         "R": np.asarray(rig.R[c], np.float64).tolist(),
-         "t": (np.asarray(rig.t[c], np.float64) * 100).reshape(3, 1).tolist()}
-        for c in range(rig.num_cameras)
-    ]  # fmt: skip
-    cams.append({**cams[0], "name": "01_01", "type": "vga", "resolution": [640, 480]})
-    return {"calibDataSource": "160224_haggling1", "cameras": cams}
-
-
 def test_panoptic_json_selects_cameras_and_converts_centimetres(tmp_path):
     pan = calibration.load_rig("panoptic5")
     path = tmp_path / "calibration_160224_haggling1.json"
-    path.write_text(json.dumps(_panoptic_dict(pan)))
+    path.write_text(json.dumps(panoptic_dict(pan, source="160224_haggling1", vga_decoy=True)))
     rig = calibration.load_rig(path, cameras=["00_00", "00_01", "00_02", "00_03", "00_04"])
     np.testing.assert_allclose(rig.t, pan.t, atol=1e-6)
     np.testing.assert_allclose(rig.R, pan.R, atol=1e-7)
@@ -66,29 +54,13 @@ def test_panoptic_json_selects_cameras_and_converts_centimetres(tmp_path):
     assert e.value.camera == "00_99" and e.value.file == str(path)
 
 
-def _toml_text(rig, scale=1.0):
-    lines = []
-    for c, name in enumerate(rig.names):
-        rvec = cv2.Rodrigues(np.asarray(rig.R[c], np.float64))[0].ravel()
-        f = lambda a: "[ " + ", ".join(repr(float(x)) for x in np.ravel(a)) + ",]"  # noqa: E731
-        K = np.asarray(rig.K[c], np.float64)
-        lines += [
-            f"[cam_{c + 1}]", f'name = "{name}"', f"size = {f(rig.size[c])}",
-            "matrix = [ " + ", ".join(f(row) for row in K) + ",]",
-            f"distortions = {f(np.asarray(rig.dist[c])[:4])}", f"rotation = {f(rvec)}",
-            f"translation = {f(np.asarray(rig.t[c], np.float64) / scale)}", "fisheye = false", "",
-        ]  # fmt: skip
-    lines += ["[metadata]", "adjusted = false", "error = 0.0"]
-    return "\n".join(lines) + "\n"
-
-
 def test_toml_anipose_pose2sim(tmp_path):
     arp = calibration.load_rig("arplab6")  # no distortion, so 4 coefficients lose nothing
     path = tmp_path / "Calib.toml"
-    path.write_text(_toml_text(arp))
+    path.write_text(toml_text(arp))
     _assert_same_rig(calibration.load_rig(path), arp, atol=1e-5)
     # anipose in millimetres
-    path.write_text(_toml_text(arp, scale=1e-3))
+    path.write_text(toml_text(arp, scale=1e-3))
     _assert_same_rig(calibration.load_rig(path, translation_scale=1e-3), arp, atol=1e-5)
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from mvpose_jax import cameras
 from mvpose_jax.errors import InputError
-from tests.conftest import random_rig
+from tests.helpers import random_rig
 
 
 def _cam(rig, c):

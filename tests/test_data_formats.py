@@ -32,6 +32,7 @@ from mvpose_jax.data import (
 from mvpose_jax.data.calibration import load_preset
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections, Poses3D, get_layout
+from tests.helpers import json_paths
 
 FUZZ = settings(
     max_examples=50, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
@@ -694,17 +695,6 @@ def test_fuzz_json_values(fuzz_dir, value):
         _loads_or_input_error(partial(reader, path))
 
 
-def _paths(node, prefix=()):
-    """Every place in a JSON document, as key paths."""
-    yield prefix
-    if isinstance(node, dict):
-        for k, v in node.items():
-            yield from _paths(v, prefix + (k,))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            yield from _paths(v, prefix + (i,))
-
-
 def _replace(doc, path, value):
     if not path:
         return value
@@ -733,12 +723,12 @@ VALID_DOCS = _valid_documents()
 def test_fuzz_mutated_documents(fuzz_dir, which, pick, value, as_string):
     """A valid document with one node replaced: loads or raises InputError, nothing else."""
     doc = json.loads(json.dumps(VALID_DOCS[which]))
-    paths = list(_paths(doc))
+    paths = list(json_paths(doc))
     path = paths[pick % len(paths)]
     # The original format nests JSON in strings: mutate inside them too.
     if as_string and which == 1 and len(path) == 3 and path[2] == 0:
         inner = json.loads(doc[path[0]][path[1]][0])
-        inner_paths = list(_paths(inner))
+        inner_paths = list(json_paths(inner))
         inner = _replace(inner, inner_paths[pick % len(inner_paths)], value)
         doc = _replace(doc, path, json.dumps(inner))
     else:

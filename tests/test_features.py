@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mvpose_jax import cameras, features, triangulate
-from tests.conftest import random_rig, scene_points
+from tests.helpers import random_rig, scene_points
 
 
 def _people(rig, n, seed=0):

@@ -24,7 +24,6 @@ from __future__ import annotations
 import ast
 import contextlib
 import json
-import math
 import os
 import shutil
 import signal
@@ -35,7 +34,6 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
-import cv2
 import hypothesis.strategies as st
 import numpy as np
 import pytest
@@ -63,6 +61,7 @@ from mvpose_jax.data.formats import check_recording
 from mvpose_jax.data.poses import PoseResults, load_poses, save_poses
 from mvpose_jax.data.synthetic import generate_recording
 from mvpose_jax.errors import InputError, MvposeError
+from tests.helpers import Raw, dump_toml, json_paths, panoptic_dict, toml_text
 
 EXAMPLES = int(os.environ.get("MVPOSE_HOSTILE_EXAMPLES", "50"))
 HOSTILE = settings(
@@ -92,8 +91,8 @@ def valid(tmp_path_factory) -> dict:
     write_npz(rec, d / "recording.npz")
     save_openpose(rec, d / "openpose")
     save_rig(rig, d / "rig.json")
-    (d / "panoptic.json").write_text(json.dumps(_panoptic_dict(rig)))
-    (d / "calib.toml").write_text(_toml_text(rig))
+    (d / "panoptic.json").write_text(json.dumps(panoptic_dict(rig)))
+    (d / "calib.toml").write_text(toml_text(rig))
     save_poses(_poses_of(rec), d)
     out = {
         name: (d / file).read_bytes()
@@ -137,82 +136,6 @@ def _poses_of(rec: Recording) -> PoseResults:
 class _Valid(dict):
     def __repr__(self):  # hypothesis prints fixtures with a failing example: keep it short
         return "<valid files>"
-
-
-def _panoptic_dict(rig: Rig) -> dict:
-    """A CMU Panoptic calibration (t in cm as a column, 'distCoef', 'resolution')."""
-    return {
-        "calibDataSource": "hostile",
-        "cameras": [
-            {
-                "name": f"00_{c:02d}",
-                "type": "hd",
-                "resolution": np.asarray(rig.size[c]).astype(int).tolist(),
-                "K": np.asarray(rig.K[c], np.float64).tolist(),
-                "distCoef": np.asarray(rig.dist[c], np.float64).tolist(),
-                "R": np.asarray(rig.R[c], np.float64).tolist(),
-                "t": (np.asarray(rig.t[c], np.float64) * 100).reshape(3, 1).tolist(),
-            }
-            for c in range(rig.num_cameras)
-        ],
-    }
-
-
-def _toml_doc(rig: Rig) -> dict:
-    doc = {}
-    for c, name in enumerate(rig.names):
-        doc[f"cam_{c + 1}"] = {
-            "name": name,
-            "size": np.asarray(rig.size[c], np.float64).tolist(),
-            "matrix": np.asarray(rig.K[c], np.float64).tolist(),
-            "distortions": np.asarray(rig.dist[c], np.float64)[:4].tolist(),
-            "rotation": cv2.Rodrigues(np.asarray(rig.R[c], np.float64))[0].ravel().tolist(),
-            "translation": np.asarray(rig.t[c], np.float64).tolist(),
-            "fisheye": False,
-        }
-    doc["metadata"] = {"adjusted": False, "error": 0.0}
-    return doc
-
-
-def _toml_text(rig: Rig) -> str:
-    return _dump_toml(_toml_doc(rig))
-
-
-def _toml_value(v) -> str:
-    if v is None:  # TOML has no null; a string stands in for it
-        return '"null"'
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    if isinstance(v, Raw):
-        return v.text
-    raise TypeError(type(v))
-
-
-def _dump_toml(doc) -> str:
-    """A small TOML writer for the anipose structure (tables of values, inline tables below)."""
-    if not isinstance(doc, dict):  # the root replaced: write it as a value
-        return f"value = {_toml_value(doc)}\n"
-    values = [(k, v) for k, v in doc.items() if not isinstance(v, dict)]
-    lines = [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in values]
-    for k, v in doc.items():
-        if isinstance(v, dict):
-            lines.append(f"[{json.dumps(k)}]")
-            lines += [f"{json.dumps(kk)} = {_toml_value(vv)}" for kk, vv in v.items()]
-    return "\n".join(lines) + "\n"
 
 
 # --------------------------------------------------------------------------- readers
@@ -346,16 +269,6 @@ def test_mutated_bytes_openpose(valid, tmp_path_factory, pick, edits, cut):
 # --------------------------------------------------------------------------- JSON value mutations
 
 
-class Raw:
-    """JSON (or TOML) text put verbatim where a value goes: what `json.dumps` cannot write."""
-
-    def __init__(self, text: str):
-        self.text = text
-
-    def __repr__(self):
-        return f"Raw({self.text[:40]!r}{'…' if len(self.text) > 40 else ''})"
-
-
 _RAW = [
     Raw("[" * 5000 + "]" * 5000),  # nested beyond the recursion limit
     Raw("{" + '"a":{' * 3000 + "}" * 3001),
@@ -393,17 +306,6 @@ operations = st.one_of(
     st.tuples(st.just("delete"), st.none()),
     st.tuples(st.just("grow"), st.integers(1, 2000)),
 )
-
-
-def _paths(node, prefix=()):
-    """Every place in a JSON document, as key paths."""
-    yield prefix
-    if isinstance(node, dict):
-        for k, v in node.items():
-            yield from _paths(v, prefix + (k,))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            yield from _paths(v, prefix + (i,))
 
 
 # Where to mutate: (named, index). Named picks among object fields only ("identity", "t", ...),
@@ -455,7 +357,7 @@ def _dump_json(doc, raws: list) -> str:
 
 def _mutate_json(text: str, pick: int, op: str, arg) -> str:
     doc = json.loads(text)
-    paths = list(_paths(doc))
+    paths = list(json_paths(doc))
     raws: list[Raw] = []
     doc = _apply(doc, _choose(paths, pick), op, arg, raws)
     return _dump_json(doc, raws)
@@ -479,7 +381,7 @@ def test_mutated_original_embedded_skeletons(valid, tmp_path_factory, pick, inne
     f, cam = entries[pick % len(entries)]
     raws: list[Raw] = []
     skeletons = json.loads(doc[f][cam][0])
-    inner_paths = list(_paths(skeletons))
+    inner_paths = list(json_paths(skeletons))
     skeletons = _apply(skeletons, _choose(inner_paths, inner), *operation, raws)
     doc[f][cam][0] = _dump_json(skeletons, raws)
     path = _work(tmp_path_factory) / "embedded.json"
@@ -524,7 +426,7 @@ hostile_toml = st.recursive(
 )
 def test_mutated_toml_values(valid, tmp_path_factory, pick, operation):
     doc = tomllib.loads(valid["calib_toml"].decode())
-    path = _choose(list(_paths(doc)), pick)
+    path = _choose(list(json_paths(doc)), pick)
     op, arg = operation
     if not path:
         doc = arg if op == "replace" else doc
@@ -539,7 +441,7 @@ def test_mutated_toml_values(valid, tmp_path_factory, pick, operation):
         elif isinstance(parent[path[-1]], list) and parent[path[-1]]:
             parent[path[-1]].extend([parent[path[-1]][-1]] * arg)
     file = _work(tmp_path_factory) / "values.toml"
-    file.write_text(_dump_toml(doc), encoding="utf-8")
+    file.write_text(dump_toml(doc), encoding="utf-8")
     _read_all("calib_toml", file)
 
 

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mvpose_jax import cameras, losses
-from tests.conftest import scene_points
+from tests.helpers import scene_points
 
 
 def test_loss_is_zero_at_the_true_3d_of_noise_free_detections(preset_rig):

@@ -11,23 +11,37 @@ from flax import nnx
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mvpose_jax.graphs import Budget, build_graphs, dense_node_features, detection_features, graph_budget, match_table
-from mvpose_jax.inference import _match_scores, _match_scores_fn, bound_model_fn, gat_match_table, geometric_match_table, match_scores
-from mvpose_jax.proposals import propose_people, union_find_exclusive
+from mvpose_jax.graphs import (
+    Budget,
+    build_graphs,
+    dense_node_features,
+    detection_features,
+    graph_budget,
+    match_table,
+)
+from mvpose_jax.inference import (
+    _match_scores,
+    _match_scores_fn,
+    bound_model_fn,
+    gat_match_table,
+    geometric_match_table,
+    match_scores,
+)
 from mvpose_jax.metrics import clustering_scores, detection_clusters, matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT
-from mvpose_jax.train import init_train_state, make_optimizer, make_train_step, matcher_loss_fn, train_matcher
+from mvpose_jax.proposals import propose_people, union_find_exclusive
+from mvpose_jax.train import (
+    init_train_state,
+    make_optimizer,
+    make_train_step,
+    matcher_loss_fn,
+    train_matcher,
+)
 from mvpose_jax.trained import MatcherConfig
+from tests.helpers import random_frames
 
 C, K = 3, 4
 TINY = GATConfig(widths=(8, 8, 1), heads=(2, 2, 1))
-
-
-def _random_frames(rng, F, P=3, p_valid=0.6):
-    feats = rng.normal(size=(F, C, P, K * 10)).astype(np.float32)
-    valid = rng.random((F, C, P)) < p_valid
-    identity = np.where(rng.random((F, C, P)) < 0.8, rng.integers(0, 3, (F, C, P)), -1)
-    return feats, valid, identity
 
 
 @pytest.fixture(scope="module")
@@ -36,14 +50,14 @@ def model():
 
 
 def test_factorised_first_layer_equals_dense_gat(model):
-    b = build_graphs(*_random_frames(np.random.default_rng(0), 4))
+    b = build_graphs(*random_frames(np.random.default_rng(0), 4))
     fast = np.asarray(jax.jit(lambda m, x: m(x))(model, b))
     dense = np.asarray(jax.jit(lambda m, x, g: m.dense_forward(x, g))(model, dense_node_features(b), b.graphs))
     np.testing.assert_allclose(fast[b.node_mask], dense[b.node_mask], atol=1e-5)
 
 
 def test_padding_never_changes_real_scores(model):
-    feats, valid, identity = _random_frames(np.random.default_rng(1), 3)
+    feats, valid, identity = random_frames(np.random.default_rng(1), 3)
     small = build_graphs(feats, valid, identity)
     big = build_graphs(feats, valid, identity, num_graphs=9,
                        budget=Budget(small.graphs.nodes.shape[0] * 4, 128, small.graphs.nodes.shape[0] * 20, 10))  # fmt: skip
@@ -71,7 +85,7 @@ def _train_state(config=TINY, lr=3e-3, seed=0):
 def test_tiny_model_overfits_tiny_dataset():
     # Identity is written into the features, so a perfect matcher exists.
     rng = np.random.default_rng(2)
-    feats, valid, identity = _random_frames(rng, 6)
+    feats, valid, identity = random_frames(rng, 6)
     feats[..., :3] = np.eye(3, dtype=np.float32)[np.maximum(identity, 0)] * (identity >= 0)[..., None]
     batch = jax.device_put(build_graphs(feats, valid, identity))
     # 3e-3: at 1e-2 Adam sometimes parks this tiny net on a plateau (seed-dependent); at 3e-3
@@ -96,7 +110,7 @@ def test_no_recompilation_beyond_buckets():
     for _ in range(40):
         F = 5
         P = int(rng.integers(1, 4))  # frames of any size, padded to buckets
-        feats, valid, identity = _random_frames(rng, F, P=P, p_valid=rng.uniform(0.2, 1.0))
+        feats, valid, identity = random_frames(rng, F, P=P, p_valid=rng.uniform(0.2, 1.0))
         b = build_graphs(feats, valid, identity, num_graphs=F)
         budgets.add((b.graphs.nodes.shape[0], b.det_features.shape[0]))
         _match_scores(graphdef, rest, params, b)

@@ -9,7 +9,7 @@ import pytest
 
 from mvpose_jax import cameras, metrics
 from mvpose_jax.skeletons import Poses3D, get_layout
-from tests.conftest import scene_points
+from tests.helpers import scene_points
 
 
 def _poses(xyz, valid=None, kv=None):

@@ -20,21 +20,13 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from mvpose_jax.graphs import build_graphs
-from mvpose_jax.models import GATConfig, MatchingGAT
-from mvpose_jax.graphs import split_graph_batch
-from mvpose_jax.models import stacked_match_scores
+from mvpose_jax.graphs import build_graphs, split_graph_batch
+from mvpose_jax.models import GATConfig, MatchingGAT, stacked_match_scores
+from tests.helpers import random_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 NUM_DEVICES = 4
 TINY_GAT = GATConfig(widths=(8, 8, 1), heads=(2, 2, 1))
-
-
-def _random_frames(rng, F, C=3, P=3, K=4):
-    feats = rng.normal(size=(F, C, P, K * 10)).astype(np.float32)
-    valid = rng.random((F, C, P)) < 0.6
-    identity = np.where(rng.random((F, C, P)) < 0.8, rng.integers(0, 3, (F, C, P)), -1)
-    return feats, valid, identity
 
 
 # --------------------------------------------------------------------------- the worker
@@ -99,7 +91,7 @@ def _worker() -> None:
     mesh = make_data_mesh(NUM_DEVICES)
     report["predict"] = [predict_people(est[None], xy[:21], score[:21]).tolist(),
                          predict_people(est[None], xy[:21], score[:21], mesh=mesh).tolist()]  # fmt: skip
-    batch = build_graphs(*_random_frames(np.random.default_rng(0), 5, K=recs[0].num_keypoints), num_graphs=9)
+    batch = build_graphs(*random_frames(np.random.default_rng(0), 5, K=recs[0].num_keypoints), num_graphs=9)
     mask = np.asarray(batch.node_mask)
     one, many = (match_scores(matcher, batch), match_scores(matcher, batch, mesh=mesh))
     report["match_scores"] = [one[mask].tolist(), many[mask].tolist()]
@@ -164,7 +156,7 @@ def test_matcher_stacked_on_one_device_is_todays_loss():
     from mvpose_jax.losses import masked_mean
     from mvpose_jax.train import matcher_loss_fn, stacked_loss_fn
 
-    batch = build_graphs(*_random_frames(np.random.default_rng(4), 5))
+    batch = build_graphs(*random_frames(np.random.default_rng(4), 5))
     stacked, origin = split_graph_batch(batch, 1)
     for a, b in zip(jax.tree.leaves(stacked), jax.tree.leaves(batch), strict=True):
         np.testing.assert_array_equal(a, np.asarray(b)[None])
@@ -182,7 +174,7 @@ def test_matcher_stacked_on_one_device_is_todays_loss():
 
 
 def test_split_graph_batch_keeps_every_real_node_score():
-    feats, valid, identity = _random_frames(np.random.default_rng(1), 7)
+    feats, valid, identity = random_frames(np.random.default_rng(1), 7)
     batch = build_graphs(feats, valid, identity, num_graphs=10)
     model = MatchingGAT(3, 4, TINY_GAT, rngs=nnx.Rngs(0))
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)

@@ -21,9 +21,9 @@ import jax
 import numpy as np
 import pytest
 
+from mvpose_jax.checkpoints import Checkpoints
 from mvpose_jax.errors import InputError
 from mvpose_jax.models import MLPConfig
-from mvpose_jax.checkpoints import Checkpoints
 from mvpose_jax.train import train_estimator
 from mvpose_jax.trained import EstimatorConfig, TrainConfig
 

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mvpose_jax import cli
 from mvpose_jax.cameras import Rig, make_rig, project_points
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.formats import check_recording, load_recording
@@ -20,7 +21,6 @@ from mvpose_jax.data.synthetic import (
     simulate,
 )
 from mvpose_jax.data.synthetic import body as bm
-from mvpose_jax import cli
 from mvpose_jax.skeletons import COCO18
 
 

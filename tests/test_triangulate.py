@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mvpose_jax import cameras, triangulate
-from tests.conftest import random_rig, scene_points
+from tests.helpers import random_rig, scene_points
 
 
 @pytest.mark.parametrize("fn", [triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid])
