@@ -26,7 +26,6 @@ from flax import nnx
 from benchmarks import scenes
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.synthetic import generate_single_person_recordings
 from mvpose_jax.features import assemble_features, estimator_inputs, main_skeletons
 from mvpose_jax.graphs import build_graphs, detection_features, graph_budget, make_pool, match_table, sample_batches
 from mvpose_jax.inference import (
@@ -43,6 +42,7 @@ from mvpose_jax.inference import (
 )
 from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
 from mvpose_jax.skeletons import Detections
+from mvpose_jax.synthetic import generate_single_person_recordings
 from mvpose_jax.train import (
     EstimatorConfig,
     MatcherConfig,

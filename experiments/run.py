@@ -44,7 +44,6 @@ from mvpose_jax.data import save_recording
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.data.formats import select_cameras
-from mvpose_jax.data.synthetic import detection_variants, generate_recording, generate_single_person_recordings
 from mvpose_jax.features import main_skeletons, people_from_identity
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.inference import (
@@ -70,6 +69,7 @@ from mvpose_jax.metrics import (
 from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.render import curves_figure, save_figure, skeleton_figure
 from mvpose_jax.skeletons import Detections, Poses3D, evaluation_keypoints
+from mvpose_jax.synthetic import detection_variants, generate_recording, generate_single_person_recordings
 from mvpose_jax.train import MATCHER_TRAIN, EstimatorConfig, MatcherConfig, TrainConfig, train_estimator, train_matcher
 
 # The paper's numbers (reference only; never mixed into ours).

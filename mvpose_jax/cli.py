@@ -60,7 +60,7 @@ def _rig(args: argparse.Namespace) -> int:
 
 
 def _generate_arguments(p: argparse.ArgumentParser) -> None:
-    from mvpose_jax.data.synthetic.cli import add_generate_arguments
+    from mvpose_jax.synthetic.cli import add_generate_arguments
 
     add_rig_argument(p)
     add_generate_arguments(p)
@@ -72,7 +72,7 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
     _generate_arguments,
 )
 def _generate(args: argparse.Namespace) -> int:
-    from mvpose_jax.data.synthetic.cli import run_generate
+    from mvpose_jax.synthetic.cli import run_generate
 
     return run_generate(args)
 

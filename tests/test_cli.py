@@ -12,7 +12,7 @@ from mvpose_jax.cli import main
 from mvpose_jax.data import load_recording, save_openpose, save_recording
 from mvpose_jax.data.calibration import load_rig, save_rig
 from mvpose_jax.data.poses import load_poses
-from mvpose_jax.data.synthetic import generate_recording
+from mvpose_jax.synthetic import generate_recording
 
 
 @pytest.fixture(scope="module")
@@ -133,10 +133,10 @@ def test_train_matcher_threshold_is_written_and_read_back_by_infer(tmp_path):
     from flax import nnx
 
     from mvpose_jax.cli import PROPOSAL_THRESHOLD_FILE, matcher_threshold, save_proposal_threshold
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.errors import InputError
     from mvpose_jax.metrics import PROPOSAL_THRESHOLDS
     from mvpose_jax.models import GATConfig, MatchingGAT
+    from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.train import Matcher, MatcherConfig
 
     rig = load_rig("panoptic5")

@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mvpose_jax.data.synthetic import SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.features import main_skeletons
 from mvpose_jax.inference import predict_people
 from mvpose_jax.models import MLPConfig, PoseMLP, count_params
+from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.train import (
     EstimatorConfig,
     TrainConfig,

@@ -16,9 +16,9 @@ from mvpose_jax.data import (
     save_recording,
 )
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.synthetic import generate_recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections, get_layout
+from mvpose_jax.synthetic import generate_recording
 
 COCO18 = get_layout("coco18")
 

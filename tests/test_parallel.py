@@ -42,12 +42,12 @@ def _random_frames(rng, F, C=3, P=3, K=4):
 def _worker() -> None:
     """Runs in a subprocess with 4 host devices; prints one JSON report."""
     from mvpose_jax.data.calibration import load_preset
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.errors import InputError
     from mvpose_jax.features import main_skeletons
     from mvpose_jax.inference import match_scores, predict_people
     from mvpose_jax.models import MLPConfig
     from mvpose_jax.parallel import make_data_mesh
+    from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.train import EstimatorConfig, MatcherConfig, TrainConfig, train_estimator, train_matcher
 
     assert jax.device_count() == NUM_DEVICES, jax.devices()

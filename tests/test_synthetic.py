@@ -11,7 +11,9 @@ import pytest
 from mvpose_jax.cameras import Rig, make_rig, project_points
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.formats import check_recording, load_recording
-from mvpose_jax.data.synthetic import (
+from mvpose_jax import cli
+from mvpose_jax.skeletons import COCO18
+from mvpose_jax.synthetic import (
     SyntheticConfig,
     detection_variants,
     generate_recording,
@@ -19,9 +21,7 @@ from mvpose_jax.data.synthetic import (
     scene_geometry,
     simulate,
 )
-from mvpose_jax.data.synthetic import body as bm
-from mvpose_jax import cli
-from mvpose_jax.skeletons import COCO18
+from mvpose_jax.synthetic import body as bm
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """A figure of one frame of a recording: 2D detections per camera and the 3D ground truth.
 
-    python -m mvpose_jax.data.synthetic.figure --rig panoptic5 --people 4 --out results/synthetic_frame.png
+    python -m mvpose_jax.synthetic.figure --rig panoptic5 --people 4 --out results/synthetic_frame.png
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.data.synthetic.generate import generate_recording
+    from mvpose_jax.synthetic.generate import generate_recording
 
     rig = load_rig(args.rig)
     rec = generate_recording(rig, num_people=args.people, num_frames=args.frames, seed=args.seed)

@@ -10,7 +10,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from mvpose_jax.data.synthetic.config import DetectorConfig, MotionConfig, SceneConfig, SyntheticConfig
+from mvpose_jax.synthetic.config import DetectorConfig, MotionConfig, SceneConfig, SyntheticConfig
 
 # Detector rates exposed as options: option name -> DetectorConfig field.
 _RATE_OPTIONS = {
@@ -77,7 +77,7 @@ def run_generate(args: argparse.Namespace) -> int:
     """Generates and writes the recording(s); returns the exit status."""
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.data.formats import save_recording
-    from mvpose_jax.data.synthetic.generate import generate_recording, generate_single_person_recordings
+    from mvpose_jax.synthetic.generate import generate_recording, generate_single_person_recordings
 
     rig = load_rig(args.rig, translation_scale=getattr(args, "translation_scale", 1.0))
     config = config_from_args(args)

@@ -6,22 +6,22 @@ parameter and why its default is realistic.
 
 from __future__ import annotations
 
-from mvpose_jax.data.synthetic.config import (
+from mvpose_jax.synthetic.config import (
     BodyConfig,
     DetectorConfig,
     MotionConfig,
     SceneConfig,
     SyntheticConfig,
 )
-from mvpose_jax.data.synthetic.figure import render_frame_figure
-from mvpose_jax.data.synthetic.generate import (
+from mvpose_jax.synthetic.figure import render_frame_figure
+from mvpose_jax.synthetic.generate import (
     SyntheticScene,
     detection_variants,
     generate_recording,
     generate_single_person_recordings,
     simulate,
 )
-from mvpose_jax.data.synthetic.scene import (
+from mvpose_jax.synthetic.scene import (
     SceneGeometry,
     estimate_floor_height,
     scene_geometry,
