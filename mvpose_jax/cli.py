@@ -10,8 +10,12 @@ import argparse
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from mvpose_jax.errors import InputError, MvposeError
+
+if TYPE_CHECKING:
+    from mvpose_jax.synthetic import SyntheticConfig
 
 # name -> (help, add_arguments(parser), run(args) -> exit status)
 _COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {}
@@ -59,11 +63,75 @@ def _rig(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- generate
+#   mvpose-jax generate --rig panoptic5 --people 4 --frames 500 --seed 0 --out scene.json
+#   mvpose-jax generate --rig arplab6 --single-person-recordings 20 --frames 1000 --out train/
+
+# Detector rates exposed as options: option name -> DetectorConfig field.
+_RATE_OPTIONS = {
+    "miss-rate": "miss_rate",
+    "false-positive-rate": "false_positive_rate",
+    "swap-rate": "swap_rate",
+    "occluded-drop-rate": "occluded_drop_rate",
+    "keypoint-drop-rate": "keypoint_drop_rate",
+    "noise-relative": "noise_relative",
+    "offset-scale": "offset_scale",
+}
+
+
 def _generate_arguments(p: argparse.ArgumentParser) -> None:
-    from mvpose_jax.synthetic.cli import add_generate_arguments
+    from mvpose_jax.synthetic import DetectorConfig, MotionConfig
 
     add_rig_argument(p)
-    add_generate_arguments(p)
+    p.add_argument("--people", type=int, default=4, help="people in the scene (default 4)")
+    p.add_argument("--frames", type=int, default=500, help="frames per recording (default 500)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--out", required=True,
+        help="output file (.json native, .npz) or, with --single-person-recordings, a folder",
+    )  # fmt: skip
+    p.add_argument(
+        "--single-person-recordings", type=int, default=0, metavar="N",
+        help="write N one-person training recordings into the --out folder instead of one scene",
+    )  # fmt: skip
+    p.add_argument(
+        "--format", choices=("native", "npz"), default=None,
+        help="file format for the single-person recordings (default native JSON)",
+    )  # fmt: skip
+    p.add_argument("--fps", type=float, default=MotionConfig.fps, help=f"frame rate (default {MotionConfig.fps:g})")
+    p.add_argument(
+        "--floor-height", type=float, default=None,
+        help="floor height along the up vector, metres (default: estimated from the cameras)",
+    )  # fmt: skip
+    p.add_argument(
+        "--clean", action="store_true",
+        help="a perfect detector: no noise, offsets, drops, misses, false positives or swaps",
+    )  # fmt: skip
+    defaults = DetectorConfig()
+    for option, field in _RATE_OPTIONS.items():
+        p.add_argument(
+            f"--{option}", type=float, default=None,
+            help=f"detector {field.replace('_', ' ')} (default {getattr(defaults, field):g})",
+        )  # fmt: skip
+
+
+def synthetic_config_from_args(args: argparse.Namespace) -> SyntheticConfig:
+    """The `SyntheticConfig` the options of ``generate`` describe."""
+    import dataclasses
+
+    from mvpose_jax.synthetic import DetectorConfig, MotionConfig, SceneConfig, SyntheticConfig
+
+    detector = DetectorConfig().clean() if args.clean else DetectorConfig()
+    changes = {
+        field: getattr(args, option.replace("-", "_"))
+        for option, field in _RATE_OPTIONS.items()
+        if getattr(args, option.replace("-", "_")) is not None
+    }
+    return SyntheticConfig(
+        detector=dataclasses.replace(detector, **changes),
+        motion=dataclasses.replace(MotionConfig(), fps=args.fps),
+        scene=dataclasses.replace(SceneConfig(), floor_height=args.floor_height),
+    )
 
 
 @command(
@@ -72,9 +140,39 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
     _generate_arguments,
 )
 def _generate(args: argparse.Namespace) -> int:
-    from mvpose_jax.synthetic.cli import run_generate
+    from pathlib import Path
 
-    return run_generate(args)
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.data.formats import save_recording
+    from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
+
+    rig = load_rig(args.rig, translation_scale=getattr(args, "translation_scale", 1.0))
+    config = synthetic_config_from_args(args)
+    out = Path(args.out)
+    if args.single_person_recordings > 0:
+        recordings = generate_single_person_recordings(
+            rig, num_recordings=args.single_person_recordings, num_frames=args.frames,
+            config=config, seed=args.seed, progress=True,
+        )  # fmt: skip
+        suffix = ".npz" if args.format == "npz" else ".json"
+        width = len(str(len(recordings) - 1))
+        for i, rec in enumerate(recordings):
+            path = out / f"person_{i:0{width}d}{suffix}"
+            save_recording(rec, path, rig=rig if suffix == ".json" else None)
+        print(f"wrote {len(recordings)} single-person recordings of {args.frames} frames to {out}/")
+        return 0
+    rec = generate_recording(
+        rig, num_people=args.people, num_frames=args.frames, config=config, seed=args.seed,
+        progress=True,
+    )  # fmt: skip
+    native = out.suffix.lower() != ".npz"
+    save_recording(rec, out, rig=rig if native else None)
+    det = rec.detections
+    print(
+        f"wrote {out}: {rec.num_frames} frames, {len(rec.cameras)} cameras, {args.people} people, "
+        f"{int(det.count.sum())} detections"
+    )
+    return 0
 
 
 # --------------------------------------------------------------------------- train-matcher
