@@ -116,7 +116,9 @@ def test_bad_input_is_one_clear_line(files, tmp_path, capsys):
     assert "poses.npz" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name", ["infer", "evaluate", "render", "train-matcher", "train-estimator", "generate", "rig"])
+@pytest.mark.parametrize(
+    "name", ["infer", "evaluate", "render", "train-matcher", "train-estimator", "generate", "synthetic-figure", "rig"]
+)
 def test_every_command_explains_every_option(name, capsys):
     with pytest.raises(SystemExit):
         main([name, "--help"])

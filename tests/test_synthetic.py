@@ -243,3 +243,11 @@ def test_generate_command(tmp_path):
             "--out", str(tmp_path / "train"), "--format", "npz"]  # fmt: skip
     assert cli.main(argv) == 0
     assert sorted(p.name for p in (tmp_path / "train").iterdir()) == ["person_0.npz", "person_1.npz"]
+
+
+def test_synthetic_figure_command(tmp_path, capsys):
+    out = tmp_path / "frame.png"
+    argv = ["synthetic-figure", "--rig", "panoptic5", "--people", "2", "--frames", "3", "--out", str(out)]
+    assert cli.main(argv) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    assert out.read_bytes()[:4] == b"\x89PNG"
