@@ -40,12 +40,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from mvpose_jax.data import save_recording
+from mvpose_jax.cameras import up_vector
+from mvpose_jax.data import save_recording, select_cameras
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text
-from mvpose_jax.data.formats import select_cameras
 from mvpose_jax.features import main_skeletons, people_from_identity
-from mvpose_jax.cameras import up_vector
 from mvpose_jax.inference import (
     composed_frames,
     epipolar_match_distances,

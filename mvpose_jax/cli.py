@@ -142,8 +142,8 @@ def synthetic_config_from_args(args: argparse.Namespace) -> SyntheticConfig:
 def _generate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from mvpose_jax.data import save_recording
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.data.formats import save_recording
     from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
 
     rig = load_rig(args.rig, translation_scale=getattr(args, "translation_scale", 1.0))
@@ -436,8 +436,7 @@ def _train_estimator(args: argparse.Namespace) -> int:
 
 def _load_detections(args: argparse.Namespace, rig):
     """The recording of ``--detections`` (any format; an OpenPose folder too) on the rig's cameras."""
-    from mvpose_jax.data import load_recording
-    from mvpose_jax.data.formats import select_cameras
+    from mvpose_jax.data import load_recording, select_cameras
 
     kwargs = {}
     if getattr(args, "missing_frames", None):

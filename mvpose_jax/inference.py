@@ -331,7 +331,7 @@ def gat_match_table(
     Args:
       matcher: a trained `Matcher`.
       detections: `Detections` with xy (F, C, P, K, 2) in the matcher's camera order
-        (``matcher.rig.names``; use `data.formats.select_cameras` on a recording).
+        (``matcher.rig.names``; use `data.select_cameras` on a recording).
     Returns:
       rows (M, 5) ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` and scores (M,).
     """

@@ -8,10 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mvpose_jax.cameras import Rig, make_rig, project_points
-from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.formats import check_recording, load_recording
 from mvpose_jax import cli
+from mvpose_jax.cameras import Rig, make_rig, project_points
+from mvpose_jax.data import load_recording
+from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.data.checks import check_recording
 from mvpose_jax.skeletons import COCO18
 from mvpose_jax.synthetic import (
     SyntheticConfig,
