@@ -12,7 +12,7 @@ import collections
 import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -25,8 +25,10 @@ from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estima
 from mvpose_jax.graphs import GraphBatch, build_graphs, compose_samples, make_pool, match_table
 from mvpose_jax.models import to_world
 from mvpose_jax.skeletons import Detections, Poses3D
-from mvpose_jax.train import Estimator, Matcher
 from mvpose_jax.triangulate import camera_pairs, triangulate_pairwise_centroid, triangulate_points
+
+if TYPE_CHECKING:  # annotations only: the functions that need train import it when called
+    from mvpose_jax.train import Estimator, Matcher
 
 # Powers of two from 1: a single frame's few people are not padded to a batch (the MLP's cost
 # grows with the rows), and a long recording still compiles only log2(N) shapes.

@@ -34,7 +34,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -43,13 +43,15 @@ import optax
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
-from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
 from mvpose_jax.graphs import GraphBatch, graph_budget, make_pool, sample_batches
 from mvpose_jax.losses import masked_mean, match_mse, reprojection_error_l1
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP, to_world
 from mvpose_jax.parallel import make_data_mesh, mesh_size, replicate, replicated, shard_batch
+
+if TYPE_CHECKING:  # annotations only: importing data.recording loads every reader
+    from mvpose_jax.data.recording import Recording
 
 
 class TrainState(NamedTuple):
