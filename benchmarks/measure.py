@@ -26,14 +26,38 @@ from flax import nnx
 from benchmarks import scenes
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.synthetic import generate_single_person_recordings
 from mvpose_jax.features import assemble_features, estimator_inputs, single_person_samples
-from mvpose_jax.graphs import build_graphs, detection_features, graph_budget, make_pool, match_table, next_power_of_two, sample_batches
-from mvpose_jax.inference import estimate_grouped, gat_match_table, group_people, members_from_identity, poses_of_members, predict_people, propose_with_matcher, triangulate_grouped
-from mvpose_jax.proposals import propose_people
+from mvpose_jax.graphs import (
+    build_graphs,
+    detection_features,
+    graph_budget,
+    make_pool,
+    match_table,
+    next_power_of_two,
+    sample_batches,
+)
+from mvpose_jax.inference import (
+    estimate_grouped,
+    gat_match_table,
+    group_people,
+    members_from_identity,
+    poses_of_members,
+    predict_people,
+    propose_with_matcher,
+    triangulate_grouped,
+)
 from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
+from mvpose_jax.proposals import propose_people
 from mvpose_jax.skeletons import Detections
-from mvpose_jax.train import estimator_loss_fn, init_train_state, make_estimator_batch, make_optimizer, make_train_step, matcher_loss_fn
+from mvpose_jax.synthetic import generate_single_person_recordings
+from mvpose_jax.train import (
+    estimator_loss_fn,
+    init_train_state,
+    make_estimator_batch,
+    make_optimizer,
+    make_train_step,
+    matcher_loss_fn,
+)
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig
 
 # The configuration the targets are stated for (DESIGN.md §5 and the tracker issue).

@@ -143,10 +143,10 @@ def _in_process(group: str, tier: str) -> tuple[dict | None, dict | None, str | 
 
 
 def _child(group: str, tier: str, out: Path) -> int:
+    import jax
+
     from benchmarks.measure import GROUPS, TIERS
     from mvpose_jax.data.files import to_jsonable
-
-    import jax
 
     jax.devices()  # the backend's own memory belongs to the baseline
     rss = _current_rss_mb()

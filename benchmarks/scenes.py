@@ -18,11 +18,10 @@ import numpy as np
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, make_rig, rig_centre_and_radius
+from mvpose_jax.data import Recording, select_cameras
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.formats import select_cameras
-from mvpose_jax.data.recording import Recording
-from mvpose_jax.data.synthetic import generate_recording
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
+from mvpose_jax.synthetic import generate_recording
 from mvpose_jax.trained import Estimator, EstimatorConfig, Matcher, MatcherConfig
 
 # Camera subsets of the five Panoptic cameras for 2 and 3 views (the paper's Table 3 uses subsets

@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 
 from mvpose_jax.data.calibration import load_rig  # noqa: E402
 from mvpose_jax.data.files import atomic_write_text  # noqa: E402
-from mvpose_jax.data.synthetic import generate_recording, generate_single_person_recordings  # noqa: E402
+from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings  # noqa: E402
 
 
 def _time(fn, repeats: int) -> np.ndarray:

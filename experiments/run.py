@@ -40,19 +40,38 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from mvpose_jax.data import save_recording
+from mvpose_jax.cameras import up_vector
+from mvpose_jax.data import save_recording, select_cameras
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
-from mvpose_jax.data.formats import select_cameras
-from mvpose_jax.data.synthetic import detection_variants, generate_recording, generate_single_person_recordings
 from mvpose_jax.features import people_from_identity, single_person_samples
-from mvpose_jax.cameras import up_vector
-from mvpose_jax.inference import composed_frames, epipolar_match_distances, estimate_grouped, gat_match_table, group_people, members_from_identity, poses_of_members, run_pipeline, triangulate_grouped
-from mvpose_jax.metrics import PCP_CLASSES, match_people, matching_scores, pose_metrics, reprojection_errors
-from mvpose_jax.proposals import choose_geometric_cutoff, choose_proposal_threshold
+from mvpose_jax.inference import (
+    composed_frames,
+    epipolar_match_distances,
+    estimate_grouped,
+    gat_match_table,
+    group_people,
+    members_from_identity,
+    poses_of_members,
+    run_pipeline,
+    triangulate_grouped,
+)
+from mvpose_jax.metrics import (
+    PCP_CLASSES,
+    match_people,
+    matching_scores,
+    pose_metrics,
+    reprojection_errors,
+)
 from mvpose_jax.models import GATConfig, MLPConfig
+from mvpose_jax.proposals import choose_geometric_cutoff, choose_proposal_threshold
 from mvpose_jax.render import curves_figure, save_figure, skeleton_figure
 from mvpose_jax.skeletons import Detections, Poses3D, evaluation_keypoints
+from mvpose_jax.synthetic import (
+    detection_variants,
+    generate_recording,
+    generate_single_person_recordings,
+)
 from mvpose_jax.train import train_estimator, train_matcher
 from mvpose_jax.trained import MATCHER_TRAIN, EstimatorConfig, MatcherConfig, TrainConfig
 

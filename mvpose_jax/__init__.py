@@ -5,7 +5,8 @@ Public API (the modules hold the details):
     `camera_centres`, `rig_centre_and_radius`, `up_vector`.
   * triangulate: `triangulate_points` (score-weighted DLT), `triangulate_pairwise_centroid`.
   * skeletons: `Detections`, `Poses3D`, `Layout`, `get_layout`, `convert_keypoints`.
-  * data: `load_rig`, `Recording`, readers and writers, synthetic recordings.
+  * data: `load_rig`, `Recording`, readers and writers.
+  * synthetic: simulated recordings (`generate_recording`, `generate_single_person_recordings`).
 """
 
 from mvpose_jax.cameras import (

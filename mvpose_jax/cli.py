@@ -10,8 +10,12 @@ import argparse
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from mvpose_jax.errors import InputError, MvposeError
+
+if TYPE_CHECKING:
+    from mvpose_jax.synthetic import SyntheticConfig
 
 # name -> (help, add_arguments(parser), run(args) -> exit status)
 _COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {}
@@ -59,11 +63,75 @@ def _rig(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- generate
+#   mvpose-jax generate --rig panoptic5 --people 4 --frames 500 --seed 0 --out scene.json
+#   mvpose-jax generate --rig arplab6 --single-person-recordings 20 --frames 1000 --out train/
+
+# Detector rates exposed as options: option name -> DetectorConfig field.
+_RATE_OPTIONS = {
+    "miss-rate": "miss_rate",
+    "false-positive-rate": "false_positive_rate",
+    "swap-rate": "swap_rate",
+    "occluded-drop-rate": "occluded_drop_rate",
+    "keypoint-drop-rate": "keypoint_drop_rate",
+    "noise-relative": "noise_relative",
+    "offset-scale": "offset_scale",
+}
+
+
 def _generate_arguments(p: argparse.ArgumentParser) -> None:
-    from mvpose_jax.data.synthetic.cli import add_generate_arguments
+    from mvpose_jax.synthetic import DetectorConfig, MotionConfig
 
     add_rig_argument(p)
-    add_generate_arguments(p)
+    p.add_argument("--people", type=int, default=4, help="people in the scene (default 4)")
+    p.add_argument("--frames", type=int, default=500, help="frames per recording (default 500)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--out", required=True,
+        help="output file (.json native, .npz) or, with --single-person-recordings, a folder",
+    )  # fmt: skip
+    p.add_argument(
+        "--single-person-recordings", type=int, default=0, metavar="N",
+        help="write N one-person training recordings into the --out folder instead of one scene",
+    )  # fmt: skip
+    p.add_argument(
+        "--format", choices=("native", "npz"), default=None,
+        help="file format for the single-person recordings (default native JSON)",
+    )  # fmt: skip
+    p.add_argument("--fps", type=float, default=MotionConfig.fps, help=f"frame rate (default {MotionConfig.fps:g})")
+    p.add_argument(
+        "--floor-height", type=float, default=None,
+        help="floor height along the up vector, metres (default: estimated from the cameras)",
+    )  # fmt: skip
+    p.add_argument(
+        "--clean", action="store_true",
+        help="a perfect detector: no noise, offsets, drops, misses, false positives or swaps",
+    )  # fmt: skip
+    defaults = DetectorConfig()
+    for option, field in _RATE_OPTIONS.items():
+        p.add_argument(
+            f"--{option}", type=float, default=None,
+            help=f"detector {field.replace('_', ' ')} (default {getattr(defaults, field):g})",
+        )  # fmt: skip
+
+
+def synthetic_config_from_args(args: argparse.Namespace) -> SyntheticConfig:
+    """The `SyntheticConfig` the options of ``generate`` describe."""
+    import dataclasses
+
+    from mvpose_jax.synthetic import DetectorConfig, MotionConfig, SceneConfig, SyntheticConfig
+
+    detector = DetectorConfig().clean() if args.clean else DetectorConfig()
+    changes = {
+        field: getattr(args, option.replace("-", "_"))
+        for option, field in _RATE_OPTIONS.items()
+        if getattr(args, option.replace("-", "_")) is not None
+    }
+    return SyntheticConfig(
+        detector=dataclasses.replace(detector, **changes),
+        motion=dataclasses.replace(MotionConfig(), fps=args.fps),
+        scene=dataclasses.replace(SceneConfig(), floor_height=args.floor_height),
+    )
 
 
 @command(
@@ -72,9 +140,71 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
     _generate_arguments,
 )
 def _generate(args: argparse.Namespace) -> int:
-    from mvpose_jax.data.synthetic.cli import run_generate
+    from pathlib import Path
 
-    return run_generate(args)
+    from mvpose_jax.data import save_recording
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
+
+    rig = load_rig(args.rig, translation_scale=getattr(args, "translation_scale", 1.0))
+    config = synthetic_config_from_args(args)
+    out = Path(args.out)
+    if args.single_person_recordings > 0:
+        recordings = generate_single_person_recordings(
+            rig, num_recordings=args.single_person_recordings, num_frames=args.frames,
+            config=config, seed=args.seed, progress=True,
+        )  # fmt: skip
+        suffix = ".npz" if args.format == "npz" else ".json"
+        width = len(str(len(recordings) - 1))
+        for i, rec in enumerate(recordings):
+            path = out / f"person_{i:0{width}d}{suffix}"
+            save_recording(rec, path, rig=rig if suffix == ".json" else None)
+        print(f"wrote {len(recordings)} single-person recordings of {args.frames} frames to {out}/")
+        return 0
+    rec = generate_recording(
+        rig, num_people=args.people, num_frames=args.frames, config=config, seed=args.seed,
+        progress=True,
+    )  # fmt: skip
+    native = out.suffix.lower() != ".npz"
+    save_recording(rec, out, rig=rig if native else None)
+    det = rec.detections
+    print(
+        f"wrote {out}: {rec.num_frames} frames, {len(rec.cameras)} cameras, {args.people} people, "
+        f"{int(det.count.sum())} detections"
+    )
+    return 0
+
+
+def _synthetic_figure_arguments(p: argparse.ArgumentParser) -> None:
+    add_rig_argument(p)
+    p.add_argument("--people", type=int, default=4, help="people in the scene (default 4)")
+    p.add_argument("--frames", type=int, default=150, help="frames to simulate (default 150)")
+    p.add_argument("--frame", type=int, default=-1, help="frame to draw (default: the last)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--out", default="results/synthetic_frame.png",
+                   help="output PNG (default results/synthetic_frame.png)")  # fmt: skip
+
+
+@command(
+    "synthetic-figure",
+    "Draw one frame of a synthetic recording: the detections in every camera (coloured by true "
+    "identity, false positives grey) and the 3D ground truth.",
+    _synthetic_figure_arguments,
+)
+def _synthetic_figure(args: argparse.Namespace) -> int:
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.render import render_frame_figure
+    from mvpose_jax.synthetic import generate_recording
+
+    rig = load_rig(args.rig, translation_scale=args.translation_scale)
+    rec = generate_recording(rig, num_people=args.people, num_frames=args.frames, seed=args.seed)
+    frame = args.frame % rec.num_frames
+    out = render_frame_figure(
+        rec, rig, frame, args.out,
+        title=f"synthetic {args.rig}: {args.people} people, frame {frame}, seed {args.seed}",
+    )  # fmt: skip
+    print(out)
+    return 0
 
 
 # --------------------------------------------------------------------------- train-matcher
@@ -150,8 +280,8 @@ def _train_matcher(args: argparse.Namespace) -> int:
     import dataclasses
 
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
     from mvpose_jax.inference import choose_matcher_threshold
+    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
     from mvpose_jax.proposals import write_proposal_threshold
     from mvpose_jax.train import train_matcher
     from mvpose_jax.trained import MatcherConfig
@@ -258,8 +388,7 @@ def _train_estimator(args: argparse.Namespace) -> int:
 
 def _load_detections(args: argparse.Namespace, rig):
     """The recording of ``--detections`` (any format; an OpenPose folder too) on the rig's cameras."""
-    from mvpose_jax.data import load_recording
-    from mvpose_jax.data.formats import select_cameras
+    from mvpose_jax.data import load_recording, select_cameras
 
     kwargs = {}
     if getattr(args, "missing_frames", None):
@@ -434,7 +563,14 @@ def _render(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm.auto import tqdm
 
-    from mvpose_jax.render import VideoWriter, draw_view, save_figure, skeleton_figure, tile, write_image
+    from mvpose_jax.render import (
+        VideoWriter,
+        draw_view,
+        save_figure,
+        skeleton_figure,
+        tile,
+        write_image,
+    )
 
     poses, rec, rig = _poses_and_detections(args)
     F = rec.num_frames

@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -43,9 +43,11 @@ import jraph
 import numpy as np
 
 from mvpose_jax.cameras import Rig
-from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, keypoint_features
+
+if TYPE_CHECKING:  # annotations only: importing data.recording loads every reader
+    from mvpose_jax.data.recording import Recording
 
 DETECTION, MATCH = 0, 1  # positions in the one-hot
 MIN_NODES = 64

@@ -21,11 +21,23 @@ from flax import nnx
 
 from mvpose_jax.cameras import Rig, undistort_points
 from mvpose_jax.errors import InputError
-from mvpose_jax.features import NUM_KEYPOINT_FEATURES, assemble_features, estimator_inputs, keypoint_features
-from mvpose_jax.graphs import GraphBatch, build_graphs, compose_samples, make_pool, match_table, next_power_of_two
+from mvpose_jax.features import (
+    NUM_KEYPOINT_FEATURES,
+    assemble_features,
+    estimator_inputs,
+    keypoint_features,
+)
+from mvpose_jax.graphs import (
+    GraphBatch,
+    build_graphs,
+    compose_samples,
+    make_pool,
+    match_table,
+    next_power_of_two,
+)
 from mvpose_jax.models import to_world
-from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.proposals import Proposals, choose_proposal_threshold, propose_people
+from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.trained import Estimator, Matcher
 from mvpose_jax.triangulate import camera_pairs, triangulate_pairwise_centroid, triangulate_points
 
@@ -213,9 +225,9 @@ def match_scores(matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh
     if mesh is None:
         return np.asarray(_match_scores(matcher.graphdef, matcher.rest, matcher.params, batch))
     # Local imports: this function is the only place inference needs the mesh helpers.
-    from mvpose_jax.parallel import mesh_size, replicate, shard_batch, to_host
     from mvpose_jax.graphs import split_graph_batch
     from mvpose_jax.models import stacked_match_scores
+    from mvpose_jax.parallel import mesh_size, replicate, shard_batch, to_host
 
     stacked, origin = split_graph_batch(batch, mesh_size(mesh))  # (S, ...), origin (S, N_s)
     out = stacked_match_scores(matcher.graphdef, matcher.rest, replicate(mesh, matcher.params),
@@ -323,7 +335,7 @@ def gat_match_table(
     Args:
       matcher: a trained `Matcher`.
       detections: `Detections` with xy (F, C, P, K, 2) in the matcher's camera order
-        (``matcher.rig.names``; use `data.formats.select_cameras` on a recording).
+        (``matcher.rig.names``; use `data.select_cameras` on a recording).
     Returns:
       rows (M, 5) ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` and scores (M,).
     """

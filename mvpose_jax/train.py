@@ -54,7 +54,7 @@ from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
 from mvpose_jax.parallel import make_data_mesh, mesh_size, replicate, replicated, shard_batch
 from mvpose_jax.trained import Estimator, EstimatorConfig, Matcher, MatcherConfig, TrainConfig
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # annotations only: importing data.recording loads every reader
     from mvpose_jax.data.recording import Recording
 
 

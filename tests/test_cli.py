@@ -12,7 +12,7 @@ from mvpose_jax.cli import main
 from mvpose_jax.data import load_recording, save_openpose, save_recording
 from mvpose_jax.data.calibration import load_rig, save_rig
 from mvpose_jax.data.poses import load_poses
-from mvpose_jax.data.synthetic import generate_recording
+from mvpose_jax.synthetic import generate_recording
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,9 @@ def test_bad_input_is_one_clear_line(files, tmp_path, capsys):
     assert "poses.npz" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name", ["infer", "evaluate", "render", "train-matcher", "train-estimator", "generate", "rig"])
+@pytest.mark.parametrize(
+    "name", ["infer", "evaluate", "render", "train-matcher", "train-estimator", "generate", "synthetic-figure", "rig"]
+)
 def test_every_command_explains_every_option(name, capsys):
     with pytest.raises(SystemExit):
         main([name, "--help"])

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from mvpose_jax.data.synthetic import SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import predict_people
 from mvpose_jax.models import MLPConfig, PoseMLP, count_params
+from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.train import random_view_subsets, train_estimator
 from mvpose_jax.trained import EstimatorConfig, TrainConfig, load_estimator
 

@@ -133,7 +133,7 @@ def test_next_bucket_is_the_smallest_power_of_two_or_one_and_a_half_times_one():
 
 @pytest.fixture(scope="module")
 def pool_and_rig(ring_rig):
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
+    from mvpose_jax.synthetic import generate_single_person_recordings
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=4, num_frames=6, seed=0)
     return make_pool(ring_rig, recs), ring_rig, recs

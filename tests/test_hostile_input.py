@@ -57,10 +57,10 @@ from mvpose_jax.data import (
 )
 from mvpose_jax.data import files as files_module
 from mvpose_jax.data.calibration import load_rig, save_rig
-from mvpose_jax.data.formats import check_recording
+from mvpose_jax.data.checks import check_recording
 from mvpose_jax.data.poses import PoseResults, load_poses, save_poses
-from mvpose_jax.data.synthetic import generate_recording
 from mvpose_jax.errors import InputError, MvposeError
+from mvpose_jax.synthetic import generate_recording
 from tests.helpers import Raw, dump_toml, json_paths, panoptic_dict, toml_text
 
 EXAMPLES = int(os.environ.get("MVPOSE_HOSTILE_EXAMPLES", "50"))

@@ -30,6 +30,7 @@ from mvpose_jax.inference import (
 from mvpose_jax.metrics import clustering_scores, detection_clusters, matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT
 from mvpose_jax.proposals import propose_people, union_find_exclusive
+from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
 from mvpose_jax.train import (
     init_train_state,
     make_optimizer,
@@ -129,7 +130,6 @@ def test_bound_model_fn_is_built_once_per_graphdef():
 
 def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
     """The fused path (features in the GAT's jit, graphs cached by count) gives the two-step numbers."""
-    from mvpose_jax.data.synthetic import generate_recording
     from mvpose_jax.skeletons import Detections
     from mvpose_jax.trained import Matcher
 
@@ -162,7 +162,7 @@ def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
 
 
 def test_train_matcher_quick_runs_and_checkpoints(ring_rig, tmp_path):
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
+    from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.trained import load_matcher
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=4, num_frames=5, seed=1)
@@ -267,7 +267,7 @@ def test_detection_clusters_make_singletons_and_frame_unique_labels():
 
 
 def test_geometric_baseline_groups_true_people(ring_rig):
-    from mvpose_jax.data.synthetic import generate_recording
+    from mvpose_jax.synthetic import generate_recording
 
     rec = generate_recording(ring_rig, num_people=3, num_frames=4, seed=3)
     rows, scores = geometric_match_table(ring_rig, rec.detections)
@@ -304,7 +304,6 @@ def test_single_frame_graph_cache_is_lru_and_bounded_by_bytes():
 
 
 def test_composed_match_table_scores_the_composed_skeletons_with_their_identities(ring_rig):
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.inference import composed_match_table
     from mvpose_jax.trained import Matcher
 
@@ -366,9 +365,9 @@ def test_matching_scores_average_per_frame_and_pool_beside():
 
 
 def test_composed_frames_are_the_training_composition_as_detections(ring_rig):
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.graphs import compose_samples, detection_features, make_pool
     from mvpose_jax.inference import composed_frames
+    from mvpose_jax.synthetic import generate_single_person_recordings
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
     det, identity = composed_frames(ring_rig, recs, num_samples=30, seed=3, max_people=3, keypoint_dropout=0.4)
@@ -389,8 +388,8 @@ def test_composed_frames_are_the_training_composition_as_detections(ring_rig):
 
 
 def test_epipolar_distances_give_the_geometric_scores(ring_rig):
-    from mvpose_jax.data.synthetic import generate_recording
     from mvpose_jax.inference import epipolar_match_distances
+    from mvpose_jax.synthetic import generate_recording
 
     rec = generate_recording(ring_rig, num_people=3, num_frames=3, seed=5)
     rows, scores = geometric_match_table(ring_rig, rec.detections, half_score_px=25.0)

@@ -16,9 +16,9 @@ from mvpose_jax.data import (
     save_recording,
 )
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.synthetic import generate_recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections, get_layout
+from mvpose_jax.synthetic import generate_recording
 
 COCO18 = get_layout("coco18")
 
@@ -155,7 +155,7 @@ def _recording(layout: str = "coco18") -> tuple[Recording, object]:
     rig = load_rig("panoptic5")
     rec = generate_recording(rig, num_people=2, num_frames=3, seed=0)
     if layout != "coco18":
-        from mvpose_jax.data.formats import convert_layout
+        from mvpose_jax.data import convert_layout
 
         rec = convert_layout(rec, layout)
     return rec, rig

@@ -35,12 +35,12 @@ TINY_GAT = GATConfig(widths=(8, 8, 1), heads=(2, 2, 1))
 def _worker() -> None:
     """Runs in a subprocess with 4 host devices; prints one JSON report."""
     from mvpose_jax.data.calibration import load_preset
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.errors import InputError
     from mvpose_jax.features import single_person_samples
     from mvpose_jax.inference import match_scores, predict_people
     from mvpose_jax.models import MLPConfig
     from mvpose_jax.parallel import make_data_mesh
+    from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.train import train_estimator, train_matcher
     from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 

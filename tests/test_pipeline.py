@@ -9,13 +9,13 @@ import pytest
 
 from mvpose_jax.cameras import make_rig
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.synthetic import generate_recording, generate_single_person_recordings
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import members_from_identity, poses_of_members, run_pipeline
 from mvpose_jax.metrics import matching_scores, pose_metrics
 from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.skeletons import Detections
+from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
 from mvpose_jax.train import train_estimator, train_matcher
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 

@@ -58,9 +58,9 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
     from flax import nnx
 
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.inference import choose_matcher_threshold
     from mvpose_jax.models import GATConfig, MatchingGAT
+    from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.trained import Matcher, MatcherConfig
 
     rig = load_rig("panoptic5")

@@ -15,6 +15,7 @@ from mvpose_jax.render import (
     curves_figure,
     draw_view,
     person_colour,
+    render_frame_figure,
     save_figure,
     skeleton_figure,
     tile,
@@ -83,6 +84,16 @@ def test_figures_are_written(tmp_path):
     assert save_figure(fig, tmp_path / "f.png").stat().st_size > 1000
     hist = [{"step": s, "train_loss": 1.0 / s, "val_loss": 1.2 / s} for s in (1, 2, 3)]
     assert save_figure(curves_figure({"run": hist}), tmp_path / "c.png").stat().st_size > 1000
+
+
+def test_frame_figure_is_written_as_png_with_nothing_left_beside(tmp_path):
+    from mvpose_jax.synthetic import generate_recording
+
+    rig = load_rig("panoptic5")
+    rec = generate_recording(rig, num_people=2, num_frames=3, seed=0)
+    out = render_frame_figure(rec, rig, 2, tmp_path / "sub" / "frame.png", title="t")
+    assert out == tmp_path / "sub" / "frame.png" and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [p.name for p in out.parent.iterdir()] == ["frame.png"]
 
 
 def _results(F=3, G=2, C=2, P=3, K=18, seed=0):

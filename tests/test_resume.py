@@ -40,8 +40,8 @@ KILL_AT = 18  # a checkpoint at or after this step: after the first validation (
 
 def _samples():
     from mvpose_jax.data.calibration import load_preset
-    from mvpose_jax.data.synthetic import generate_single_person_recordings
     from mvpose_jax.features import single_person_samples
+    from mvpose_jax.synthetic import generate_single_person_recordings
 
     rig = load_preset("panoptic5").select(["trackera", "trackerb", "trackerc"])
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=16, seed=0)

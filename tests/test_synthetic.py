@@ -10,9 +10,11 @@ import pytest
 
 from mvpose_jax import cli
 from mvpose_jax.cameras import Rig, make_rig, project_points
+from mvpose_jax.data import load_recording
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.formats import check_recording, load_recording
-from mvpose_jax.data.synthetic import (
+from mvpose_jax.data.checks import check_recording
+from mvpose_jax.skeletons import COCO18
+from mvpose_jax.synthetic import (
     SyntheticConfig,
     detection_variants,
     generate_recording,
@@ -20,8 +22,7 @@ from mvpose_jax.data.synthetic import (
     scene_geometry,
     simulate,
 )
-from mvpose_jax.data.synthetic import body as bm
-from mvpose_jax.skeletons import COCO18
+from mvpose_jax.synthetic import body as bm
 
 
 @pytest.fixture(scope="module")
@@ -243,3 +244,11 @@ def test_generate_command(tmp_path):
             "--out", str(tmp_path / "train"), "--format", "npz"]  # fmt: skip
     assert cli.main(argv) == 0
     assert sorted(p.name for p in (tmp_path / "train").iterdir()) == ["person_0.npz", "person_1.npz"]
+
+
+def test_synthetic_figure_command(tmp_path, capsys):
+    out = tmp_path / "frame.png"
+    argv = ["synthetic-figure", "--rig", "panoptic5", "--people", "2", "--frames", "3", "--out", str(out)]
+    assert cli.main(argv) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    assert out.read_bytes()[:4] == b"\x89PNG"

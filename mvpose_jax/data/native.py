@@ -61,8 +61,7 @@ import numpy as np
 
 from mvpose_jax.cameras import Rig
 from mvpose_jax.data.calibration import rig_from_dict, rig_to_dict
-from mvpose_jax.data.files import atomic_open
-from mvpose_jax.data.formats import (
+from mvpose_jax.data.checks import (
     check_keypoints,
     check_padding,
     check_recording,
@@ -74,6 +73,7 @@ from mvpose_jax.data.formats import (
     pack_detections,
     scatter_rows,
 )
+from mvpose_jax.data.files import atomic_open
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import LAYOUTS, Poses3D, get_layout

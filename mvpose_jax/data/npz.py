@@ -35,8 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from mvpose_jax.data.checks import check_recording
 from mvpose_jax.data.files import atomic_open
-from mvpose_jax.data.formats import check_recording
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import LAYOUTS, Detections, Poses3D, get_layout

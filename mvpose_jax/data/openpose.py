@@ -52,18 +52,17 @@ from typing import Any
 
 import numpy as np
 
-from mvpose_jax.data.files import atomic_open
-from mvpose_jax.data.formats import (
+from mvpose_jax.data.checks import (
     check_keypoints,
     check_recording,
-    convert_layout,
     float_lists,
     is_number,
     load_json,
     pack_detections,
     to_float,
 )
-from mvpose_jax.data.recording import Recording
+from mvpose_jax.data.files import atomic_open
+from mvpose_jax.data.recording import Recording, convert_layout
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import get_layout
 

@@ -44,8 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from mvpose_jax.data.files import atomic_open
-from mvpose_jax.data.formats import (
+from mvpose_jax.data.checks import (
     check_keypoints,
     check_padding,
     check_recording,
@@ -57,6 +56,7 @@ from mvpose_jax.data.formats import (
     parse_json_string,
     to_float,
 )
+from mvpose_jax.data.files import atomic_open
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D, get_layout

@@ -1,17 +1,19 @@
 """`Recording`: detections of a multi-camera recording plus what is known about them.
 
 Host-side container (numpy arrays) that every reader returns and every writer takes. The padded
-arrays follow the contracts in `mvpose_jax.skeletons` (letters F, C, P, K, G).
+arrays follow the contracts in `mvpose_jax.skeletons` (letters F, C, P, K, G). Two edits that
+every format and caller may need: `select_cameras` and `convert_layout`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 
 from mvpose_jax.errors import InputError
-from mvpose_jax.skeletons import Detections, Poses3D, get_layout
+from mvpose_jax.skeletons import Detections, Poses3D, convert_keypoints, get_layout
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,3 +69,61 @@ class Recording:
     @property
     def num_keypoints(self) -> int:
         return int(np.shape(self.detections.score)[3])
+
+
+# --------------------------------------------------------------------------- recording edits
+
+
+def select_cameras(rec: Recording, cameras: Sequence[str], *, file: object = None) -> Recording:
+    """The recording restricted to ``cameras`` (names, in this order); P shrinks to fit."""
+    cameras = [str(c) for c in cameras]
+    for name in cameras:
+        if name not in rec.cameras:
+            raise InputError(
+                f"unknown camera; the recording has {list(rec.cameras)}",
+                file=file,
+                camera=name,
+                field="cameras",
+            )
+    if len(set(cameras)) != len(cameras):
+        raise InputError(f"duplicate camera names {cameras}", file=file, field="cameras")
+    idx = np.array([rec.cameras.index(c) for c in cameras], np.int64)
+    det = rec.detections
+    count = np.asarray(det.count)[:, idx]
+    P = max(1, int(count.max(initial=0)))
+    take = lambda a: None if a is None else np.asarray(a)[:, idx, :P]  # noqa: E731
+    return Recording(
+        detections=Detections(take(det.xy), take(det.score), count),
+        cameras=tuple(cameras),
+        layout=rec.layout,
+        ground_truth=rec.ground_truth,
+        identity=take(rec.identity),
+        timestamps=rec.timestamps,
+        image_names=None if rec.image_names is None else np.asarray(rec.image_names)[:, idx],
+        projected=take(rec.projected),
+    )
+
+
+def convert_layout(rec: Recording, layout: str) -> Recording:
+    """The recording with its keypoints converted to another layout (see `convert_keypoints`)."""
+    src, dst = get_layout(rec.layout), get_layout(layout)
+    det = rec.detections
+    xy, score = convert_keypoints(np.asarray(det.xy), np.asarray(det.score), src, dst)
+    gt = rec.ground_truth
+    if gt is not None:
+        xyz, kvalid = convert_keypoints(np.asarray(gt.xyz), np.asarray(gt.keypoint_valid), src, dst)
+        gt = Poses3D(xyz, np.asarray(gt.valid), kvalid & np.asarray(gt.valid)[..., None])
+    projected = rec.projected
+    if projected is not None:
+        ones = np.ones(np.shape(projected)[:-1], bool)
+        projected, _ = convert_keypoints(np.asarray(projected), ones, src, dst)
+    return Recording(
+        detections=Detections(xy, score, np.asarray(det.count)),
+        cameras=rec.cameras,
+        layout=dst.name,
+        ground_truth=gt,
+        identity=rec.identity,
+        timestamps=rec.timestamps,
+        image_names=rec.image_names,
+        projected=projected,
+    )

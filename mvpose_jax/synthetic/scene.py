@@ -29,8 +29,8 @@ import hashlib
 import numpy as np
 
 from mvpose_jax.cameras import Rig, up_vector
-from mvpose_jax.data.synthetic.config import SceneConfig
 from mvpose_jax.errors import InputError
+from mvpose_jax.synthetic.config import SceneConfig
 
 # The reference person of the floor and area searches: feet (ankles) and top of the head, metres.
 _PROBE_HEIGHTS = (0.05, 1.75)

@@ -19,13 +19,13 @@ import numpy as np
 
 from mvpose_jax.cameras import Rig
 from mvpose_jax.data.recording import Recording
-from mvpose_jax.data.synthetic import body as bm
-from mvpose_jax.data.synthetic.config import SyntheticConfig
-from mvpose_jax.data.synthetic.detector import DetectorOutput, _fields, detect_people, false_positives
-from mvpose_jax.data.synthetic.motion import Paths, plan_paths, pose_angles
-from mvpose_jax.data.synthetic.scene import SceneGeometry, scene_geometry
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections, Poses3D
+from mvpose_jax.synthetic import body as bm
+from mvpose_jax.synthetic.config import SyntheticConfig
+from mvpose_jax.synthetic.detector import DetectorOutput, _fields, detect_people, false_positives
+from mvpose_jax.synthetic.motion import Paths, plan_paths, pose_angles
+from mvpose_jax.synthetic.scene import SceneGeometry, scene_geometry
 
 # Single-person recordings are simulated in batches of about this many person-frames.
 _BATCH_FRAMES = 20_000

@@ -29,9 +29,9 @@ import dataclasses
 
 import numpy as np
 
-from mvpose_jax.data.synthetic import body as bm
-from mvpose_jax.data.synthetic.config import DetectorConfig
-from mvpose_jax.data.synthetic.scene import MIN_DEPTH, CameraModel
+from mvpose_jax.synthetic import body as bm
+from mvpose_jax.synthetic.config import DetectorConfig
+from mvpose_jax.synthetic.scene import MIN_DEPTH, CameraModel
 
 K = bm.NUM_KEYPOINTS
 

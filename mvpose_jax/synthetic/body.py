@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mvpose_jax.data.synthetic.config import BodyConfig
+from mvpose_jax.synthetic.config import BodyConfig
 
 # coco18 keypoint indices.
 NOSE, L_EYE, R_EYE, L_EAR, R_EAR = 0, 1, 2, 3, 4

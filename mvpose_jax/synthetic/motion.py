@@ -24,9 +24,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mvpose_jax.data.synthetic.body import Bodies, PoseAngles
-from mvpose_jax.data.synthetic.config import MotionConfig
-from mvpose_jax.data.synthetic.scene import SceneGeometry
+from mvpose_jax.synthetic.body import Bodies, PoseAngles
+from mvpose_jax.synthetic.config import MotionConfig
+from mvpose_jax.synthetic.scene import SceneGeometry
 
 # Activities done on the spot.
 STAND, TURN, REACH, WAVE, CROUCH, BEND = range(6)

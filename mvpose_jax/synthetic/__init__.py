@@ -1,27 +1,27 @@
 """Synthetic multi-camera recordings: people, motion and 2D-detector behaviour on any rig.
 
 Pure numpy, vectorised over frames, people and cameras. See `docs/synthetic.md` for every
-parameter and why its default is realistic.
+parameter and why its default is realistic. A figure of one frame:
+`mvpose_jax.render.render_frame_figure` (``mvpose-jax synthetic-figure``).
 """
 
 from __future__ import annotations
 
-from mvpose_jax.data.synthetic.config import (
+from mvpose_jax.synthetic.config import (
     BodyConfig,
     DetectorConfig,
     MotionConfig,
     SceneConfig,
     SyntheticConfig,
 )
-from mvpose_jax.data.synthetic.figure import render_frame_figure
-from mvpose_jax.data.synthetic.generate import (
+from mvpose_jax.synthetic.generate import (
     SyntheticScene,
     detection_variants,
     generate_recording,
     generate_single_person_recordings,
     simulate,
 )
-from mvpose_jax.data.synthetic.scene import (
+from mvpose_jax.synthetic.scene import (
     SceneGeometry,
     estimate_floor_height,
     scene_geometry,
@@ -39,7 +39,6 @@ __all__ = [
     "estimate_floor_height",
     "generate_recording",
     "generate_single_person_recordings",
-    "render_frame_figure",
     "scene_geometry",
     "simulate",
 ]
