@@ -5,13 +5,18 @@ Plain functions (fixtures live in `conftest.py`); every builder is seeded and de
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
 import cv2
 import numpy as np
+from flax import nnx
 
 from mvpose_jax.cameras import Rig, make_rig
+from mvpose_jax.models import GATConfig, MatchingGAT
+from mvpose_jax.train import init_train_state, make_optimizer, make_train_step, matcher_loss_fn
+from mvpose_jax.trained import MatcherConfig
 
 
 def random_rig(seed: int = 0, num_cameras: int = 4):
@@ -155,3 +160,16 @@ def random_frames(rng: np.random.Generator, F: int, C: int = 3, P: int = 3, K: i
     valid = rng.random((F, C, P)) < p_valid
     identity = np.where(rng.random((F, C, P)) < 0.8, rng.integers(0, 3, (F, C, P)), -1)
     return feats, valid, identity
+
+
+# A tiny matching GAT on C cameras and K keypoints (the shapes `random_frames` makes by default).
+C, K = 3, 4
+TINY_GAT = GATConfig(widths=(8, 8, 1), heads=(2, 2, 1))
+
+
+def tiny_matcher_train_state(config: GATConfig = TINY_GAT, lr: float = 3e-3, seed: int = 0):
+    """(graphdef, rest, TrainState, jitted train step) of a GAT on C cameras, K keypoints."""
+    m = MatchingGAT(C, K, config, rngs=nnx.Rngs(seed))
+    tx = make_optimizer(dataclasses.replace(MatcherConfig().train, learning_rate=lr))
+    graphdef, rest, state = init_train_state(m, tx)
+    return graphdef, rest, state, make_train_step(graphdef, rest, tx, matcher_loss_fn)

@@ -38,6 +38,7 @@ def _check_stats(s: dict):
     assert 0 < s["p10"] <= s["median"] <= s["p90"]
 
 
+@pytest.mark.slow  # the harness smoke run (a minute)
 def test_smoke_run_has_every_section(smoke_run):
     run, md = smoke_run
     for key in ("machine", "git", "peaks", "latency", "offline", "training", "memory", "targets", "profile"):

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import pytest
+
 import json
 
 from experiments.run import main
+
+pytestmark = pytest.mark.slow  # the main job end to end, twice (minutes)
 
 
 def test_default_experiment_smoke(tmp_path, capsys):

@@ -21,6 +21,7 @@ from mvpose_jax.graphs import (
     match_table,
     next_bucket,
 )
+from mvpose_jax.synthetic import generate_single_person_recordings
 
 KF = 4 * 10  # K = 4 keypoints
 
@@ -133,7 +134,6 @@ def test_next_bucket_is_the_smallest_power_of_two_or_one_and_a_half_times_one():
 
 @pytest.fixture(scope="module")
 def pool_and_rig(ring_rig):
-    from mvpose_jax.synthetic import generate_single_person_recordings
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=4, num_frames=6, seed=0)
     return make_pool(ring_rig, recs), ring_rig, recs
@@ -199,3 +199,7 @@ def test_detection_features_match_keypoint_features(ring_rig):
     ref = np.asarray(keypoint_features(ring_rig, np.moveaxis(xy, 1, 0), np.moveaxis(score, 1, 0)))
     np.testing.assert_allclose(out, np.moveaxis(ref, 0, 1).reshape(2, 4, 3, 50), atol=1e-6)
 
+
+def test_budget_of_a_batch_is_a_bucket():
+    b = graph_budget(3, 3, 1)
+    assert (b.nodes, b.dets) == (64, 16)

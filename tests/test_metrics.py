@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mvpose_jax import cameras, metrics
+from mvpose_jax.metrics import clustering_scores, detection_clusters, matching_scores
 from mvpose_jax.skeletons import Poses3D, get_layout
 from tests.helpers import scene_points
 
@@ -189,3 +190,64 @@ def test_reprojection_errors_per_camera(ring_rig):
     assert err["cam1"]["mean"] == pytest.approx(5.0, abs=1e-3)
     assert err["cam1"]["median"] == pytest.approx(5.0, abs=1e-3)
     assert err["cam2"]["count"] == 0 and np.isnan(err["cam2"]["mean"])
+
+
+def test_clustering_scores_equal_sklearn():
+    from sklearn import metrics as sk
+
+    rng = np.random.default_rng(4)
+    for i in range(200):
+        n = int(rng.integers(0, 40))
+        a = rng.integers(0, int(rng.integers(1, 8)), n)
+        b = a.copy() if i % 4 == 0 else rng.integers(0, int(rng.integers(1, 8)), n)
+        b[rng.random(n) < 0.1] = 50
+        ours = clustering_scores(a, b)
+        h, c, v = sk.homogeneity_completeness_v_measure(a, b)
+        assert ours["ari"] == pytest.approx(sk.adjusted_rand_score(a, b), abs=1e-12)
+        assert (ours["homogeneity"], ours["completeness"], ours["v_measure"]) == pytest.approx((h, c, v), abs=1e-12)
+
+
+def test_detection_clusters_make_singletons_and_frame_unique_labels():
+    identity = np.array([[[0, -1], [0, 1]], [[0, -1], [-1, -1]]])  # (F=2, C=2, P=2)
+    count = np.array([[2, 2], [1, 1]])
+    labels = detection_clusters(identity, count)
+    assert len(labels) == 6
+    assert labels[0] == labels[2] and len(set(labels.tolist())) == 5  # frame 1's person 0 differs
+    perfect = matching_scores(identity, identity, count)
+    assert perfect["ari"] == 1.0 and perfect["v_measure"] == 1.0
+
+
+def test_matching_scores_average_per_frame_and_pool_beside():
+    from sklearn import metrics as sk
+
+    # Frame 0: two people over 3 views, perfectly grouped (6 detections). Frame 1: one person in
+    # two views, split in two (2 detections). Frame 2: nobody proposed at all (3 detections of 2
+    # people, each left a singleton). Frame 3: no detection (nothing to score, left out).
+    true = np.full((4, 3, 2), -1)
+    pred = np.full((4, 3, 2), -1)
+    true[0] = [[0, 1], [1, 0], [0, 1]]
+    pred[0] = [[5, 6], [6, 5], [5, 6]]
+    true[1, :2, 0] = 0
+    pred[1, :2, 0] = [0, 1]
+    true[2, :, 0] = [0, 0, 1]
+    count = np.array([[2, 2, 2], [1, 1, 0], [1, 1, 1], [0, 0, 0]])
+    s = matching_scores(true, pred, count)
+
+    def frame_labels(a, f):
+        ok = np.arange(2)[None] < count[f][:, None]
+        x = a[f][ok]
+        return np.where(x >= 0, x, 100 + np.arange(len(x)))  # -1: a singleton each
+
+    frames = [0, 1, 2]
+    want = np.mean([sk.adjusted_rand_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames])
+    want_v = np.mean([sk.v_measure_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames])
+    assert s["ari"] == pytest.approx(want, abs=1e-12) and s["v_measure"] == pytest.approx(want_v, abs=1e-12)
+    assert s["frames"] == 3 and s["detections"] == 11
+    pooled_t = np.concatenate([frame_labels(true, f) + 1000 * f for f in frames])
+    pooled_p = np.concatenate([frame_labels(pred, f) + 1000 * f for f in frames])
+    assert s["pooled_ari"] == pytest.approx(sk.adjusted_rand_score(pooled_t, pooled_p), abs=1e-12)
+    # Pooling is more lenient: the big perfect frame outweighs the two small failed ones.
+    assert s["pooled_ari"] > s["ari"] + 0.2
+    # Frame 2, where nobody was proposed, is scored (ARI 0), not skipped.
+    without = matching_scores(true[:2], pred[:2], count[:2])
+    assert s["ari"] < without["ari"]

@@ -24,6 +24,8 @@ from mvpose_jax.graphs import build_graphs, split_graph_batch
 from mvpose_jax.models import GATConfig, MatchingGAT, stacked_match_scores
 from tests.helpers import random_frames
 
+pytestmark = pytest.mark.slow  # one subprocess with 4 host devices trains both models
+
 ROOT = Path(__file__).resolve().parents[1]
 NUM_DEVICES = 4
 TINY_GAT = GATConfig(widths=(8, 8, 1), heads=(2, 2, 1))

@@ -7,9 +7,13 @@ import json
 
 import numpy as np
 import pytest
+from flax import nnx
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mvpose_jax.errors import InputError
 from mvpose_jax.metrics import matching_scores
+from mvpose_jax.models import GATConfig, MatchingGAT
 from mvpose_jax.proposals import (
     PROPOSAL_THRESHOLD_FILE,
     PROPOSAL_THRESHOLDS,
@@ -17,8 +21,11 @@ from mvpose_jax.proposals import (
     choose_proposal_threshold,
     propose_people,
     read_proposal_threshold,
+    union_find_exclusive,
     write_proposal_threshold,
 )
+from mvpose_jax.synthetic import generate_single_person_recordings
+from mvpose_jax.trained import MatcherConfig
 
 
 def test_choose_proposal_threshold_takes_the_band_that_separates_true_from_false_pairs():
@@ -55,13 +62,10 @@ def test_choose_geometric_cutoff_is_a_pixel_distance_with_the_same_rule():
 
 
 def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
-    from flax import nnx
 
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.inference import choose_matcher_threshold
-    from mvpose_jax.models import GATConfig, MatchingGAT
-    from mvpose_jax.synthetic import generate_single_person_recordings
-    from mvpose_jax.trained import Matcher, MatcherConfig
+    from mvpose_jax.trained import Matcher
 
     rig = load_rig("panoptic5")
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=3, seed=5)
@@ -81,3 +85,59 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
     (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text("{")
     with pytest.raises(InputError, match=PROPOSAL_THRESHOLD_FILE):
         read_proposal_threshold(str(tmp_path), None)
+
+
+def test_proposals_join_best_first_and_respect_cameras():
+    count = np.array([[2, 2, 1]])  # one frame, 3 cameras
+    rows = np.array([
+        [0, 0, 0, 1, 0],  # a: 0.9
+        [0, 0, 0, 1, 1],  # would put two camera-1 skeletons in a's person: refused
+        [0, 0, 1, 1, 1],  # b: 0.8
+        [0, 1, 0, 2, 0],  # a gets camera 2
+        [0, 0, 1, 2, 0],  # refused: camera 2 taken
+    ])  # fmt: skip
+    scores = np.array([0.9, 0.85, 0.8, 0.7, 0.95])
+    p = propose_people(rows, scores, count)
+    # The best pair (0,1)-(2,0) goes first: b = {(0,1), (2,0)}, then (0,0)-(1,0), then (1,1) joins b.
+    ident = p.identity[0]
+    assert ident[0, 1] == ident[2, 0] == ident[1, 1]
+    assert ident[0, 0] == ident[1, 0] != ident[0, 1]
+    assert len(p.people[0]) == 2
+    for person in p.people[0]:
+        assert (person >= 0).sum() >= 2
+
+
+def test_proposals_threshold_min_views_and_single_camera():
+    count = np.array([[1, 1], [2, 0]])
+    rows = np.array([[0, 0, 0, 1, 0]])
+    assert (propose_people(rows, np.array([0.4]), count).identity[0] == -1).all()
+    assert (propose_people(rows, np.array([0.6]), count).identity[0, :, 0] == 0).all()
+    single = propose_people(np.zeros((0, 5), int), np.zeros(0), np.array([[3], [0]]))
+    assert single.identity[0, 0].tolist() == [0, 1, 2] and len(single.people[1]) == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 4), st.integers(2, 4), st.integers(1, 4), st.integers(0, 2**31 - 1))
+def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, seed):
+    rng = np.random.default_rng(seed)
+    count = rng.integers(0, P + 1, (F, cams))
+    f, ca, pa, cb, pb = np.meshgrid(np.arange(F), np.arange(cams), np.arange(P), np.arange(cams), np.arange(P),
+                                    indexing="ij")  # fmt: skip
+    rows = np.stack([a.ravel() for a in (f, ca, pa, cb, pb)], 1)
+    rows = rows[(rows[:, 1] < rows[:, 3]) & (rows[:, 2] < count[rows[:, 0], rows[:, 1]])
+                & (rows[:, 4] < count[rows[:, 0], rows[:, 3]])]  # fmt: skip
+    p = propose_people(rows, rng.random(len(rows)), count, num_skeletons=P, min_views=2)
+    for fr in range(F):
+        ident = p.identity[fr]
+        for person in np.unique(ident[ident >= 0]):
+            per_cam = (ident == person).sum(axis=1)
+            assert per_cam.max() == 1 and per_cam.sum() >= 2
+        assert len(p.people[fr]) == len(np.unique(ident[ident >= 0]))
+        for g, person in enumerate(p.people[fr]):
+            for c, sk in enumerate(person):
+                assert (sk < 0) or ident[c, sk] == g
+
+
+def test_union_find_exclusive_plain():
+    roots = union_find_exclusive(4, [0, 1, 2], [1, 2, 3], np.array([0, 1, 0, 2]))
+    assert roots.tolist() == [0, 0, 2, 2]  # 1-2 refused (camera 0 twice), 2-3 joined

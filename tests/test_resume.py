@@ -27,6 +27,8 @@ from mvpose_jax.models import MLPConfig
 from mvpose_jax.train import train_estimator
 from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
+pytestmark = pytest.mark.slow  # trains, kills and resumes runs
+
 ROOT = Path(__file__).resolve().parents[1]
 # 64 people, 8 per step: 8 steps per epoch, validation every 2 epochs (steps 16, 32, 48, 60),
 # a periodic checkpoint every 3 steps (kept: the 2 newest).

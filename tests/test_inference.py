@@ -1,4 +1,6 @@
-"""The pipeline (inference.run_pipeline / stream_pipeline) end to end, and its numerical safety."""
+"""inference.py: match tables (learned and epipolar), composed dev frames, the graph caches and
+compilation budget, and the pipeline (run_pipeline / stream_pipeline) end to end with its
+numerical safety."""
 
 from __future__ import annotations
 
@@ -6,18 +8,41 @@ import dataclasses
 
 import numpy as np
 import pytest
+from flax import nnx
 
 from mvpose_jax.cameras import make_rig
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import single_person_samples
-from mvpose_jax.inference import members_from_identity, poses_of_members, run_pipeline
+from mvpose_jax.graphs import (
+    build_graphs,
+    detection_features,
+    match_table,
+)
+from mvpose_jax.inference import (
+    _match_scores,
+    _match_scores_fn,
+    bound_model_fn,
+    gat_match_table,
+    geometric_match_table,
+    match_scores,
+    members_from_identity,
+    poses_of_members,
+    run_pipeline,
+)
 from mvpose_jax.metrics import matching_scores, pose_metrics
-from mvpose_jax.models import GATConfig, MLPConfig
+from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig
+from mvpose_jax.proposals import propose_people
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
-from mvpose_jax.train import train_estimator, train_matcher
+from mvpose_jax.train import (
+    train_estimator,
+    train_matcher,
+)
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
+from tests.helpers import TINY_GAT as TINY
+from tests.helpers import random_frames
+from tests.helpers import tiny_matcher_train_state as _train_state
 
 
 @pytest.fixture(scope="module")
@@ -57,6 +82,7 @@ def _consistent(res, count):
     np.testing.assert_array_equal(res.poses.valid, (res.members >= 0).any(-1))
 
 
+@pytest.mark.slow  # uses the trained `models`
 def test_pipeline_with_trained_estimator_gives_one_pose_per_person(scene, models):
     rig, rec = scene
     _, estimator = models
@@ -78,6 +104,7 @@ def test_pipeline_with_trained_estimator_gives_one_pose_per_person(scene, models
     _consistent(res, np.asarray(rec.detections.count))
 
 
+@pytest.mark.slow  # uses the trained `models`
 def test_pipeline_with_learned_matcher_has_consistent_groups(scene, models):
     rig, rec = scene
     matcher, estimator = models
@@ -118,6 +145,7 @@ def test_triangulation_on_the_pipeline_groups_matches_direct_call(scene):
     np.testing.assert_allclose(poses.xyz, res.poses.xyz, atol=1e-6)
 
 
+@pytest.mark.slow  # uses the trained `models`
 def test_keypoint_count_mismatch_is_a_clear_error(scene, models):
     rig, rec = scene
     _, estimator = models
@@ -128,6 +156,7 @@ def test_keypoint_count_mismatch_is_a_clear_error(scene, models):
         run_pipeline(rig, det25, estimator=estimator)
 
 
+@pytest.mark.slow  # uses the trained `models`
 def test_estimator_cameras_must_be_proposal_cameras(scene, models):
     rig, rec = scene
     _, estimator = models
@@ -166,6 +195,7 @@ def _degenerate_detections(rig, K=18):
     return Detections(xy, score, count)
 
 
+@pytest.mark.slow  # uses the trained `models`
 @pytest.mark.parametrize("use_estimator", [False, True])
 def test_no_nan_leaves_the_pipeline_on_degenerate_input(scene, models, use_estimator):
     rig, _ = scene
@@ -201,3 +231,154 @@ def test_colinear_cameras_give_invalid_not_nan():
         poses, conf = poses_of_members(rig, det, members, method=method)
         assert np.isfinite(poses.xyz).all() and np.isfinite(conf).all()
         assert not poses.keypoint_valid.any() and not poses.valid.any()
+
+
+def test_no_recompilation_beyond_buckets():
+    graphdef, rest, state, step = _train_state()
+    params = state.params
+    rng = np.random.default_rng(3)
+    budgets = set()
+    jitted = bound_model_fn(_match_scores_fn, graphdef)
+    before = jitted._cache_size()
+    for _ in range(40):
+        F = 5
+        P = int(rng.integers(1, 4))  # frames of any size, padded to buckets
+        feats, valid, identity = random_frames(rng, F, P=P, p_valid=rng.uniform(0.2, 1.0))
+        b = build_graphs(feats, valid, identity, num_graphs=F)
+        budgets.add((b.graphs.nodes.shape[0], b.det_features.shape[0]))
+        _match_scores(graphdef, rest, params, b)
+    assert jitted._cache_size() - before <= len(budgets) <= 6
+
+
+def test_bound_model_fn_is_built_once_per_graphdef():
+    graphdef, _, _, _ = _train_state()
+    again, _, _, _ = _train_state()  # an equal GraphDef, another object
+    f = bound_model_fn(_match_scores_fn, graphdef)
+    assert bound_model_fn(_match_scores_fn, graphdef) is f
+    assert again is not graphdef and bound_model_fn(_match_scores_fn, again) is f
+    other, _, _, _ = _train_state(GATConfig(widths=(16, 16, 1), heads=(2, 2, 1)))
+    assert bound_model_fn(_match_scores_fn, other) is not f
+
+
+def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
+    """The fused path (features in the GAT's jit, graphs cached by count) gives the two-step numbers."""
+    from mvpose_jax.skeletons import Detections
+    from mvpose_jax.trained import Matcher
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=5, seed=4)
+    d = rec.detections
+    count = np.asarray(d.count).copy()
+    count[2] = 0  # a frame without any skeleton
+    count[3, 0] = 0  # and a camera without one
+    det = Detections(np.asarray(d.xy), np.asarray(d.score), count)
+    model = MatchingGAT(ring_rig.num_cameras, rec.num_keypoints, TINY, rngs=nnx.Rngs(1))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    matcher = Matcher(graphdef, rest, params, ring_rig, MatcherConfig(gat=TINY))
+    F, C, P, _ = det.score.shape
+    valid = np.arange(P)[None, None] < count[..., None]
+    feats = detection_features(ring_rig, det.xy, det.score)
+    for per_call in (1, 2, 8):
+        want_rows, want_scores = [], []
+        for start in range(0, F, per_call):
+            sl = slice(start, min(F, start + per_call))
+            b = build_graphs(feats[sl], valid[sl])
+            r, s = match_table(b, match_scores(matcher, b))
+            r[:, 0] += start
+            want_rows.append(r)
+            want_scores.append(s)
+        for _ in range(2):  # the second pass meets cached single-frame graphs
+            rows, scores = gat_match_table(matcher, det, frames_per_call=per_call)
+            np.testing.assert_array_equal(rows, np.concatenate(want_rows))
+            np.testing.assert_allclose(scores, np.concatenate(want_scores), atol=1e-6)
+    assert not (rows[:, 0] == 2).any()
+
+
+def test_geometric_baseline_groups_true_people(ring_rig):
+    from mvpose_jax.synthetic import generate_recording
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=4, seed=3)
+    rows, scores = geometric_match_table(ring_rig, rec.detections)
+    ident = rec.identity
+    same = (ident[rows[:, 0], rows[:, 1], rows[:, 2]] == ident[rows[:, 0], rows[:, 3], rows[:, 4]]) & (
+        ident[rows[:, 0], rows[:, 1], rows[:, 2]] >= 0)  # fmt: skip
+    assert scores[same].mean() > 0.5 > scores[~same].mean()
+    p = propose_people(rows, scores, rec.detections.count, num_skeletons=ident.shape[2])
+    assert matching_scores(ident, p.identity, np.asarray(rec.detections.count))["ari"] > 0.9
+
+
+def test_single_frame_graph_cache_is_lru_and_bounded_by_bytes():
+    from mvpose_jax.inference import _frame_graphs, _GraphCache
+
+    def key(*counts):
+        return (np.array([counts], np.int64).tobytes(), 1, 3, 4, 1)
+
+    one = _GraphCache._size(_frame_graphs(*key(2, 2, 2)))
+    cache = _GraphCache(max_bytes=int(2.5 * one))  # room for two graphs of this size
+    a = cache(*key(2, 2, 2))
+    assert cache(*key(2, 2, 2)) is a  # a hit returns the stored graph
+    b = cache(*key(1, 2, 2))
+    assert cache(*key(2, 2, 2)) is a  # touched: key(1, 2, 2) is now the oldest
+    cache(*key(2, 1, 2))
+    assert len(cache) == 2
+    assert cache(*key(2, 2, 2)) is a  # kept
+    assert cache(*key(1, 2, 2)) is not b  # evicted, rebuilt
+    np.testing.assert_array_equal(cache(*key(1, 2, 2)).rows, b.rows)
+
+
+def test_composed_match_table_scores_the_composed_skeletons_with_their_identities(ring_rig):
+    from mvpose_jax.inference import composed_match_table
+    from mvpose_jax.trained import Matcher
+
+    recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
+    model = MatchingGAT(ring_rig.num_cameras, recs[0].num_keypoints, TINY, rngs=nnx.Rngs(0))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    config = MatcherConfig(gat=TINY, max_people=3, keypoint_dropout=0.3)
+    matcher = Matcher(graphdef, rest, params, ring_rig, config)
+    rows, scores, identity, count = composed_match_table(matcher, recs, num_samples=40, seed=1, frames_per_call=16)
+    S, C, Q = identity.shape
+    assert S == 40 and count.shape == (S, C)
+    present = np.arange(Q)[None, None] < count[..., None]
+    assert (identity[~present] == -1).all()
+    assert identity.max() < 3 and (identity[present] >= 0).any()
+    f, ca, sa, cb, sb = rows.T
+    assert (ca < cb).all() and (sa < count[f, ca]).all() and (sb < count[f, cb]).all()
+    # Every cross-view pair of present skeletons is scored once, and the same seed gives the same table.
+    want = sum(int(count[s, a]) * int(count[s, b]) for s in range(S) for a in range(C) for b in range(a + 1, C))
+    assert len(rows) == len(scores) == want
+    again = composed_match_table(matcher, recs, num_samples=40, seed=1, frames_per_call=16)
+    np.testing.assert_array_equal(again[0], rows)
+    np.testing.assert_allclose(again[1], scores)
+
+
+def test_composed_frames_are_the_training_composition_as_detections(ring_rig):
+    from mvpose_jax.graphs import compose_samples, detection_features, make_pool
+    from mvpose_jax.inference import composed_frames
+    from mvpose_jax.synthetic import generate_single_person_recordings
+
+    recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
+    det, identity = composed_frames(ring_rig, recs, num_samples=30, seed=3, max_people=3, keypoint_dropout=0.4)
+    pool = make_pool(ring_rig, recs)
+    feats, valid, ident = compose_samples(pool, np.random.default_rng([3, 1 << 29]), 30, max_people=3,
+                                          keypoint_dropout=0.4)  # fmt: skip
+    # The same draws: per frame and view, the detections' features are the training features of
+    # the valid skeletons, in order, and the identities theirs.
+    ours = np.asarray(detection_features(ring_rig, det.xy, det.score))
+    count = np.asarray(det.count)
+    np.testing.assert_array_equal(count, valid.sum(-1))
+    for s in range(30):
+        for c in range(ring_rig.num_cameras):
+            n = count[s, c]
+            np.testing.assert_allclose(ours[s, c, :n], feats[s, c][valid[s, c]], atol=1e-6)
+            np.testing.assert_array_equal(identity[s, c, :n], ident[s, c][valid[s, c]])
+            assert (np.asarray(det.score)[s, c, n:] == 0).all() and (identity[s, c, n:] == -1).all()
+
+
+def test_epipolar_distances_give_the_geometric_scores(ring_rig):
+    from mvpose_jax.inference import epipolar_match_distances
+    from mvpose_jax.synthetic import generate_recording
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=3, seed=5)
+    rows, scores = geometric_match_table(ring_rig, rec.detections, half_score_px=25.0)
+    rows_d, d = epipolar_match_distances(ring_rig, rec.detections)
+    np.testing.assert_array_equal(rows, rows_d)
+    np.testing.assert_allclose(scores, np.exp2(-d / 25.0), rtol=1e-6)

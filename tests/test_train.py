@@ -1,4 +1,5 @@
-"""The 3D estimator end to end on tiny data: training fits, checkpoints restore, inference batches."""
+"""train.py (and the loaders of trained.py): the estimator and the matcher train on tiny data,
+their checkpoints restore, a resumed run ends where an uninterrupted one does."""
 
 from __future__ import annotations
 
@@ -11,11 +12,23 @@ import pytest
 from flax import nnx
 
 from mvpose_jax.features import single_person_samples
-from mvpose_jax.inference import predict_people
-from mvpose_jax.models import MLPConfig, PoseMLP, count_params
-from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
-from mvpose_jax.train import random_view_subsets, train_estimator
-from mvpose_jax.trained import EstimatorConfig, TrainConfig, load_estimator
+from mvpose_jax.inference import (
+    predict_people,
+)
+from mvpose_jax.models import MLPConfig, PoseMLP
+from mvpose_jax.synthetic import (
+    SyntheticConfig,
+    generate_single_person_recordings,
+)
+from mvpose_jax.train import (
+    init_train_state,
+    make_optimizer,
+    random_view_subsets,
+    train_estimator,
+    train_matcher,
+)
+from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig, load_estimator
+from tests.helpers import TINY_GAT as TINY
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +41,7 @@ def clean_samples():
     return (rig, *single_person_samples(recs))
 
 
+@pytest.mark.slow  # trains a model
 def test_small_paper_style_mlp_fits_a_small_set(clean_samples, tmp_path):
     rig, xy, score = clean_samples
     cfg = EstimatorConfig(
@@ -82,42 +96,7 @@ def test_random_view_subsets_are_nonempty_proper_subsets():
     assert set(np.unique(k[:, five])) == {1, 2, 3, 4}
 
 
-def test_mlp_accepts_any_leading_batch():
-    model = PoseMLP(3, 18, dataclasses.replace(MLPConfig.quick(), output="anchored"), rngs=nnx.Rngs(0))
-    x = jnp.zeros((2, 5, 3, 18, 14))
-    assert model(x).shape == (2, 5, 18, 3)
-
-
-def test_mlp_is_the_plain_dense_stack():
-    # The feature-major layout (kernels stored (out, in)) must compute rows @ kernel.T + bias.
-    model = PoseMLP(2, 4, MLPConfig(widths=(16, 8)), rngs=nnx.Rngs(0))
-    x = np.random.default_rng(0).standard_normal((3, 2, 4, 14)).astype(np.float32)
-    h = x.reshape(3, -1).astype(np.float64)
-    for layer in model.hidden:
-        h = h @ np.asarray(layer.kernel[...]).T + np.asarray(layer.bias[...])
-        h = np.where(h > 0, h, 0.1 * h)
-    out = h @ np.asarray(model.out.kernel[...]).T + np.asarray(model.out.bias[...])
-    np.testing.assert_allclose(np.asarray(model(jnp.asarray(x))), out.reshape(3, 4, 3), rtol=1e-4, atol=1e-5)
-    # lecun-normal fan-in: the first kernel's spread is 1/sqrt(inputs), not 1/sqrt(outputs).
-    first = PoseMLP(5, 18, MLPConfig(widths=(64,)), rngs=nnx.Rngs(0)).hidden[0].kernel[...]
-    assert first.shape == (64, 5 * 18 * 14)
-    assert np.std(np.asarray(first)) == pytest.approx(1 / np.sqrt(5 * 18 * 14), rel=0.1)
-
-
-
-@pytest.mark.parametrize("widths, millions", [
-    ((3072, 3072, 2048, 2048, 1024, 1024, 1024), 28.06),  # the paper's widths
-    ((3072, 3072, 2048, 2048, 1024, 1024, 1024, 1024), 29.11),  # the original code's (DESIGN §5)
-])  # fmt: skip
-def test_paper_size_mlp_parameter_count(widths, millions):
-    model = nnx.eval_shape(lambda: PoseMLP(5, 18, MLPConfig(widths=widths), rngs=nnx.Rngs(0)))
-    _, params = nnx.split(model, nnx.Param)
-    sizes = (5 * 18 * 14,) + widths + (18 * 3,)
-    expected = sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:]))
-    assert count_params(params) == expected
-    assert expected / 1e6 == pytest.approx(millions, abs=0.01)
-
-
+@pytest.mark.slow  # trains a model
 def test_resumed_training_ends_where_an_uninterrupted_run_does(clean_samples, tmp_path):
     rig, xy, score = clean_samples
 
@@ -133,7 +112,6 @@ def test_resumed_training_ends_where_an_uninterrupted_run_does(clean_samples, tm
     resumed, fit = run(12, tmp_path / "b", resume=True)  # ... and resumed
     assert fit.steps == 12
     from mvpose_jax.checkpoints import Checkpoints
-    from mvpose_jax.train import init_train_state, make_optimizer
     latest = []
     for folder in ("a", "b"):
         ck = Checkpoints(tmp_path / folder)
@@ -151,6 +129,7 @@ def test_resumed_training_ends_where_an_uninterrupted_run_does(clean_samples, tm
                         progress=False, resume=True)  # fmt: skip
 
 
+@pytest.mark.slow  # trains a model
 def test_train_estimator_command(tmp_path, capsys):
     from mvpose_jax import cli
 
@@ -191,3 +170,19 @@ def test_one_camera_estimator_works_in_the_training_rigs_frame(clean_samples, tm
     px = np.asarray(project_points(rig.select([rig.names[0]]), out))[0]
     seen = one_score[:, 0] > 0
     assert np.median(np.linalg.norm(px - one_xy[:, 0], axis=-1)[seen]) < 20.0
+
+
+@pytest.mark.slow  # trains a model
+def test_train_matcher_quick_runs_and_checkpoints(ring_rig, tmp_path):
+    from mvpose_jax.synthetic import generate_single_person_recordings
+    from mvpose_jax.trained import load_matcher
+
+    recs = generate_single_person_recordings(ring_rig, num_recordings=4, num_frames=5, seed=1)
+    cfg = MatcherConfig.quick()
+    cfg = dataclasses.replace(cfg, gat=TINY, samples_per_epoch=30, num_dev_samples=15,
+                              train=dataclasses.replace(cfg.train, max_epochs=2, eval_every=1))  # fmt: skip
+    matcher, fit = train_matcher(ring_rig, recs[:3], recs[3:], cfg, checkpoint_dir=tmp_path, progress=False)
+    assert fit.steps == 4 and np.isfinite(fit.best_val_loss)
+    again = load_matcher(tmp_path, ring_rig, cfg, num_keypoints=recs[0].num_keypoints)
+    for a, b in zip(jax.tree.leaves(matcher.params), jax.tree.leaves(again.params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
