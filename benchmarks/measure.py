@@ -111,20 +111,64 @@ class Tier:
 
 
 TIERS = {
-    "full": Tier("full", views=(2, 3, 5, 8), people=(1, 2, 4, 8, 16), frames=200, models=("paper", "quick"),
-                 quick_model_configs=None, peak_sizes=(1024, 2048, 4096), peak_repeats=7,
-                 bandwidth_mb=(112, 2048), offline_frames=2048, offline_chunk=256, offline_repeats=3,
-                 single_repeats=200, train_batch=256, train_steps=10, model_sizes=("paper", "quick"),
-                 matcher_batches=20),
-    "quick": Tier("quick", views=(2, 5, 8), people=(1, 4, 16), frames=32, models=("paper",),
-                  quick_model_configs=((5, 4),), peak_sizes=(2048,), peak_repeats=5, bandwidth_mb=(112, 1024),
-                  offline_frames=256, offline_chunk=128, offline_repeats=2, single_repeats=50, train_batch=256,
-                  train_steps=3, model_sizes=("paper", "quick"), matcher_batches=4),
-    "smoke": Tier("smoke", views=(5,), people=(2,), frames=4, models=("quick",), quick_model_configs=None,
-                  peak_sizes=(512,), peak_repeats=3, bandwidth_mb=(32,), offline_frames=16, offline_chunk=8,
-                  offline_repeats=1, single_repeats=5, train_batch=16, train_steps=2, model_sizes=("quick",),
-                  matcher_batches=1),
-}  # fmt: skip
+    "full": Tier(
+        "full",
+        views=(2, 3, 5, 8),
+        people=(1, 2, 4, 8, 16),
+        frames=200,
+        models=("paper", "quick"),
+        quick_model_configs=None,
+        peak_sizes=(1024, 2048, 4096),
+        peak_repeats=7,
+        bandwidth_mb=(112, 2048),
+        offline_frames=2048,
+        offline_chunk=256,
+        offline_repeats=3,
+        single_repeats=200,
+        train_batch=256,
+        train_steps=10,
+        model_sizes=("paper", "quick"),
+        matcher_batches=20,
+    ),
+    "quick": Tier(
+        "quick",
+        views=(2, 5, 8),
+        people=(1, 4, 16),
+        frames=32,
+        models=("paper",),
+        quick_model_configs=((5, 4),),
+        peak_sizes=(2048,),
+        peak_repeats=5,
+        bandwidth_mb=(112, 1024),
+        offline_frames=256,
+        offline_chunk=128,
+        offline_repeats=2,
+        single_repeats=50,
+        train_batch=256,
+        train_steps=3,
+        model_sizes=("paper", "quick"),
+        matcher_batches=4,
+    ),
+    "smoke": Tier(
+        "smoke",
+        views=(5,),
+        people=(2,),
+        frames=4,
+        models=("quick",),
+        quick_model_configs=None,
+        peak_sizes=(512,),
+        peak_repeats=3,
+        bandwidth_mb=(32,),
+        offline_frames=16,
+        offline_chunk=8,
+        offline_repeats=1,
+        single_repeats=5,
+        train_batch=16,
+        train_steps=2,
+        model_sizes=("quick",),
+        matcher_batches=1,
+    ),
+}
 
 
 # --------------------------------------------------------------------------- timing helpers
@@ -134,8 +178,14 @@ def summary(seconds, scale: float = 1e3) -> dict:
     """Median, p10, p90 and quartiles of a sample of durations (milliseconds by default)."""
     s = np.asarray(seconds, np.float64) * scale
     p10, q1, med, q3, p90 = np.percentile(s, [10, 25, 50, 75, 90])
-    return {"median": float(med), "p10": float(p10), "p90": float(p90), "iqr": [float(q1), float(q3)],
-            "mean": float(s.mean()), "n": int(s.size)}  # fmt: skip
+    return {
+        "median": float(med),
+        "p10": float(p10),
+        "p90": float(p90),
+        "iqr": [float(q1), float(q3)],
+        "mean": float(s.mean()),
+        "n": int(s.size),
+    }
 
 
 def timed(fn: Callable, *args) -> tuple[float, object]:
@@ -178,15 +228,21 @@ def peaks(tier: Tier) -> dict:
     bandwidth = {}
     for mb in tier.bandwidth_mb:
         n = int(np.sqrt(mb * 2**20 / 4))
-        w = jnp.full((n, n), 0.5, jnp.float32)  # values do not matter to a read; random ones are slow to draw
+        w = jnp.full(
+            (n, n), 0.5, jnp.float32
+        )  # values do not matter to a read; random ones are slow to draw
         row, col = jnp.ones((1, n), jnp.float32), jnp.ones((n, 1), jnp.float32)
         nbytes = w.size * 4
         t_sum = repeat(jax.jit(jnp.sum), w, n=tier.peak_repeats).min()
         # Both GEMV layouts: (n, n) @ (n, 1) is the estimator's (kernels stored (out, in)).
         t_out_in = repeat(jax.jit(jnp.dot), w, col, n=tier.peak_repeats).min()
         t_in_out = repeat(jax.jit(jnp.dot), row, w, n=tier.peak_repeats).min()
-        bandwidth[str(mb)] = {"sum": nbytes / t_sum / 1e9, "gemv_out_in": nbytes / t_out_in / 1e9,
-                              "gemv_in_out": nbytes / t_in_out / 1e9, "bytes": int(nbytes)}  # fmt: skip
+        bandwidth[str(mb)] = {
+            "sum": nbytes / t_sum / 1e9,
+            "gemv_out_in": nbytes / t_out_in / 1e9,
+            "gemv_in_out": nbytes / t_in_out / 1e9,
+            "bytes": int(nbytes),
+        }
         del w
     first = bandwidth[str(tier.bandwidth_mb[0])]
     return {
@@ -196,11 +252,11 @@ def peaks(tier: Tier) -> dict:
         "bandwidth_array_mb": tier.bandwidth_mb[0],
         "bandwidth_by_size": bandwidth,
         "how": "matmul: jitted jnp.dot of two random n x n float32 matrices, best of the repeats, "
-               "2n^3 FLOP; bandwidth: bytes of an n x n float32 array / best time of a jitted jnp.sum "
-               "of it, of an (n, n) @ (n, 1) GEMV (the MLP's single-person access pattern) and of a "
-               "(1, n) @ (n, n) one, best of the three at the first size (the paper MLP's weight "
-               "bytes, so in the same cache regime as its forward pass); other sizes for context.",
-    }  # fmt: skip
+        "2n^3 FLOP; bandwidth: bytes of an n x n float32 array / best time of a jitted jnp.sum "
+        "of it, of an (n, n) @ (n, 1) GEMV (the MLP's single-person access pattern) and of a "
+        "(1, n) @ (n, n) one, best of the three at the first size (the paper MLP's weight "
+        "bytes, so in the same cache regime as its forward pass); other sizes for context.",
+    }
 
 
 # --------------------------------------------------------------------------- per-frame latency
@@ -213,7 +269,9 @@ def _frame(det: Detections, f: int) -> Detections:
 def _numpy_detections(rec) -> tuple[Detections, np.ndarray]:
     """The recording's detections as numpy, and its true proposals: members (F, G, C)."""
     d = rec.detections
-    det = Detections(np.asarray(d.xy, np.float32), np.asarray(d.score, np.float32), np.asarray(d.count))
+    det = Detections(
+        np.asarray(d.xy, np.float32), np.asarray(d.score, np.float32), np.asarray(d.count)
+    )
     G = np.shape(rec.ground_truth.valid)[1]
     return det, members_from_identity(np.asarray(rec.identity), G)
 
@@ -245,7 +303,9 @@ def _tri_fns(rig: Rig, det: Detections, members: np.ndarray):
 
     def tri(method):
         def fn(f):
-            return poses_of_members(rig, _frame(det, f), members[f : f + 1], method=method)[0].valid.sum()
+            return poses_of_members(rig, _frame(det, f), members[f : f + 1], method=method)[
+                0
+            ].valid.sum()
 
         return fn
 
@@ -265,19 +325,32 @@ def latency(tier: Tier) -> dict:
     models: dict[tuple[int, str], tuple] = {}
     # The breakdown is taken on the target configuration, or on the first one when the tier lacks it.
     target = (TARGET_VIEWS, TARGET_PEOPLE, TARGET_MODEL)
-    if TARGET_VIEWS not in tier.views or TARGET_PEOPLE not in tier.people or TARGET_MODEL not in tier.models:
+    if (
+        TARGET_VIEWS not in tier.views
+        or TARGET_PEOPLE not in tier.people
+        or TARGET_MODEL not in tier.models
+    ):
         target = (tier.views[0], tier.people[0], tier.models[0])
     for V in tier.views:
         for n in tier.people:
             rig, rec = scenes.recording(V, n, tier.frames, seed=V * 100 + n)
             det, members = _numpy_detections(rec)
             frames = range(tier.frames)
-            sizes = [s for s in scenes.MODEL_SIZES if s in tier.models or (
-                s == "quick" and tier.quick_model_configs and (V, n) in tier.quick_model_configs)]  # fmt: skip
+            sizes = [
+                s
+                for s in scenes.MODEL_SIZES
+                if s in tier.models
+                or (
+                    s == "quick" and tier.quick_model_configs and (V, n) in tier.quick_model_configs
+                )
+            ]
             for size in sizes:
                 if (V, size) not in models:
                     mlp, gat = scenes.MODEL_SIZES[size]
-                    models[(V, size)] = (scenes.matcher_for(rig, K, gat), scenes.estimator_for(rig, K, mlp))
+                    models[(V, size)] = (
+                        scenes.matcher_for(rig, K, gat),
+                        scenes.estimator_for(rig, K, mlp),
+                    )
                 matcher, estimator = models[(V, size)]
                 t_pp, t_3dg = _pipeline_fns(rig, det, members, matcher, estimator)
                 # Warm-up: one pass over every frame compiles every graph budget the frames meet
@@ -298,24 +371,38 @@ def latency(tier: Tier) -> dict:
                     g3.append(t2)
                     people.append(num)
                 people = np.asarray(people)
-                rows.append({
-                    "views": V, "people": n, "model": size, "frames": len(pp),
-                    "mean_people_estimated": float(people.mean()),
-                    "t_pp": summary(pp), "t_3Dg": summary(g3),
-                    "t_3Di": summary(np.asarray(g3) / np.maximum(people, 1)),
-                    "t_total": summary(np.asarray(pp) + np.asarray(g3)),
-                    "graph_budget_nodes": sorted({_budget(det, f).nodes for f in frames}),
-                    "count_patterns": len({det.count[f].tobytes() for f in frames}),
-                    "people_bucket": next_power_of_two(n),
-                })  # fmt: skip
+                rows.append(
+                    {
+                        "views": V,
+                        "people": n,
+                        "model": size,
+                        "frames": len(pp),
+                        "mean_people_estimated": float(people.mean()),
+                        "t_pp": summary(pp),
+                        "t_3Dg": summary(g3),
+                        "t_3Di": summary(np.asarray(g3) / np.maximum(people, 1)),
+                        "t_total": summary(np.asarray(pp) + np.asarray(g3)),
+                        "graph_budget_nodes": sorted({_budget(det, f).nodes for f in frames}),
+                        "count_patterns": len({det.count[f].tobytes() for f in frames}),
+                        "people_bucket": next_power_of_two(n),
+                    }
+                )
                 if (V, n, size) == target:
-                    breakdown = _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3dg)
+                    breakdown = _breakdown(
+                        rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3dg
+                    )
             # Triangulation rows: model-independent, on the same (true) proposals.
             for method, fn in _tri_fns(rig, det, members).items():
                 for f in frames[:3]:  # one shape per recording: a few calls warm it up
                     fn(f)
                 times = [timed(fn, f)[0] for f in frames]
-                row = {"views": V, "people": n, "method": method, "frames": len(times), "t_tri": summary(times)}
+                row = {
+                    "views": V,
+                    "people": n,
+                    "method": method,
+                    "frames": len(times),
+                    "t_tri": summary(times),
+                }
                 if method == "opencv_centroid":
                     row["agreement_with_jax_centroid_mm"] = _agreement(rig, det, members, frames)
                 tri_rows.append(row)
@@ -323,12 +410,19 @@ def latency(tier: Tier) -> dict:
     for (V, size), (matcher, estimator) in models.items():
         sizes[f"{V}v-{size}"] = {
             "mlp_params": int(sum(x.size for x in jax.tree_util.tree_leaves(estimator.params))),
-            "mlp_bytes": param_bytes(estimator.params), "mlp_flops_per_person": mlp_flops(estimator.params),
+            "mlp_bytes": param_bytes(estimator.params),
+            "mlp_flops_per_person": mlp_flops(estimator.params),
             "gat_params": int(sum(x.size for x in jax.tree_util.tree_leaves(matcher.params))),
-            "mlp_widths": list(estimator.config.mlp.widths), "gat_widths": list(matcher.config.gat.widths),
-        }  # fmt: skip
-    return {"rows": rows, "triangulation": tri_rows, "warmup_seconds": compile_s, "models": sizes,
-            "breakdown": breakdown}  # fmt: skip
+            "mlp_widths": list(estimator.config.mlp.widths),
+            "gat_widths": list(matcher.config.gat.widths),
+        }
+    return {
+        "rows": rows,
+        "triangulation": tri_rows,
+        "warmup_seconds": compile_s,
+        "models": sizes,
+        "breakdown": breakdown,
+    }
 
 
 def _warmup_frames(det: Detections, frames) -> list[int]:
@@ -366,7 +460,11 @@ def _agreement(rig: Rig, det: Detections, members: np.ndarray, frames) -> dict:
         both = ok & ours.keypoint_valid[0]
         diffs.append(np.linalg.norm(ref[both] - ours.xyz[0][both], axis=-1) * 1e3)
     d = np.concatenate(diffs) if diffs else np.zeros(1)
-    return {"median": float(np.median(d)), "p99": float(np.percentile(d, 99)), "keypoints": int(d.size)}
+    return {
+        "median": float(np.median(d)),
+        "p99": float(np.percentile(d, 99)),
+        "keypoints": int(d.size),
+    }
 
 
 # A camera stream leaves the pipeline idle between frames (25+ ms at 30 fps, more than the
@@ -410,7 +508,9 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
         oracle[f] = match_table(labelled, labelled.label)
     on_device = {f: jax.device_put(batches[f]) for f in frames}
     model_fn = jax.jit(lambda params, b: nnx.merge(matcher.graphdef, params, matcher.rest)(b))
-    first_fn = jax.jit(lambda params, b: nnx.merge(matcher.graphdef, params, matcher.rest).first_projection(b))
+    first_fn = jax.jit(
+        lambda params, b: nnx.merge(matcher.graphdef, params, matcher.rest).first_projection(b)
+    )
 
     def attention_only(params, b, z):
         model = nnx.merge(matcher.graphdef, params, matcher.rest)
@@ -422,28 +522,47 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
     attention_fn = jax.jit(attention_only)
     z_first = {f: first_fn(matcher.params, on_device[f]) for f in frames}
     no_features = {f: np.zeros(np.shape(valid[f]) + (0,), np.float32) for f in frames}
-    measure("pp.gat_match_table (features + GAT, one call)", lambda f: gat_match_table(matcher, _frame(det, f),
-                                                                                      frames_per_call=1))  # fmt: skip
-    measure("pp.graph_for_new_counts (build + to device)",
-            lambda f: jax.device_put(build_graphs(no_features[f], valid[f], num_graphs=1)))  # fmt: skip
+    measure(
+        "pp.gat_match_table (features + GAT, one call)",
+        lambda f: gat_match_table(matcher, _frame(det, f), frames_per_call=1),
+    )
+    measure(
+        "pp.graph_for_new_counts (build + to device)",
+        lambda f: jax.device_put(build_graphs(no_features[f], valid[f], num_graphs=1)),
+    )
     measure("pp.gat_device_only", lambda f: model_fn(matcher.params, on_device[f]))
     measure("pp.gat_first_projection", lambda f: first_fn(matcher.params, on_device[f]))
-    measure("pp.gat_attention_layers", lambda f: attention_fn(matcher.params, on_device[f], z_first[f]))
-    measure("pp.propose_people (network scores)", lambda f: propose_people(*tables[f], _frame(det, f).count,
-                                                                           num_skeletons=P))  # fmt: skip
-    measure("pp.propose_people (oracle scores)", lambda f: propose_people(*oracle[f], _frame(det, f).count,
-                                                                          num_skeletons=P))  # fmt: skip
+    measure(
+        "pp.gat_attention_layers", lambda f: attention_fn(matcher.params, on_device[f], z_first[f])
+    )
+    measure(
+        "pp.propose_people (network scores)",
+        lambda f: propose_people(*tables[f], _frame(det, f).count, num_skeletons=P),
+    )
+    measure(
+        "pp.propose_people (oracle scores)",
+        lambda f: propose_people(*oracle[f], _frame(det, f).count, num_skeletons=P),
+    )
     measure("pp.total", t_pp)
     measure(f"pp.total after {IDLE_MS} ms idle", t_pp, before=idle)
-    measure("pp.propose_with_matcher (default 32-frame chunk)", lambda f: propose_with_matcher(matcher, _frame(det, f)))
+    measure(
+        "pp.propose_with_matcher (default 32-frame chunk)",
+        lambda f: propose_with_matcher(matcher, _frame(det, f)),
+    )
 
     # ---- t_3Dg: grouping, estimate_grouped, then its insides: features and MLP (poses_of_members
     # is group_people + estimate_grouped)
     centre, radius = rig_centre_and_radius(estimator.rig_infer)
     graphdef, rest = estimator.graphdef, estimator.rest
-    feature_fn = jax.jit(lambda r, xy, s: assemble_features(estimator_inputs(r, xy, s), (s > 0).any(axis=-1)))
-    mlp_fn = jax.jit(lambda params, x: to_world(nnx.merge(graphdef, params, rest)(x), centre, radius))
-    grouped = {f: group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1]) for f in frames}
+    feature_fn = jax.jit(
+        lambda r, xy, s: assemble_features(estimator_inputs(r, xy, s), (s > 0).any(axis=-1))
+    )
+    mlp_fn = jax.jit(
+        lambda params, x: to_world(nnx.merge(graphdef, params, rest)(x), centre, radius)
+    )
+    grouped = {
+        f: group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1]) for f in frames
+    }
     bucket = next_power_of_two(n)
 
     def padded(f, rows_):
@@ -455,20 +574,35 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
     dev_exact = {f: padded(f, n) for f in frames}
     feats_bucket = {f: feature_fn(estimator.rig_infer, *dev_bucket[f]) for f in frames}
     feats_exact = {f: feature_fn(estimator.rig_infer, *dev_exact[f]) for f in frames}
-    measure("3d.group_people", lambda f: group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1]))
+    measure(
+        "3d.group_people",
+        lambda f: group_people(det.xy[f : f + 1], det.score[f : f + 1], members[f : f + 1]),
+    )
     measure("3d.estimate_grouped", lambda f: estimate_grouped(estimator, *grouped[f]))
-    measure(f"3d.features_device ({bucket} rows)", lambda f: feature_fn(estimator.rig_infer, *dev_bucket[f]))
-    measure(f"3d.mlp_device ({bucket} rows: the bucket)", lambda f: mlp_fn(estimator.params, feats_bucket[f]))
-    measure(f"3d.mlp_device ({n} rows: the people)", lambda f: mlp_fn(estimator.params, feats_exact[f]))
+    measure(
+        f"3d.features_device ({bucket} rows)",
+        lambda f: feature_fn(estimator.rig_infer, *dev_bucket[f]),
+    )
+    measure(
+        f"3d.mlp_device ({bucket} rows: the bucket)",
+        lambda f: mlp_fn(estimator.params, feats_bucket[f]),
+    )
+    measure(
+        f"3d.mlp_device ({n} rows: the people)", lambda f: mlp_fn(estimator.params, feats_exact[f])
+    )
     measure("3d.mlp_device (1 row)", lambda f: mlp_fn(estimator.params, feats_exact[f][:1]))
     measure("3d.total", t_3dg)
     measure(f"3d.total after {IDLE_MS} ms idle", t_3dg, before=idle)
     return {
-        "views": int(rig.num_cameras), "people": int(n), "model": size, "bucket": int(bucket),
+        "views": int(rig.num_cameras),
+        "people": int(n),
+        "model": size,
+        "bucket": int(bucket),
         "graph_budgets": sorted({str(dataclasses.astuple(_budget(det, f))) for f in frames}),
-        "mlp_bytes": param_bytes(estimator.params), "gat_bytes": param_bytes(matcher.params),
+        "mlp_bytes": param_bytes(estimator.params),
+        "gat_bytes": param_bytes(matcher.params),
         "parts_ms": parts,
-    }  # fmt: skip
+    }
 
 
 # --------------------------------------------------------------------------- offline throughput
@@ -489,15 +623,25 @@ def offline(tier: Tier) -> dict:
         matcher, estimator = scenes.matcher_for(rig, K, gat), scenes.estimator_for(rig, K, mlp)
 
         def stage2():  # stream_pipeline's proposal step, chunk by chunk
-            return sum(len(p) for sl in chunks for p in propose_with_matcher(matcher, chunk(sl)).people)
+            return sum(
+                len(p) for sl in chunks for p in propose_with_matcher(matcher, chunk(sl)).people
+            )
 
         def stage3():  # its 3D step, on the true proposals
-            return sum(int(poses_of_members(rig, chunk(sl), members[sl], estimator=estimator)[0].valid.sum())
-                       for sl in chunks)  # fmt: skip
+            return sum(
+                int(
+                    poses_of_members(rig, chunk(sl), members[sl], estimator=estimator)[
+                        0
+                    ].valid.sum()
+                )
+                for sl in chunks
+            )
 
         def triangulation():
-            return sum(int(poses_of_members(rig, chunk(sl), members[sl], method="dlt")[0].valid.sum())
-                       for sl in chunks)  # fmt: skip
+            return sum(
+                int(poses_of_members(rig, chunk(sl), members[sl], method="dlt")[0].valid.sum())
+                for sl in chunks
+            )
 
         first2, _ = timed(stage2)
         first3, people = timed(stage3)
@@ -509,35 +653,64 @@ def offline(tier: Tier) -> dict:
         rows = next_power_of_two(tier.offline_chunk * n)
         feats = jnp.zeros((rows, C, K, 14), jnp.float32)
         mlp = jax.jit(lambda p, x: nnx.merge(estimator.graphdef, p, estimator.rest)(x))
-        t_mlp = float(np.median(repeat(mlp, estimator.params, feats, n=max(2, tier.offline_repeats))))
+        t_mlp = float(
+            np.median(repeat(mlp, estimator.params, feats, n=max(2, tier.offline_repeats)))
+        )
         # The features alone for one chunk's people (device-resident, padded to the same bucket).
         xy, score = group_people(det.xy[chunks[0]], det.score[chunks[0]], members[chunks[0]])
         xy, score = xy.reshape((-1,) + xy.shape[2:]), score.reshape((-1,) + score.shape[2:])
         pad = [(0, rows - len(xy))] + [(0, 0)] * 3
         xy_d, score_d = jnp.asarray(np.pad(xy, pad)), jnp.asarray(np.pad(score, pad[:-1]))
-        feature_fn = jax.jit(lambda r, a, b: assemble_features(estimator_inputs(r, a, b), (b > 0).any(axis=-1)))
-        t_feat = float(np.median(repeat(feature_fn, rig, xy_d, score_d, n=max(2, tier.offline_repeats))))
+        feature_fn = jax.jit(
+            lambda r, a, b: assemble_features(estimator_inputs(r, a, b), (b > 0).any(axis=-1))
+        )
+        t_feat = float(
+            np.median(repeat(feature_fn, rig, xy_d, score_d, n=max(2, tier.offline_repeats)))
+        )
         # Single-person latency: the library call with one person, and the MLP alone on one row.
         xy, score = group_people(det.xy[:1], det.score[:1], members[:1])
         single = repeat(predict_people, estimator, xy[0, :1], score[0, :1], n=tier.single_repeats)
         single_mlp = repeat(mlp, estimator.params, feats[:1], n=tier.single_repeats)
         entry = {
-            "stage2": {"seconds": t2m, "first_run_seconds": first2, "frames_per_s": F / t2m,
-                       "people_per_s": F * n / t2m, "repeats": t2.size},
-            "stage3": {"seconds": t3m, "first_run_seconds": first3, "frames_per_s": F / t3m,
-                       "people_per_s": people / t3m, "people": people, "gflops": flops * people / t3m / 1e9,
-                       "repeats": t3.size},
-            "mlp_only": {"rows": rows, "seconds": t_mlp, "people_per_s": rows / t_mlp,
-                         "gflops": flops * rows / t_mlp / 1e9},
+            "stage2": {
+                "seconds": t2m,
+                "first_run_seconds": first2,
+                "frames_per_s": F / t2m,
+                "people_per_s": F * n / t2m,
+                "repeats": t2.size,
+            },
+            "stage3": {
+                "seconds": t3m,
+                "first_run_seconds": first3,
+                "frames_per_s": F / t3m,
+                "people_per_s": people / t3m,
+                "people": people,
+                "gflops": flops * people / t3m / 1e9,
+                "repeats": t3.size,
+            },
+            "mlp_only": {
+                "rows": rows,
+                "seconds": t_mlp,
+                "people_per_s": rows / t_mlp,
+                "gflops": flops * rows / t_mlp / 1e9,
+            },
             "features_only": {"rows": rows, "seconds": t_feat, "people_per_s": rows / t_feat},
             "chunks": len(chunks),
-            "single_person": {"predict_people_ms": summary(single), "mlp_one_row_ms": summary(single_mlp)},
-            "mlp_flops_per_person": flops, "mlp_bytes": param_bytes(estimator.params),
-        }  # fmt: skip
+            "single_person": {
+                "predict_people_ms": summary(single),
+                "mlp_one_row_ms": summary(single_mlp),
+            },
+            "mlp_flops_per_person": flops,
+            "mlp_bytes": param_bytes(estimator.params),
+        }
         if size == tier.model_sizes[0]:
             first_t, _ = timed(triangulation)
             tt = float(np.median(repeat(triangulation, n=tier.offline_repeats, warmup=0)))
-            entry["triangulation_dlt"] = {"seconds": tt, "frames_per_s": F / tt, "first_run_seconds": first_t}
+            entry["triangulation_dlt"] = {
+                "seconds": tt,
+                "frames_per_s": F / tt,
+                "first_run_seconds": first_t,
+            }
         out["models"][size] = entry
     return out
 
@@ -550,8 +723,9 @@ def training(tier: Tier) -> dict:
     rig = load_rig(scenes.PANOPTIC)
     K = 18
     num_rec = 8  # the matcher composes up to 8 people from 8 different recordings
-    recs = generate_single_person_recordings(rig, num_recordings=num_rec,
-                                             num_frames=max(8, -(-tier.train_batch // num_rec) * 2), seed=3)  # fmt: skip
+    recs = generate_single_person_recordings(
+        rig, num_recordings=num_rec, num_frames=max(8, -(-tier.train_batch // num_rec) * 2), seed=3
+    )
     xy, score = single_person_samples(recs)
     out = {"estimator": {}, "matcher": {}}
     for size in tier.model_sizes:
@@ -567,7 +741,9 @@ def _train_estimator_step(rig, xy, score, mlp, tier: Tier) -> dict:
     model = PoseMLP(C, K, mlp, rngs=nnx.Rngs(0))
     tx = make_optimizer(config.train)
     graphdef, rest, state = init_train_state(model, tx)
-    step = make_train_step(graphdef, rest, tx, estimator_loss_fn(rig, rig, config.num_augment, config.loss_power))
+    step = make_train_step(
+        graphdef, rest, tx, estimator_loss_fn(rig, rig, config.num_augment, config.loss_power)
+    )
     data = make_estimator_batch(rig, list(range(C)), xy, score)
     B = tier.train_batch
     rng = np.random.default_rng(0)
@@ -587,11 +763,15 @@ def _train_estimator_step(rig, xy, score, mlp, tier: Tier) -> dict:
     med = float(np.median(times))
     samples = B * (1 + config.num_augment)
     return {
-        "batch": B, "augmented_per_seed": config.num_augment, "step_ms": summary(times),
-        "seed_samples_per_s": B / med, "forward_backward_samples_per_s": samples / med,
-        "compile_seconds": max(0.0, first - med), "first_step_seconds": first,
+        "batch": B,
+        "augmented_per_seed": config.num_augment,
+        "step_ms": summary(times),
+        "seed_samples_per_s": B / med,
+        "forward_backward_samples_per_s": samples / med,
+        "compile_seconds": max(0.0, first - med),
+        "first_step_seconds": first,
         "gflops": 3 * mlp_flops(state.params) * samples / med / 1e9,
-    }  # fmt: skip
+    }
 
 
 def _train_matcher_step(rig, recs, gat, tier: Tier, K: int) -> dict:
@@ -600,8 +780,12 @@ def _train_matcher_step(rig, recs, gat, tier: Tier, K: int) -> dict:
     pool = make_pool(rig, recs)
     rng = np.random.default_rng(0)
     build_times, batches = [], []
-    for _ in range(tier.matcher_batches):  # as train_matcher's epoch_batches builds them, one at a time
-        t, b = timed(lambda: sample_batches(pool, rng, 1, per_batch, max_people=config.max_people)[0])
+    for _ in range(
+        tier.matcher_batches
+    ):  # as train_matcher's epoch_batches builds them, one at a time
+        t, b = timed(
+            lambda: sample_batches(pool, rng, 1, per_batch, max_people=config.max_people)[0]
+        )
         build_times.append(t)
         batches.append(b)
     model = MatchingGAT(rig.num_cameras, K, gat, rngs=nnx.Rngs(0))
@@ -623,13 +807,16 @@ def _train_matcher_step(rig, recs, gat, tier: Tier, K: int) -> dict:
     compile_times = [max(0.0, t - steady) for t in seen.values()]
     med_build = float(np.median(build_times))
     return {
-        "graphs_per_batch": per_batch, "step_ms": summary(times),
-        "graphs_per_s": per_batch / steady, "host_batch_ms": summary(build_times),
+        "graphs_per_batch": per_batch,
+        "step_ms": summary(times),
+        "graphs_per_s": per_batch / steady,
+        "host_batch_ms": summary(build_times),
         "host_graphs_per_s": per_batch / med_build,
         "end_to_end_graphs_per_s": per_batch / (steady + med_build),
-        "compile_seconds": float(np.mean(compile_times)), "budgets_compiled": len(seen),
+        "compile_seconds": float(np.mean(compile_times)),
+        "budgets_compiled": len(seen),
         "budgets": [list(s) for s in seen],
-    }  # fmt: skip
+    }
 
 
 GROUPS: dict[str, Callable[[Tier], dict]] = {

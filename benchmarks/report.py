@@ -28,7 +28,10 @@ def targets(run: dict) -> list[dict]:
     off = run.get("offline") or {}
     where = dict(views=TARGET_VIEWS, people=TARGET_PEOPLE)
     row = _row(lat.get("rows", []), model=TARGET_MODEL, **where)
-    tri = {m: _row(lat.get("triangulation", []), method=m, **where) for m in ("dlt", "centroid", "opencv_centroid")}
+    tri = {
+        m: _row(lat.get("triangulation", []), method=m, **where)
+        for m in ("dlt", "centroid", "opencv_centroid")
+    }
     model = (lat.get("models") or {}).get(f"{TARGET_VIEWS}v-{TARGET_MODEL}")
     out = []
 
@@ -37,33 +40,64 @@ def targets(run: dict) -> list[dict]:
             status = "n/a"
         else:
             status = "pass" if (measured <= limit if ok is None else ok) else "miss"
-        out.append({"name": name, "measured": measured, "limit": limit, "unit": unit, "status": status,
-                    "detail": detail})  # fmt: skip
+        out.append(
+            {
+                "name": name,
+                "measured": measured,
+                "limit": limit,
+                "unit": unit,
+                "status": status,
+                "detail": detail,
+            }
+        )
 
     t_pp = row["t_pp"]["median"] if row else None
-    add("t_pp <= 2 ms", t_pp, T_PP_LIMIT_MS, "ms",
-        "median per frame: host features + graph building + GAT + proposals")  # fmt: skip
+    add(
+        "t_pp <= 2 ms",
+        t_pp,
+        T_PP_LIMIT_MS,
+        "ms",
+        "median per frame: host features + graph building + GAT + proposals",
+    )
 
     bw = peaks.get("bandwidth_gbs")
     bound = model["mlp_bytes"] / (bw * 1e9) * 1e3 if (model and bw) else None
     t_3dg = row["t_3Dg"]["median"] if row else None
-    add("t_3Dg <= 1.3 x weight-streaming bound", t_3dg, None if bound is None else T_3DG_BOUND_FACTOR * bound, "ms",
-        f"bound = MLP bytes / measured bandwidth = {bound:.2f} ms" if bound else "no bound measured")  # fmt: skip
+    add(
+        "t_3Dg <= 1.3 x weight-streaming bound",
+        t_3dg,
+        None if bound is None else T_3DG_BOUND_FACTOR * bound,
+        "ms",
+        f"bound = MLP bytes / measured bandwidth = {bound:.2f} ms"
+        if bound
+        else "no bound measured",
+    )
 
     stage3 = ((off.get("models") or {}).get(TARGET_MODEL) or {}).get("stage3")
     peak = peaks.get("matmul_gflops")
     frac = stage3["gflops"] / peak if (stage3 and peak) else None
-    add("offline 3D >= 70% of matmul peak", frac, OFFLINE_PEAK_FRACTION, "fraction",
+    add(
+        "offline 3D >= 70% of matmul peak",
+        frac,
+        OFFLINE_PEAK_FRACTION,
+        "fraction",
         f"{stage3['gflops']:.0f} of {peak:.0f} GFLOP/s" if frac is not None else "not measured",
-        ok=None if frac is None else frac >= OFFLINE_PEAK_FRACTION)  # fmt: skip
+        ok=None if frac is None else frac >= OFFLINE_PEAK_FRACTION,
+    )
 
     ratio, detail = None, "not measured"
     if row and tri["centroid"]:
         t_tri = {m: r["t_tri"]["median"] for m, r in tri.items() if r}
-        ratio = (row["t_pp"]["median"] + row["t_3Dg"]["median"]) / (row["t_pp"]["median"] + t_tri["centroid"])
-        others = ", ".join(f"{m} {(t_pp + t_3dg) / (t_pp + t):.1f}x" for m, t in t_tri.items() if m != "centroid")
-        detail = (f"(t_pp + t_3Dg) / (t_pp + t_tri), t_tri = the library's triangulate_grouped (pairwise "
-                  f"centroid, {t_tri['centroid']:.2f} ms); against the other rows: {others}")
+        ratio = (row["t_pp"]["median"] + row["t_3Dg"]["median"]) / (
+            row["t_pp"]["median"] + t_tri["centroid"]
+        )
+        others = ", ".join(
+            f"{m} {(t_pp + t_3dg) / (t_pp + t):.1f}x" for m, t in t_tri.items() if m != "centroid"
+        )
+        detail = (
+            f"(t_pp + t_3Dg) / (t_pp + t_tri), t_tri = the library's triangulate_grouped (pairwise "
+            f"centroid, {t_tri['centroid']:.2f} ms); against the other rows: {others}"
+        )
     add("t_pp + t_3Dg <= 2 x triangulation pipeline", ratio, PIPELINE_FACTOR, "x", detail)
     return out
 
@@ -89,104 +123,167 @@ def markdown(run: dict) -> str:
         f"- CPU: {m['cpu_model']}, {m['cpu_count']} cores ({m['cores_usable']} usable); "
         f"load average {m['load_before']} before, {m['load_after']} after",
         f"- JAX {m['jax']} (jaxlib {m['jaxlib']}), flax {m['flax']}, numpy {m['numpy']}, OpenCV {m['opencv']}, "
-        f"Python {m['python']}; device: {m['device']}"
-        + (" (GPU run)" if m.get("gpu") else ""),
+        f"Python {m['python']}; device: {m['device']}" + (" (GPU run)" if m.get("gpu") else ""),
         f"- git {run['git']['commit'][:12]}{' (uncommitted changes)' if run['git']['dirty'] else ''}; "
         f"BLAS/OpenMP threads {m['blas_threads']}; {run['date']}; total {run['seconds']:.0f} s",
     ]
     if m.get("loaded"):
-        lines.append("- **The machine was loaded during this run (load average above half the cores before it, or "
-                     "above 1.25x the cores after it, which the run alone does not reach): "
-                     "timings are noisy upper bounds.**")  # fmt: skip
-    lines += ["", "## Targets (5 views, 4 people, paper-size models)", "",
-              "| target | measured | limit | status | how |", "|---|---|---|---|---|"]  # fmt: skip
+        lines.append(
+            "- **The machine was loaded during this run (load average above half the cores before it, or "
+            "above 1.25x the cores after it, which the run alone does not reach): "
+            "timings are noisy upper bounds.**"
+        )
+    lines += [
+        "",
+        "## Targets (5 views, 4 people, paper-size models)",
+        "",
+        "| target | measured | limit | status | how |",
+        "|---|---|---|---|---|",
+    ]
     for t in run.get("targets", []):
         fmt = ".2f" if t["unit"] in ("ms", "x", "fraction") else ",.0f"
-        lines.append(f"| {t['name']} | {_num(t['measured'], fmt)} {t['unit']} | {_num(t['limit'], fmt)} | "
-                     f"**{t['status']}** | {t['detail']} |")  # fmt: skip
+        lines.append(
+            f"| {t['name']} | {_num(t['measured'], fmt)} {t['unit']} | {_num(t['limit'], fmt)} | "
+            f"**{t['status']}** | {t['detail']} |"
+        )
 
     lat = run.get("latency")
     if lat:
-        lines += ["", "## Per-frame latency (ms: median [p10-p90], one frame at a time, after compilation)", "",
-                  "| views | people | model | t_pp | t_3Dg | t_3Di | t_pp + t_3Dg | frames |",
-                  "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [
+            "",
+            "## Per-frame latency (ms: median [p10-p90], one frame at a time, after compilation)",
+            "",
+            "| views | people | model | t_pp | t_3Dg | t_3Di | t_pp + t_3Dg | frames |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in lat["rows"]:
-            lines.append(f"| {r['views']} | {r['people']} | {r['model']} | {_ms(r['t_pp'])} | {_ms(r['t_3Dg'])} | "
-                         f"{_ms(r['t_3Di'])} | {_ms(r['t_total'])} | {r['frames']} |")  # fmt: skip
-        lines += ["", "Triangulation of the same (true) proposals, per frame (ms):", "",
-                  "| views | people | DLT (ours) | pairwise centroid (ours) | pairwise centroid (OpenCV, "
-                  "the paper's code) | OpenCV vs ours, median / p99 mm |", "|---|---|---|---|---|---|"]  # fmt: skip
+            lines.append(
+                f"| {r['views']} | {r['people']} | {r['model']} | {_ms(r['t_pp'])} | {_ms(r['t_3Dg'])} | "
+                f"{_ms(r['t_3Di'])} | {_ms(r['t_total'])} | {r['frames']} |"
+            )
+        lines += [
+            "",
+            "Triangulation of the same (true) proposals, per frame (ms):",
+            "",
+            "| views | people | DLT (ours) | pairwise centroid (ours) | pairwise centroid (OpenCV, "
+            "the paper's code) | OpenCV vs ours, median / p99 mm |",
+            "|---|---|---|---|---|---|",
+        ]
         keys = sorted({(r["views"], r["people"]) for r in lat["triangulation"]})
         for v, n in keys:
-            get = {r["method"]: r for r in lat["triangulation"] if (r["views"], r["people"]) == (v, n)}
+            get = {
+                r["method"]: r for r in lat["triangulation"] if (r["views"], r["people"]) == (v, n)
+            }
             agree = get.get("opencv_centroid", {}).get("agreement_with_jax_centroid_mm")
             a = f"{agree['median']:.2f} / {agree['p99']:.2f}" if agree else "-"
-            lines.append(f"| {v} | {n} | {_ms(get.get('dlt', {}).get('t_tri'))} | "
-                         f"{_ms(get.get('centroid', {}).get('t_tri'))} | "
-                         f"{_ms(get.get('opencv_centroid', {}).get('t_tri'))} | {a} |")  # fmt: skip
+            lines.append(
+                f"| {v} | {n} | {_ms(get.get('dlt', {}).get('t_tri'))} | "
+                f"{_ms(get.get('centroid', {}).get('t_tri'))} | "
+                f"{_ms(get.get('opencv_centroid', {}).get('t_tri'))} | {a} |"
+            )
 
     off, peaks = run.get("offline"), run.get("peaks") or {}
     if off:
-        lines += ["", f"## Offline throughput ({off['frames']} frames, {off['views']} views, {off['people']} people, "
-                  f"{off['chunk_frames']} frames per estimator call)", "",
-                  "| model | stage 2 frames/s | stage 3 frames/s | stage 3 people/s | stage 3 GFLOP/s | "
-                  "% of matmul peak | MLP alone GFLOP/s (rows) | single person ms (MLP alone) | "
-                  "weight-streaming bound ms |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [
+            "",
+            f"## Offline throughput ({off['frames']} frames, {off['views']} views, {off['people']} people, "
+            f"{off['chunk_frames']} frames per estimator call)",
+            "",
+            "| model | stage 2 frames/s | stage 3 frames/s | stage 3 people/s | stage 3 GFLOP/s | "
+            "% of matmul peak | MLP alone GFLOP/s (rows) | single person ms (MLP alone) | "
+            "weight-streaming bound ms |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         peak, bw = peaks.get("matmul_gflops"), peaks.get("bandwidth_gbs")
         for size, e in off["models"].items():
             s3, mo, sp = e["stage3"], e["mlp_only"], e["single_person"]
             pct = f"{100 * s3['gflops'] / peak:.0f}%" if peak else "-"
             bound = f"{e['mlp_bytes'] / (bw * 1e9) * 1e3:.2f}" if bw else "-"
-            lines.append(f"| {size} | {e['stage2']['frames_per_s']:,.0f} | {s3['frames_per_s']:,.0f} | "
-                         f"{s3['people_per_s']:,.0f} | {s3['gflops']:.0f} | {pct} | {mo['gflops']:.0f} ({mo['rows']}) | "
-                         f"{sp['predict_people_ms']['median']:.2f} ({sp['mlp_one_row_ms']['median']:.2f}) | {bound} |")  # fmt: skip
-        tri = next((e["triangulation_dlt"] for e in off["models"].values() if "triangulation_dlt" in e), None)
+            lines.append(
+                f"| {size} | {e['stage2']['frames_per_s']:,.0f} | {s3['frames_per_s']:,.0f} | "
+                f"{s3['people_per_s']:,.0f} | {s3['gflops']:.0f} | {pct} | {mo['gflops']:.0f} ({mo['rows']}) | "
+                f"{sp['predict_people_ms']['median']:.2f} ({sp['mlp_one_row_ms']['median']:.2f}) | {bound} |"
+            )
+        tri = next(
+            (e["triangulation_dlt"] for e in off["models"].values() if "triangulation_dlt" in e),
+            None,
+        )
         if tri:
-            lines.append(f"\nTriangulation (DLT) of the same recording: {tri['frames_per_s']:,.0f} frames/s.")
+            lines.append(
+                f"\nTriangulation (DLT) of the same recording: {tri['frames_per_s']:,.0f} frames/s."
+            )
 
     tr = run.get("training")
     if tr:
-        lines += ["", "## Training throughput (panoptic5, single-person data)", "",
-                  "| model | estimator step ms | seed samples/s | forward-backward samples/s | compile s | "
-                  "matcher step ms (15 graphs) | graphs/s | host batch building graphs/s | compile s per budget "
-                  "(budgets) |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [
+            "",
+            "## Training throughput (panoptic5, single-person data)",
+            "",
+            "| model | estimator step ms | seed samples/s | forward-backward samples/s | compile s | "
+            "matcher step ms (15 graphs) | graphs/s | host batch building graphs/s | compile s per budget "
+            "(budgets) |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         for size in tr["estimator"]:
             e, g = tr["estimator"][size], tr["matcher"][size]
-            lines.append(f"| {size} | {_ms(e['step_ms'])} | {e['seed_samples_per_s']:,.0f} | "
-                         f"{e['forward_backward_samples_per_s']:,.0f} | {e['compile_seconds']:.1f} | {_ms(g['step_ms'])} | "
-                         f"{g['graphs_per_s']:,.0f} | {g['host_graphs_per_s']:,.0f} | {g['compile_seconds']:.1f} "
-                         f"({g['budgets_compiled']}) |")  # fmt: skip
+            lines.append(
+                f"| {size} | {_ms(e['step_ms'])} | {e['seed_samples_per_s']:,.0f} | "
+                f"{e['forward_backward_samples_per_s']:,.0f} | {e['compile_seconds']:.1f} | {_ms(g['step_ms'])} | "
+                f"{g['graphs_per_s']:,.0f} | {g['host_graphs_per_s']:,.0f} | {g['compile_seconds']:.1f} "
+                f"({g['budgets_compiled']}) |"
+            )
 
     if peaks:
-        lines += ["", "## Machine peaks (measured in this run)", "",
-                  f"- float32 matmul: {peaks['matmul_gflops']:,.0f} GFLOP/s (best over sizes "
-                  f"{', '.join(peaks['matmul_gflops_by_size'])})",
-                  f"- memory read bandwidth: {peaks['bandwidth_gbs']:.1f} GB/s on a {peaks['bandwidth_array_mb']} MB "
-                  "array; by size: " + "; ".join(f"{k} MB: sum {v['sum']:.1f}, GEMV (n,n)@(n,1) {v['gemv_out_in']:.1f}, "
-                                                   f"(1,n)@(n,n) {v['gemv_in_out']:.1f} GB/s"
-                                                   for k, v in peaks["bandwidth_by_size"].items())]  # fmt: skip
+        lines += [
+            "",
+            "## Machine peaks (measured in this run)",
+            "",
+            f"- float32 matmul: {peaks['matmul_gflops']:,.0f} GFLOP/s (best over sizes "
+            f"{', '.join(peaks['matmul_gflops_by_size'])})",
+            f"- memory read bandwidth: {peaks['bandwidth_gbs']:.1f} GB/s on a {peaks['bandwidth_array_mb']} MB "
+            "array; by size: "
+            + "; ".join(
+                f"{k} MB: sum {v['sum']:.1f}, GEMV (n,n)@(n,1) {v['gemv_out_in']:.1f}, "
+                f"(1,n)@(n,n) {v['gemv_in_out']:.1f} GB/s"
+                for k, v in peaks["bandwidth_by_size"].items()
+            ),
+        ]
         if "spread" in peaks:
             mm, bw = peaks["matmul_gflops_start_end"], peaks["bandwidth_gbs_start_end"]
-            lines.append(f"- measured at the start and again at the end of the run: matmul {mm[0]:,.0f} / {mm[1]:,.0f} "
-                         f"GFLOP/s, bandwidth {bw[0]:.1f} / {bw[1]:.1f} GB/s (the better counts; spread "
-                         f"{100 * peaks['spread']:.0f}%{', the load changed during the run' if peaks['spread'] > 0.15 else ''})")  # fmt: skip
+            lines.append(
+                f"- measured at the start and again at the end of the run: matmul {mm[0]:,.0f} / {mm[1]:,.0f} "
+                f"GFLOP/s, bandwidth {bw[0]:.1f} / {bw[1]:.1f} GB/s (the better counts; spread "
+                f"{100 * peaks['spread']:.0f}%{', the load changed during the run' if peaks['spread'] > 0.15 else ''})"
+            )
 
     mem = run.get("memory")
     if mem:
-        lines += ["", f"## Peak memory per group ({run['memory_method']})", "",
-                  "| group | peak RSS MB | RSS after imports MB | growth MB | device peak MB | seconds |",
-                  "|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [
+            "",
+            f"## Peak memory per group ({run['memory_method']})",
+            "",
+            "| group | peak RSS MB | RSS after imports MB | growth MB | device peak MB | seconds |",
+            "|---|---|---|---|---|---|",
+        ]
         for g, r in mem.items():
             dev = "-" if r.get("device_peak_mb") is None else f"{r['device_peak_mb']:,.0f}"
-            lines.append(f"| {g} | {r['maxrss_mb']:,.0f} | {r['rss_after_import_mb']:,.0f} | "
-                         f"{r['maxrss_mb'] - r['rss_after_import_mb']:,.0f} | {dev} | {r['seconds']:.0f} |")  # fmt: skip
+            lines.append(
+                f"| {g} | {r['maxrss_mb']:,.0f} | {r['rss_after_import_mb']:,.0f} | "
+                f"{r['maxrss_mb'] - r['rss_after_import_mb']:,.0f} | {dev} | {r['seconds']:.0f} |"
+            )
 
     bd = (lat or {}).get("breakdown")
     if bd:
-        lines += ["", f"## Breakdown ({bd['views']} views, {bd['people']} people, {bd['model']} model; ms per frame)",
-                  "", f"Graph budgets (nodes, detections, edges, graphs): {', '.join(bd['graph_budgets'])}; "
-                  f"estimator bucket: {bd['bucket']} rows.", "",
-                  "| component | median | p10 | p90 |", "|---|---|---|---|"]  # fmt: skip
+        lines += [
+            "",
+            f"## Breakdown ({bd['views']} views, {bd['people']} people, {bd['model']} model; ms per frame)",
+            "",
+            f"Graph budgets (nodes, detections, edges, graphs): {', '.join(bd['graph_budgets'])}; "
+            f"estimator bucket: {bd['bucket']} rows.",
+            "",
+            "| component | median | p10 | p90 |",
+            "|---|---|---|---|",
+        ]
         for name, s in bd["parts_ms"].items():
             lines.append(f"| {name} | {s['median']:.3f} | {s['p10']:.3f} | {s['p90']:.3f} |")
         if run.get("profile"):
@@ -198,11 +295,18 @@ def markdown(run: dict) -> str:
 
 
 def _patterns(run: dict, bd: dict) -> str:
-    row = _row((run.get("latency") or {}).get("rows", []), views=bd["views"], people=bd["people"], model=bd["model"])
+    row = _row(
+        (run.get("latency") or {}).get("rows", []),
+        views=bd["views"],
+        people=bd["people"],
+        model=bd["model"],
+    )
     if not row or "count_patterns" not in row:
         return ""
-    return (f" ({row['count_patterns']} patterns in these {row['frames']} frames; the frame-by-frame numbers "
-            f"are the steady state, every pattern met once in the warm-up)")
+    return (
+        f" ({row['count_patterns']} patterns in these {row['frames']} frames; the frame-by-frame numbers "
+        f"are the steady state, every pattern met once in the warm-up)"
+    )
 
 
 def profile_notes(run: dict) -> list[str]:
@@ -226,15 +330,19 @@ def profile_notes(run: dict) -> list[str]:
             f"{p['pp.graph_for_new_counts (build + to device)']:.2f} ms{_patterns(run, bd)}. The default "
             f"propose_with_matcher: "
             f"{p['pp.propose_with_matcher (default 32-frame chunk)']:.2f} ms."
-        )  # fmt: skip
-        row = _row((run.get("latency") or {}).get("rows", []), views=bd["views"], people=bd["people"],
-                   model=bd["model"])  # fmt: skip
+        )
+        row = _row(
+            (run.get("latency") or {}).get("rows", []),
+            views=bd["views"],
+            people=bd["people"],
+            model=bd["model"],
+        )
         if row and row["t_pp"]["median"] > 1.2 * pp:
             notes.append(
                 f"In the frame-by-frame loop t_pp is {row['t_pp']['median']:.2f} ms against {pp:.2f} ms for the "
                 f"same calls back to back (the breakdown): there the 3D stage runs between two frames' "
                 f"proposals, which then start with cold caches and idle worker threads."
-            )  # fmt: skip
+            )
     idle = [k for k in p if k.startswith("pp.total after")]
     if idle and pp and p.get("3d.total"):
         ms = idle[0].split("after ")[1].split(" ms")[0]
@@ -244,7 +352,7 @@ def profile_notes(run: dict) -> list[str]:
             f"t_pp {pp_idle:.2f} ms and t_3Dg {g3_idle:.2f} ms, against {pp:.2f} and {p['3d.total']:.2f} ms back "
             f"to back: after a pause XLA's worker threads (and the cores under them) have gone idle, "
             f"and the parallel operations of the next call start by waking them."
-        )  # fmt: skip
+        )
     g3 = p.get("3d.total")
     if g3:
         keys = [k for k in p if k.startswith("3d.mlp_device")]
@@ -257,15 +365,17 @@ def profile_notes(run: dict) -> list[str]:
             f"features {p[feat]:.2f} ms; grouping {p['3d.group_people']:.2f} ms; the rest of "
             f"estimate_grouped (padding, transfers, dispatch) "
             f"{max(0.0, p['3d.estimate_grouped'] - p[bucket] - p[feat]):.2f} ms."
-        )  # fmt: skip
+        )
         bw = (run.get("peaks") or {}).get("bandwidth_gbs")
         if bw:
             bound = bd["mlp_bytes"] / (bw * 1e9) * 1e3
             one = p["3d.mlp_device (1 row)"]
             per_row = (p[bucket] - one) / max(1, bd["bucket"] - 1)
             if p[bucket] > 1.3 * one:
-                why = (f"past one row the products are compute-bound, about {per_row:.2f} ms per added row, "
-                       "so every padding row of the bucket costs time")  # fmt: skip
+                why = (
+                    f"past one row the products are compute-bound, about {per_row:.2f} ms per added row, "
+                    "so every padding row of the bucket costs time"
+                )
             else:
                 why = "extra rows cost little at this size"
             notes.append(
@@ -273,7 +383,7 @@ def profile_notes(run: dict) -> list[str]:
                 f"in {one:.2f} ms ({one / bound:.1f}x the bound), {bd['people']} rows in {p[people]:.2f} ms "
                 f"({p[people] / bound:.1f}x) and the {bd['bucket']}-row bucket in {p[bucket]:.2f} ms "
                 f"({p[bucket] / bound:.1f}x): {why}."
-            )  # fmt: skip
+            )
     off = ((run.get("offline") or {}).get("models") or {}).get(bd["model"])
     peak = (run.get("peaks") or {}).get("matmul_gflops")
     if off and peak:
@@ -288,5 +398,5 @@ def profile_notes(run: dict) -> list[str]:
             + (f", features {1e3 * feat:.1f} ms" if feat else "")
             + f", the rest (grouping, padding, transfers) "
             f"{1e3 * max(0.0, per_chunk - off['mlp_only']['seconds'] - (feat or 0.0)):.1f} ms."
-        )  # fmt: skip
+        )
     return notes

@@ -35,20 +35,33 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-MEMORY_METHOD = ("each group in its own process; peak RSS = its getrusage ru_maxrss, growth = peak minus "
-                 "the RSS right after its imports; device peak = jax memory_stats() peak_bytes_in_use "
-                 "where the backend reports it (GPU), else -")  # fmt: skip
+MEMORY_METHOD = (
+    "each group in its own process; peak RSS = its getrusage ru_maxrss, growth = peak minus "
+    "the RSS right after its imports; device peak = jax memory_stats() peak_bytes_in_use "
+    "where the backend reports it (GPU), else -"
+)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     tier = parser.add_mutually_exclusive_group()
-    tier.add_argument("--quick", action="store_true", help="a smaller grid and fewer frames (under 3 minutes)")
-    tier.add_argument("--smoke", action="store_true", help="one tiny configuration: checks the harness (tests)")
-    parser.add_argument("--out", default="results/benchmarks", help="folder for run.json and run.md")
-    parser.add_argument("--groups", default="peaks,latency,offline,training", help="comma-separated groups to run")
-    parser.add_argument("--in-process", action="store_true",
-                        help="run the groups in this process (debugging; peak memory is then cumulative)")
+    tier.add_argument(
+        "--quick", action="store_true", help="a smaller grid and fewer frames (under 3 minutes)"
+    )
+    tier.add_argument(
+        "--smoke", action="store_true", help="one tiny configuration: checks the harness (tests)"
+    )
+    parser.add_argument(
+        "--out", default="results/benchmarks", help="folder for run.json and run.md"
+    )
+    parser.add_argument(
+        "--groups", default="peaks,latency,offline,training", help="comma-separated groups to run"
+    )
+    parser.add_argument(
+        "--in-process",
+        action="store_true",
+        help="run the groups in this process (debugging; peak memory is then cumulative)",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--tier", help=argparse.SUPPRESS)
     parser.add_argument("--child-out", help=argparse.SUPPRESS)
@@ -65,11 +78,20 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown groups {unknown}; groups: {list(GROUPS)}")
     start = time.perf_counter()
     load_before = _loadavg()
-    run: dict = {"benchmark": "run", "tier": tier, "date": datetime.datetime.now().isoformat(timespec="seconds"),
-                 "git": _git(), "memory_method": MEMORY_METHOD, "memory": {}, "errors": {}}  # fmt: skip
+    run: dict = {
+        "benchmark": "run",
+        "tier": tier,
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "git": _git(),
+        "memory_method": MEMORY_METHOD,
+        "memory": {},
+        "errors": {},
+    }
     # The machine's peaks are measured again at the end: the bounds are the better of the two, and
     # a large difference says the machine's load changed during the run.
-    steps = [(g, g) for g in groups] + ([("peaks", "peaks_end")] if "peaks" in groups and len(groups) > 1 else [])
+    steps = [(g, g) for g in groups] + (
+        [("peaks", "peaks_end")] if "peaks" in groups and len(groups) > 1 else []
+    )
     for group, key in steps:
         print(f"[benchmarks] {key} ({tier}) ...", flush=True)
         t = time.perf_counter()
@@ -111,7 +133,9 @@ def _merge_peaks(start: dict, end: dict) -> dict:
     for key in ("matmul_gflops", "bandwidth_gbs"):
         out[key] = max(start[key], end[key])
         out[f"{key}_start_end"] = [start[key], end[key]]
-    out["spread"] = max(abs(start[k] - end[k]) / max(start[k], end[k]) for k in ("matmul_gflops", "bandwidth_gbs"))
+    out["spread"] = max(
+        abs(start[k] - end[k]) / max(start[k], end[k]) for k in ("matmul_gflops", "bandwidth_gbs")
+    )
     return out
 
 
@@ -123,8 +147,20 @@ def _subprocess(group: str, tier: str) -> tuple[dict | None, dict | None, str | 
         path = Path(tmp) / f"{group}.json"
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
-        cmd = [sys.executable, "-m", "benchmarks.run", "--child", group, "--tier", tier, "--child-out", str(path)]
-        proc = subprocess.run(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        cmd = [
+            sys.executable,
+            "-m",
+            "benchmarks.run",
+            "--child",
+            group,
+            "--tier",
+            tier,
+            "--child-out",
+            str(path),
+        ]
+        proc = subprocess.run(
+            cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
         if proc.returncode != 0 or not path.exists():
             return None, None, f"exit {proc.returncode}: {proc.stdout[-2000:]}"
         data = json.loads(path.read_text())
@@ -137,9 +173,13 @@ def _in_process(group: str, tier: str) -> tuple[dict | None, dict | None, str | 
     rss = _rss_mb()
     try:
         result = GROUPS[group](TIERS[tier])
-    except Exception as e:  # noqa: BLE001 - a failed group is reported, the others still run
+    except Exception as e:
         return None, None, f"{type(e).__name__}: {e}"
-    return result, {"maxrss_mb": _rss_mb(), "rss_after_import_mb": rss, "device_peak_mb": _device_peak_mb()}, None
+    return (
+        result,
+        {"maxrss_mb": _rss_mb(), "rss_after_import_mb": rss, "device_peak_mb": _device_peak_mb()},
+        None,
+    )
 
 
 def _child(group: str, tier: str, out: Path) -> int:
@@ -151,7 +191,11 @@ def _child(group: str, tier: str, out: Path) -> int:
     jax.devices()  # the backend's own memory belongs to the baseline
     rss = _current_rss_mb()
     result = GROUPS[group](TIERS[tier])
-    memory = {"maxrss_mb": _rss_mb(), "rss_after_import_mb": rss, "device_peak_mb": _device_peak_mb()}
+    memory = {
+        "maxrss_mb": _rss_mb(),
+        "rss_after_import_mb": rss,
+        "device_peak_mb": _device_peak_mb(),
+    }
     out.write_text(json.dumps(to_jsonable({"result": result, "memory": memory})))
     return 0
 
@@ -191,17 +235,26 @@ def _machine(load_before, load_after) -> dict:
     cores = os.cpu_count() or 1
     usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else cores
     return {
-        "cpu_model": _cpu_model(), "cpu_count": cores, "cores_usable": usable,
-        "python": platform.python_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
-        "flax": flax.__version__, "numpy": np.__version__, "opencv": cv2.__version__,
+        "cpu_model": _cpu_model(),
+        "cpu_count": cores,
+        "cores_usable": usable,
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "flax": flax.__version__,
+        "numpy": np.__version__,
+        "opencv": cv2.__version__,
         "device": f"{dev.platform}: {getattr(dev, 'device_kind', '')} x{jax.device_count()}".strip(),
-        "gpu": dev.platform == "gpu", "platform": platform.platform(),
-        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"), "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "load_before": load_before, "load_after": load_after,
+        "gpu": dev.platform == "gpu",
+        "platform": platform.platform(),
+        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "load_before": load_before,
+        "load_after": load_after,
         # The run itself keeps every core busy (load ~ cores at its end): other work shows as load
         # before it, or as load well above the cores after it.
         "loaded": load_before[0] > 0.5 * usable or load_after[0] > 1.25 * usable,
-    }  # fmt: skip
+    }
 
 
 def _cpu_model() -> str:
@@ -225,11 +278,16 @@ def _loadavg() -> list[float]:
 def _git() -> dict:
     def git(*cmd):
         try:
-            return subprocess.run(["git", *cmd], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
+            return subprocess.run(
+                ["git", *cmd], cwd=REPO, capture_output=True, text=True, check=True
+            ).stdout.strip()
         except (OSError, subprocess.CalledProcessError):
             return ""
 
-    return {"commit": git("rev-parse", "HEAD") or "unknown", "dirty": bool(git("status", "--porcelain", "-uno"))}
+    return {
+        "commit": git("rev-parse", "HEAD") or "unknown",
+        "dirty": bool(git("status", "--porcelain", "-uno")),
+    }
 
 
 if __name__ == "__main__":

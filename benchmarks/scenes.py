@@ -52,7 +52,9 @@ def ring_rig(num_cameras: int = 8) -> Rig:
         R.append(rot)
         t.append(-rot @ centre)
     size = [np.asarray(base.size)[0]] * num_cameras
-    return make_rig(K, dist, R, t, size, [f"ring{c}" for c in range(num_cameras)], up=(0.0, -1.0, 0.0))
+    return make_rig(
+        K, dist, R, t, size, [f"ring{c}" for c in range(num_cameras)], up=(0.0, -1.0, 0.0)
+    )
 
 
 def scene_rig(num_views: int) -> tuple[Rig, tuple[str, ...] | None]:
@@ -67,7 +69,9 @@ def scene_rig(num_views: int) -> tuple[Rig, tuple[str, ...] | None]:
     return ring_rig(num_views), None
 
 
-def recording(num_views: int, num_people: int, num_frames: int, seed: int = 0) -> tuple[Rig, Recording]:
+def recording(
+    num_views: int, num_people: int, num_frames: int, seed: int = 0
+) -> tuple[Rig, Recording]:
     """A synthetic multi-person recording seen by ``num_views`` cameras, and their rig."""
     rig, keep = scene_rig(num_views)
     rec = generate_recording(rig, num_people=num_people, num_frames=num_frames, seed=seed)
@@ -80,7 +84,9 @@ def recording(num_views: int, num_people: int, num_frames: int, seed: int = 0) -
 def estimator_for(rig: Rig, num_keypoints: int, mlp: MLPConfig) -> Estimator:
     """An untrained `Estimator` for ``rig``'s cameras, built as `trained.load_estimator` builds it."""
     config = EstimatorConfig(train_cameras=rig.names, infer_cameras=rig.names, mlp=mlp)
-    graphdef, rest, params = _split(lambda: PoseMLP(rig.num_cameras, num_keypoints, config.mlp, rngs=nnx.Rngs(0)))
+    graphdef, rest, params = _split(
+        lambda: PoseMLP(rig.num_cameras, num_keypoints, config.mlp, rngs=nnx.Rngs(0))
+    )
     # The normalised frame as trained estimators carry it (computed once, not on every call).
     return Estimator(graphdef, rest, params, rig, config, rig_centre_and_radius(rig))
 
@@ -88,8 +94,9 @@ def estimator_for(rig: Rig, num_keypoints: int, mlp: MLPConfig) -> Estimator:
 def matcher_for(rig: Rig, num_keypoints: int, gat: GATConfig) -> Matcher:
     """An untrained `Matcher` for ``rig``'s cameras, built as `trained.load_matcher` builds it."""
     config = MatcherConfig(cameras=rig.names, gat=gat)
-    graphdef, rest, params = _split(lambda: MatchingGAT(rig.num_cameras, num_keypoints, config.gat,
-                                                        rngs=nnx.Rngs(0)))  # fmt: skip
+    graphdef, rest, params = _split(
+        lambda: MatchingGAT(rig.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
+    )
     return Matcher(graphdef, rest, params, rig, config)
 
 
@@ -123,11 +130,16 @@ class OpenCVCameras(NamedTuple):
 def opencv_cameras(rig: Rig) -> OpenCVCameras:
     R = np.asarray(rig.R, np.float64)
     t = np.asarray(rig.t, np.float64)
-    return OpenCVCameras(np.asarray(rig.K, np.float64), np.asarray(rig.dist, np.float64),
-                         np.concatenate([R, t[..., None]], axis=-1))  # fmt: skip
+    return OpenCVCameras(
+        np.asarray(rig.K, np.float64),
+        np.asarray(rig.dist, np.float64),
+        np.concatenate([R, t[..., None]], axis=-1),
+    )
 
 
-def opencv_pairwise_centroid(cams: OpenCVCameras, xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def opencv_pairwise_centroid(
+    cams: OpenCVCameras, xy: np.ndarray, score: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The paper's triangulation, the way its original code runs it: OpenCV, person by person.
 
     For each person: undistort every view's keypoints (``cv2.undistortPoints`` to normalised
@@ -148,15 +160,21 @@ def opencv_pairwise_centroid(cams: OpenCVCameras, xy: np.ndarray, score: np.ndar
     for n in range(N):
         seen = score[n] > 0  # (C, K)
         views = [c for c in range(C) if seen[c].any()]
-        und = {c: cv2.undistortPoints(xy[n, c].reshape(-1, 1, 2).astype(np.float64), cams.K[c], cams.dist[c])
-               .reshape(-1, 2) for c in views}  # fmt: skip
+        und = {
+            c: cv2.undistortPoints(
+                xy[n, c].reshape(-1, 1, 2).astype(np.float64), cams.K[c], cams.dist[c]
+            ).reshape(-1, 2)
+            for c in views
+        }
         for i, j in pairs:
             if i not in und or j not in und:
                 continue
             both = seen[i] & seen[j]
             if not both.any():
                 continue
-            hom = cv2.triangulatePoints(cams.Rt[i], cams.Rt[j], und[i][both].T, und[j][both].T)  # (4, k)
+            hom = cv2.triangulatePoints(
+                cams.Rt[i], cams.Rt[j], und[i][both].T, und[j][both].T
+            )  # (4, k)
             out[n, both] += (hom[:3] / hom[3]).T
             count[n, both] += 1
     valid = count > 0

@@ -45,10 +45,12 @@ def _time(fn, repeats: int) -> np.ndarray:
 def _stats(seconds: np.ndarray, work: float) -> dict:
     q1, med, q3 = np.percentile(seconds, [25, 50, 75])
     return {
-        "seconds_median": float(med), "seconds_iqr": [float(q1), float(q3)],
-        "per_second_median": float(work / med), "per_second_iqr": [float(work / q3), float(work / q1)],
+        "seconds_median": float(med),
+        "seconds_iqr": [float(q1), float(q3)],
+        "per_second_median": float(work / med),
+        "per_second_iqr": [float(work / q3), float(work / q1)],
         "repeats": int(seconds.size),
-    }  # fmt: skip
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     panoptic, arplab = load_rig("panoptic5"), load_rig("arplab6")
     n_rec, n_frames = (4, 250) if args.quick else (20, 500)
     single = _time(
-        lambda s: generate_single_person_recordings(panoptic, num_recordings=n_rec, num_frames=n_frames, seed=s),
+        lambda s: generate_single_person_recordings(
+            panoptic, num_recordings=n_rec, num_frames=n_frames, seed=s
+        ),
         repeats,
     )
     scene_frames = 500 if args.quick else 2000
@@ -72,25 +76,39 @@ def main(argv: list[str] | None = None) -> int:
     results = {
         "benchmark": "synthetic",
         "machine": {
-            "python": platform.python_version(), "numpy": np.__version__,
-            "processor": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
             "threads": os.environ.get("OPENBLAS_NUM_THREADS"),
-        },  # fmt: skip
+        },
         "single_person": {
-            "rig": "panoptic5", "cameras": 5, "recordings": n_rec, "frames_per_recording": n_frames,
-            "target_frames_per_second": 10_000, **_stats(single, n_rec * n_frames),
-        },  # fmt: skip
+            "rig": "panoptic5",
+            "cameras": 5,
+            "recordings": n_rec,
+            "frames_per_recording": n_frames,
+            "target_frames_per_second": 10_000,
+            **_stats(single, n_rec * n_frames),
+        },
         "multi_person": {
-            "rig": "arplab6", "cameras": 6, "people": 8, "frames": scene_frames,
-            "target_seconds": 10.0, **_stats(scene, scene_frames),
-        },  # fmt: skip
+            "rig": "arplab6",
+            "cameras": 6,
+            "people": 8,
+            "frames": scene_frames,
+            "target_seconds": 10.0,
+            **_stats(scene, scene_frames),
+        },
     }
     sp, mp = results["single_person"], results["multi_person"]
-    print(f"single-person, panoptic5 (5 cameras): {sp['per_second_median']:,.0f} frames/s "
-          f"(IQR {sp['per_second_iqr'][0]:,.0f}-{sp['per_second_iqr'][1]:,.0f}; target >= 10,000)")
-    print(f"8 people x {scene_frames} frames, arplab6 (6 cameras): {mp['seconds_median']:.2f} s "
-          f"(IQR {mp['seconds_iqr'][0]:.2f}-{mp['seconds_iqr'][1]:.2f}; {mp['per_second_median']:,.0f} "
-          f"frames/s; target < 10 s for 2,000 frames)")
+    print(
+        f"single-person, panoptic5 (5 cameras): {sp['per_second_median']:,.0f} frames/s "
+        f"(IQR {sp['per_second_iqr'][0]:,.0f}-{sp['per_second_iqr'][1]:,.0f}; target >= 10,000)"
+    )
+    print(
+        f"8 people x {scene_frames} frames, arplab6 (6 cameras): {mp['seconds_median']:.2f} s "
+        f"(IQR {mp['seconds_iqr'][0]:.2f}-{mp['seconds_iqr'][1]:.2f}; {mp['per_second_median']:,.0f} "
+        f"frames/s; target < 10 s for 2,000 frames)"
+    )
     out = Path(args.out)
     atomic_write_text(out, json.dumps(results, indent=1) + "\n")
     print(f"wrote {out}")

@@ -90,10 +90,31 @@ PAPER_TABLE6 = {  # CMU Panoptic 3D: MPJPE mm, mAP, mR, t_pp ms, t_3Dg ms, t_3Di
     "Ours-average": (19.77, 95.67, 97.39, 32.22, 19.81, 5.85),
 }
 PAPER_TABLE7 = {  # ARP reprojection error, px, mean / median; cameras W0-W3 (walls), R0-R1 (robot)
-    "M_1/6": ((14.65, 11.26), (11.84, 9.28), (14.02, 10.68), (12.18, 9.29), (6.69, 5.27), (9.05, 6.83)),
-    "M_2/6": ((14.35, 11.00), (12.02, 9.49), (14.04, 10.55), (12.36, 9.40), (7.06, 5.34), (7.79, 6.07)),
+    "M_1/6": (
+        (14.65, 11.26),
+        (11.84, 9.28),
+        (14.02, 10.68),
+        (12.18, 9.29),
+        (6.69, 5.27),
+        (9.05, 6.83),
+    ),
+    "M_2/6": (
+        (14.35, 11.00),
+        (12.02, 9.49),
+        (14.04, 10.55),
+        (12.36, 9.40),
+        (7.06, 5.34),
+        (7.79, 6.07),
+    ),
     "M_6/6": ((10.28, 8.23), (8.28, 6.80), (11.12, 8.41), (7.88, 6.40), (8.98, 6.97), (9.49, 7.51)),
-    "M_2/2": ((45.73, 26.85), (290.63, 15.62), (29.78, 21.86), (31.94, 19.24), (4.50, 3.37), (4.50, 3.38)),
+    "M_2/2": (
+        (45.73, 26.85),
+        (290.63, 15.62),
+        (29.78, 21.86),
+        (31.94, 19.24),
+        (4.50, 3.37),
+        (4.50, 3.38),
+    ),
 }
 ROBOT = ("orinbot_l", "orinbot_r")
 
@@ -133,36 +154,79 @@ def _estimator(mlp: MLPConfig, steps: int, batch: int = 256) -> EstimatorConfig:
     # predicts offsets from the triangulated initial estimate, the per-sample loss is e^1, and
     # Adam starts at 1e-3 with a cosine decay to 1e-5; the paper's recipe is one flag away in
     # the CLI (`mvpose-jax train-estimator --output absolute --loss-power 2 --constant-lr`).
-    train = TrainConfig(learning_rate=1e-3, batch_size=batch, max_steps=steps, patience=1000,
-                        final_lr_fraction=0.01)  # fmt: skip
-    return EstimatorConfig(mlp=dataclasses.replace(mlp, output="residual"), train=train, loss_power=1.0)
+    train = TrainConfig(
+        learning_rate=1e-3, batch_size=batch, max_steps=steps, patience=1000, final_lr_fraction=0.01
+    )
+    return EstimatorConfig(
+        mlp=dataclasses.replace(mlp, output="residual"), train=train, loss_power=1.0
+    )
 
 
-def _matcher(gat: GATConfig, lr: float, samples_per_epoch: int, eval_every: int, dev: int) -> MatcherConfig:
-    train = dataclasses.replace(MATCHER_TRAIN, learning_rate=lr, final_lr_fraction=0.05, eval_every=eval_every,
-                                patience=1000)  # fmt: skip
+def _matcher(
+    gat: GATConfig, lr: float, samples_per_epoch: int, eval_every: int, dev: int
+) -> MatcherConfig:
+    train = dataclasses.replace(
+        MATCHER_TRAIN,
+        learning_rate=lr,
+        final_lr_fraction=0.05,
+        eval_every=eval_every,
+        patience=1000,
+    )
     # Missing-keypoint augmentation (our addition, see graphs.compose_samples): multi-person test
     # scenes hide keypoints that single-person training frames always show; without it the GAT
     # rejects true pairs whose skeletons are partly occluded (2-view ARI 0.9645 -> 0.9852).
-    return MatcherConfig(gat=gat, train=train, samples_per_epoch=samples_per_epoch, num_dev_samples=dev,
-                         keypoint_dropout=0.5)  # fmt: skip
+    return MatcherConfig(
+        gat=gat,
+        train=train,
+        samples_per_epoch=samples_per_epoch,
+        num_dev_samples=dev,
+        keypoint_dropout=0.5,
+    )
 
 
 SCALES = {
     # Seconds: a handful of steps, for the test suite.
-    "smoke": Scale(4, 30, 2, 20, (1, 3), 3, _matcher(GATConfig.quick(), 1e-3, 30, 1, 15), {2: 4, 3: 4, 5: 4, 6: 4},
-                   _estimator(MLPConfig(widths=(64, 64)), 6, 64), threshold_frames=32),  # fmt: skip
+    "smoke": Scale(
+        4,
+        30,
+        2,
+        20,
+        (1, 3),
+        3,
+        _matcher(GATConfig.quick(), 1e-3, 30, 1, 15),
+        {2: 4, 3: 4, 5: 4, 6: 4},
+        _estimator(MLPConfig(widths=(64, 64)), 6, 64),
+        threshold_frames=32,
+    ),
     # Minutes on a 2-core CPU: the paper's GAT (the 3-layer quick GAT stays near chance at these
     # step counts) with short training, the small MLP. Matcher steps: test ARI keeps rising with
     # them (2 views: 0.9807 after 8000 steps, 0.9917 after 24000, at threshold 0.5; 3 views after
     # 12000: 0.9854), and few-view graphs are cheap (2 views ~12 ms a step, 5 views ~58 ms).
     # 300 short recordings rather than 60 long ones (the same 6000 frames): five times the
     # people, paths and camera views of bodies; both models generalise better from them.
-    "quick": Scale(300, 20, 10, 50, tuple(range(1, 9)), 25, _matcher(GATConfig(), 1e-3, 300, 5, 90),
-                   {2: 24000, 3: 20000, 5: 6000, 6: 6000}, _estimator(MLPConfig.quick(), 6000)),  # fmt: skip
+    "quick": Scale(
+        300,
+        20,
+        10,
+        50,
+        tuple(range(1, 9)),
+        25,
+        _matcher(GATConfig(), 1e-3, 300, 5, 90),
+        {2: 24000, 3: 20000, 5: 6000, 6: 6000},
+        _estimator(MLPConfig.quick(), 6000),
+    ),
     # The paper's network sizes, 2000 test frames, long training (hours on a CPU).
-    "paper": Scale(750, 20, 20, 50, tuple(range(1, 9)), 250, _matcher(GATConfig(), 1e-3, 1500, 5, 300),
-                   {2: 48000, 3: 40000, 5: 12000, 6: 12000}, _estimator(MLPConfig(), 12000)),  # fmt: skip
+    "paper": Scale(
+        750,
+        20,
+        20,
+        50,
+        tuple(range(1, 9)),
+        250,
+        _matcher(GATConfig(), 1e-3, 1500, 5, 300),
+        {2: 48000, 3: 40000, 5: 12000, 6: 12000},
+        _estimator(MLPConfig(), 12000),
+    ),
 }
 
 
@@ -210,27 +274,49 @@ class Data:
             g = np.arange(r.ground_truth.valid.shape[1])
             seen.append(pad((ident[:, :, :, None] == g).any(axis=(1, 2)), G, 1, False))
         chosen = [select_cameras(detection_variants(r)[variant], list(cameras)) for r in recs]
-        det = Detections(np.concatenate([pad(r.detections.xy, P, 2) for r in chosen]),
-                         np.concatenate([pad(r.detections.score, P, 2) for r in chosen]),
-                         np.concatenate([np.asarray(r.detections.count) for r in chosen]))  # fmt: skip
+        det = Detections(
+            np.concatenate([pad(r.detections.xy, P, 2) for r in chosen]),
+            np.concatenate([pad(r.detections.score, P, 2) for r in chosen]),
+            np.concatenate([np.asarray(r.detections.count) for r in chosen]),
+        )
         ident = np.concatenate([pad(r.identity, P, 2, -1) for r in chosen])
-        gt = Poses3D(*(np.concatenate([pad(f, G, 1) for f in field]) for field in zip(*[r.ground_truth for r in recs])))
+        gt = Poses3D(
+            *(
+                np.concatenate([pad(f, G, 1) for f in field])
+                for field in zip(*[r.ground_truth for r in recs], strict=True)
+            )
+        )
         gt = gt._replace(valid=gt.valid & np.concatenate(seen))
-        ids = np.concatenate([np.broadcast_to(i * G + np.arange(G), (r.num_frames, G)) for i, r in enumerate(recs)])
+        ids = np.concatenate(
+            [np.broadcast_to(i * G + np.arange(G), (r.num_frames, G)) for i, r in enumerate(recs)]
+        )
         return det, ident, gt, ids
 
 
 def make_scenes(rig, sc: Scale, data_seed: int) -> dict:
-    return {split: [generate_recording(rig, num_people=n, num_frames=sc.test_frames, seed=[data_seed, stream, n])
-                    for n in sc.test_people] for split, stream in SPLITS.items()}  # fmt: skip
+    return {
+        split: [
+            generate_recording(
+                rig, num_people=n, num_frames=sc.test_frames, seed=[data_seed, stream, n]
+            )
+            for n in sc.test_people
+        ]
+        for split, stream in SPLITS.items()
+    }
 
 
 def make_data(rig, scenes: dict, sc: Scale, seed: int, progress: bool) -> Data:
     """Training and dev recordings of one training seed, with the shared scenes."""
-    train = generate_single_person_recordings(rig, num_recordings=sc.train_recordings, num_frames=sc.train_frames,
-                                              seed=[seed, 1], progress=progress)  # fmt: skip
-    dev = generate_single_person_recordings(rig, num_recordings=sc.dev_recordings, num_frames=sc.dev_frames,
-                                            seed=[seed, 2])  # fmt: skip
+    train = generate_single_person_recordings(
+        rig,
+        num_recordings=sc.train_recordings,
+        num_frames=sc.train_frames,
+        seed=[seed, 1],
+        progress=progress,
+    )
+    dev = generate_single_person_recordings(
+        rig, num_recordings=sc.dev_recordings, num_frames=sc.dev_frames, seed=[seed, 2]
+    )
     return Data(rig, train, dev, scenes)
 
 
@@ -238,7 +324,9 @@ def make_data(rig, scenes: dict, sc: Scale, seed: int, progress: bool) -> Data:
 
 
 def fit_matcher(data: Data, sc: Scale, cameras, seed: int, progress: bool):
-    train = dataclasses.replace(sc.matcher.train, max_epochs=10**6, max_steps=sc.matcher_steps[len(cameras)], seed=seed)
+    train = dataclasses.replace(
+        sc.matcher.train, max_epochs=10**6, max_steps=sc.matcher_steps[len(cameras)], seed=seed
+    )
     config = dataclasses.replace(sc.matcher, cameras=tuple(cameras), train=train)
     t0 = time.perf_counter()
     matcher, fit = train_matcher(data.rig, data.train, data.dev, config, progress=progress)
@@ -246,29 +334,53 @@ def fit_matcher(data: Data, sc: Scale, cameras, seed: int, progress: bool):
     # Both matchers' settings are chosen by one rule on multi-person frames composed from the dev
     # recordings (no scene, no label beyond the composition's own): the GAT's proposal threshold
     # (the paper's is 0.5) and the epipolar matcher's distance cutoff.
-    composed, identity = composed_frames(matcher.rig, data.dev, num_samples=sc.threshold_frames, seed=seed,
-                                         max_people=config.max_people, subset_probability=config.subset_probability,
-                                         min_views=config.min_views, keypoint_dropout=config.keypoint_dropout)  # fmt: skip
-    threshold, ari = choose_proposal_threshold(*gat_match_table(matcher, composed), identity, composed.count)
+    composed, identity = composed_frames(
+        matcher.rig,
+        data.dev,
+        num_samples=sc.threshold_frames,
+        seed=seed,
+        max_people=config.max_people,
+        subset_probability=config.subset_probability,
+        min_views=config.min_views,
+        keypoint_dropout=config.keypoint_dropout,
+    )
+    threshold, ari = choose_proposal_threshold(
+        *gat_match_table(matcher, composed), identity, composed.count
+    )
     rows, distances = epipolar_match_distances(matcher.rig, composed)
     cutoff, ari_geo = choose_geometric_cutoff(rows, distances, identity, composed.count)
-    return matcher, {"train_seconds": round(seconds, 1), "train_steps": fit.steps,
-                     "best_val_loss": fit.best_val_loss, "history": fit.history, "threshold": threshold,
-                     "dev_ari_by_threshold": {str(k): round(v, 5) for k, v in ari.items()},
-                     "geometric_cutoff_px": cutoff,
-                     "dev_ari_by_cutoff_px": {str(k): round(v, 5) for k, v in ari_geo.items()}}  # fmt: skip
+    return matcher, {
+        "train_seconds": round(seconds, 1),
+        "train_steps": fit.steps,
+        "best_val_loss": fit.best_val_loss,
+        "history": fit.history,
+        "threshold": threshold,
+        "dev_ari_by_threshold": {str(k): round(v, 5) for k, v in ari.items()},
+        "geometric_cutoff_px": cutoff,
+        "dev_ari_by_cutoff_px": {str(k): round(v, 5) for k, v in ari_geo.items()},
+    }
 
 
 def fit_estimator(data: Data, sc: Scale, train_cams, infer_cams, seed: int, progress: bool):
     xy, score = single_person_samples(data.train, train_cams)
     dev_xy, dev_score = single_person_samples(data.dev, train_cams)
-    config = dataclasses.replace(sc.estimator, train_cameras=tuple(train_cams), infer_cameras=tuple(infer_cams),
-                                 train=dataclasses.replace(sc.estimator.train, seed=seed))  # fmt: skip
+    config = dataclasses.replace(
+        sc.estimator,
+        train_cameras=tuple(train_cams),
+        infer_cameras=tuple(infer_cams),
+        train=dataclasses.replace(sc.estimator.train, seed=seed),
+    )
     t0 = time.perf_counter()
-    est, fit = train_estimator(data.rig.select(list(train_cams)), xy, score, dev_xy, dev_score, config,
-                               progress=progress)  # fmt: skip
-    return est, {"train_seconds": round(time.perf_counter() - t0, 1), "train_steps": fit.steps,
-                 "train_people": int(len(xy)), "best_val_loss": fit.best_val_loss, "history": fit.history}  # fmt: skip
+    est, fit = train_estimator(
+        data.rig.select(list(train_cams)), xy, score, dev_xy, dev_score, config, progress=progress
+    )
+    return est, {
+        "train_seconds": round(time.perf_counter() - t0, 1),
+        "train_steps": fit.steps,
+        "train_people": int(len(xy)),
+        "best_val_loss": fit.best_val_loss,
+        "history": fit.history,
+    }
 
 
 MATCHING_SCORES = ("ari", "homogeneity", "completeness", "v_measure")
@@ -282,15 +394,21 @@ def matching_rows(data: Data, split: str, matcher, cameras, fit: dict) -> dict:
     rig_i = data.rig.select(list(cameras))
     F = len(det.count)
     out = {}
-    methods = {"gat": dict(matcher=matcher), "gat_chosen": dict(matcher=matcher, threshold=fit["threshold"]),
-               "geometric": dict(half_score_px=fit["geometric_cutoff_px"])}  # fmt: skip
+    methods = {
+        "gat": dict(matcher=matcher),
+        "gat_chosen": dict(matcher=matcher, threshold=fit["threshold"]),
+        "geometric": dict(half_score_px=fit["geometric_cutoff_px"]),
+    }
     for method, kwargs in methods.items():
         run_pipeline(rig_i, det, **kwargs)  # warm-up: compile every shape the scenes need
         t0 = time.perf_counter()
         res = run_pipeline(rig_i, det, **kwargs)
         seconds = time.perf_counter() - t0
         s = matching_scores(ident, res.identity, np.asarray(det.count))
-        out[method] = {k: round(float(s[k]), 5) for k in MATCHING_SCORES + tuple(f"pooled_{m}" for m in MATCHING_SCORES)}
+        out[method] = {
+            k: round(float(s[k]), 5)
+            for k in MATCHING_SCORES + tuple(f"pooled_{m}" for m in MATCHING_SCORES)
+        }
         out[method]["t_pp_ms"] = round(1000 * res.seconds["proposals"] / F, 3)
         out[method]["pipeline_ms_per_frame"] = round(1000 * seconds / F, 3)
     out["gat_chosen"]["threshold"] = fit["threshold"]
@@ -299,10 +417,14 @@ def matching_rows(data: Data, split: str, matcher, cameras, fit: dict) -> dict:
         # Diagnostics for choosing (validation scenes only, never the test scenes): each matcher's
         # per-frame ARI across its setting.
         rows, scores = gat_match_table(matcher, det)
-        ari = choose_proposal_threshold(rows, scores, ident, det.count, thresholds=(0.05, 0.1, 0.2, 0.3, 0.5))[1]
+        ari = choose_proposal_threshold(
+            rows, scores, ident, det.count, thresholds=(0.05, 0.1, 0.2, 0.3, 0.5)
+        )[1]
         out["gat"]["ari_by_threshold"] = {str(th): round(a, 5) for th, a in ari.items()}
         rows, d = epipolar_match_distances(rig_i, det)
-        ari = choose_geometric_cutoff(rows, d, ident, det.count, cutoffs_px=(10.0, 20.0, 30.0, 50.0))[1]
+        ari = choose_geometric_cutoff(
+            rows, d, ident, det.count, cutoffs_px=(10.0, 20.0, 30.0, 50.0)
+        )[1]
         out["geometric"]["ari_by_cutoff_px"] = {str(c): round(a, 5) for c, a in ari.items()}
     out["frames"] = F
     return out
@@ -317,12 +439,21 @@ def _times(res, poses_seconds: float | None = None) -> dict:
     F = max(1, res.poses.valid.shape[0])
     people = max(1, int(res.poses.valid.sum()))
     s3d = res.seconds["poses"] if poses_seconds is None else poses_seconds
-    return {"t_pp_ms": 1000 * res.seconds["proposals"] / F, "t_3Dg_ms": 1000 * s3d / F, "t_3Di_ms": 1000 * s3d / people}
+    return {
+        "t_pp_ms": 1000 * res.seconds["proposals"] / F,
+        "t_3Dg_ms": 1000 * s3d / F,
+        "t_3Di_ms": 1000 * s3d / people,
+    }
 
 
 def _compare(rig, det, gt, ours, members, scoring: dict, ours_seconds=None) -> tuple[dict, dict]:
     """Ours against both triangulations on the same person groups (``members``)."""
-    r = {"ours": {**pose_metrics(ours.poses, gt, confidence=ours.confidence, **scoring), **(ours_seconds or {})}}
+    r = {
+        "ours": {
+            **pose_metrics(ours.poses, gt, confidence=ours.confidence, **scoring),
+            **(ours_seconds or {}),
+        }
+    }
     tris = {}
     for method in ("centroid", "dlt"):
         poses_of_members(rig, det, members, method=method)  # warm-up
@@ -330,13 +461,25 @@ def _compare(rig, det, gt, ours, members, scoring: dict, ours_seconds=None) -> t
         tri, tconf = poses_of_members(rig, det, members, method=method)
         t3d = time.perf_counter() - t0
         F = max(1, tri.valid.shape[0])
-        times = {} if ours_seconds is None else {
-            "t_pp_ms": ours_seconds["t_pp_ms"], "t_3Dg_ms": 1000 * t3d / F,
-            "t_3Di_ms": 1000 * t3d / max(1, int(tri.valid.sum()))}  # fmt: skip
+        times = (
+            {}
+            if ours_seconds is None
+            else {
+                "t_pp_ms": ours_seconds["t_pp_ms"],
+                "t_3Dg_ms": 1000 * t3d / F,
+                "t_3Di_ms": 1000 * t3d / max(1, int(tri.valid.sum())),
+            }
+        )
         r[method] = {**pose_metrics(tri, gt, confidence=tconf, **scoring), **times}
         # Ours on exactly the keypoints this triangulation reconstructed (like with like).
-        restricted = Poses3D(ours.poses.xyz, ours.poses.valid & tri.valid, tri.keypoint_valid & ours.poses.valid[..., None])
-        r[f"ours_on_{method}_keypoints"] = {"mpjpe_mm": pose_metrics(restricted, gt, **scoring)["mpjpe_mm"]}
+        restricted = Poses3D(
+            ours.poses.xyz,
+            ours.poses.valid & tri.valid,
+            tri.keypoint_valid & ours.poses.valid[..., None],
+        )
+        r[f"ours_on_{method}_keypoints"] = {
+            "mpjpe_mm": pose_metrics(restricted, gt, **scoring)["mpjpe_mm"]
+        }
         tris[method] = tri
     return r, tris
 
@@ -363,14 +506,20 @@ def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[di
     for variant in ("detected", "projected", "average"):
         det, ident, gt, ids = data.detections(split, rig.names, variant)
         scoring = {"up": up_vector(rig), "person_ids": ids}
-        ours = _timed_pipeline(rig, det, matcher=matcher, estimator=estimator, threshold=fit["threshold"])
+        ours = _timed_pipeline(
+            rig, det, matcher=matcher, estimator=estimator, threshold=fit["threshold"]
+        )
         pipeline, tris = _compare(rig, det, gt, ours, ours.members, scoring, _times(ours))
         # The 3D stage alone: the true groupings (people seen in 2+ views), ours and triangulation.
         true_members = _true_members(ident, gt.valid.shape[1], min_views=2)
         true_poses, true_conf = poses_of_members(rig, det, true_members, estimator=estimator)
         true = type(ours)(true_poses, true_conf, true_members, ident, ours.cameras, {})
         stage, true_tris = _compare(rig, det, gt, true, true_members, scoring)
-        samples[variant] = {"gt": gt, "pipeline": (ours, tris["centroid"]), "true groupings": (true, true_tris["centroid"])}
+        samples[variant] = {
+            "gt": gt,
+            "pipeline": (ours, tris["centroid"]),
+            "true groupings": (true, true_tris["centroid"]),
+        }
         # Ours and DLT behind the epipolar matcher (a strong non-learned matcher, its cutoff chosen
         # on dev frames like the GAT's threshold).
         geo = run_pipeline(rig, det, estimator=estimator, half_score_px=fit["geometric_cutoff_px"])
@@ -379,13 +528,23 @@ def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[di
         # (ARI) but also a few wrong ones, and a wrong skeleton spoils a whole person's 3D.
         at_half = run_pipeline(rig, det, matcher=matcher, estimator=estimator, threshold=0.5)
         behind_half = pose_metrics(at_half.poses, gt, confidence=at_half.confidence, **scoring)
-        rows[variant] = {"pipeline": _rounded(pipeline), "true_groups": _rounded(stage),
-                         "geometric_proposals": _rounded({k: behind_geo[k] for k in ("ours", "dlt")}),
-                         "gat_proposals_at_half": _rounded({"ours": behind_half})}  # fmt: skip
+        rows[variant] = {
+            "pipeline": _rounded(pipeline),
+            "true_groups": _rounded(stage),
+            "geometric_proposals": _rounded({k: behind_geo[k] for k in ("ours", "dlt")}),
+            "gat_proposals_at_half": _rounded({"ours": behind_half}),
+        }
     return rows, samples
 
 
-def arp_rows(data: Data, split: str, matcher6, estimators: dict, grouping: str = "true", threshold: float = 0.5) -> dict:
+def arp_rows(
+    data: Data,
+    split: str,
+    matcher6,
+    estimators: dict,
+    grouping: str = "true",
+    threshold: float = 0.5,
+) -> dict:
     """Table 7: each model's people reprojected into every camera.
 
     grouping: "true" (the true skeleton groups, so that only the 3D stage is measured) or
@@ -396,7 +555,9 @@ def arp_rows(data: Data, split: str, matcher6, estimators: dict, grouping: str =
     if grouping == "true":
         members = _true_members(ident, gt.valid.shape[1], min_views=1)
     else:
-        members = run_pipeline(rig, det, matcher=matcher6, estimator=estimators["M_6/6"], threshold=threshold).members
+        members = run_pipeline(
+            rig, det, matcher=matcher6, estimator=estimators["M_6/6"], threshold=threshold
+        ).members
     p_xy, p_sc = group_people(det.xy, det.score, members)
     out = {}
     for name, est in estimators.items():
@@ -405,8 +566,12 @@ def arp_rows(data: Data, split: str, matcher6, estimators: dict, grouping: str =
         v = poses.valid
         errors = reprojection_errors(rig, poses.xyz[v], poses.keypoint_valid[v], p_xy[v], p_sc[v])
         m = pose_metrics(poses, gt, confidence=conf, up=up_vector(rig), person_ids=ids)
-        out[name] = {"people": int(v.sum()), "reprojection": errors, "mpjpe_mm": round(m["mpjpe_mm"], 3),
-                     "pcp": round(m["pcp"], 3)}  # fmt: skip
+        out[name] = {
+            "people": int(v.sum()),
+            "reprojection": errors,
+            "mpjpe_mm": round(m["mpjpe_mm"], 3),
+            "pcp": round(m["pcp"], 3),
+        }
     return out
 
 
@@ -421,11 +586,15 @@ def sample_figures(samples: dict, rig, layout: str, out: Path, count: int = 2) -
     gt = samples["detected"]["gt"]
     source = "pipeline"
     ours, tri = samples["detected"][source]
-    if not ours.poses.valid.any():  # a matcher that proposes nobody (e.g. smoke runs): show the stage alone
+    if (
+        not ours.poses.valid.any()
+    ):  # a matcher that proposes nobody (e.g. smoke runs): show the stage alone
         source = "true groupings"
         ours, tri = samples["detected"][source]
     people = ours.poses.valid.sum(-1)
-    incomplete = (tri.valid[..., None] & ~tri.keypoint_valid).any(-1).any(-1) | (ours.poses.valid & ~tri.valid).any(-1)
+    incomplete = (tri.valid[..., None] & ~tri.keypoint_valid).any(-1).any(-1) | (
+        ours.poses.valid & ~tri.valid
+    ).any(-1)
     picks = []
     for want in (True, False):
         cand = np.nonzero((incomplete == want) & (people > 0))[0]
@@ -434,10 +603,14 @@ def sample_figures(samples: dict, rig, layout: str, out: Path, count: int = 2) -
     written = []
     for f in picks[:count]:
         g_list = np.flatnonzero(gt.valid[f])
-        panels = {"ground truth": (gt.xyz[f][g_list], gt.keypoint_valid[f][g_list]),
-                  "ours": _in_gt_order(ours.poses, gt, f, g_list, layout),
-                  "triangulation": _in_gt_order(tri, gt, f, g_list, layout)}  # fmt: skip
-        fig = skeleton_figure(panels, layout, rig=rig, title=f"test frame {f} (D-detected, {source})")
+        panels = {
+            "ground truth": (gt.xyz[f][g_list], gt.keypoint_valid[f][g_list]),
+            "ours": _in_gt_order(ours.poses, gt, f, g_list, layout),
+            "triangulation": _in_gt_order(tri, gt, f, g_list, layout),
+        }
+        fig = skeleton_figure(
+            panels, layout, rig=rig, title=f"test frame {f} (D-detected, {source})"
+        )
         written.append(str(save_figure(fig, out / f"frame_{f:05d}.png")))
     return written
 
@@ -454,7 +627,12 @@ def _in_gt_order(pred: Poses3D, gt: Poses3D, f: int, g_list: np.ndarray, layout:
     if not order:
         return np.zeros((0, K, 3), np.float32), np.zeros((0, K), bool)
     xyz = np.stack([pred.xyz[f, p] if p >= 0 else np.zeros((K, 3), np.float32) for p in order])
-    kv = np.stack([pred.keypoint_valid[f, p] & pred.valid[f, p] if p >= 0 else np.zeros(K, bool) for p in order])
+    kv = np.stack(
+        [
+            pred.keypoint_valid[f, p] & pred.valid[f, p] if p >= 0 else np.zeros(K, bool)
+            for p in order
+        ]
+    )
     return xyz, kv
 
 
@@ -477,67 +655,124 @@ def _ms(runs: list[dict], path: str, nd: int = 2) -> str:
 
 def _seeds_line(runs: list[dict]) -> str:
     n = len(runs)
-    return (f"One training seed ({runs[0]['seed']})." if n == 1 else
-            f"Mean ± sample standard deviation over {n} training seeds ({', '.join(str(r['seed']) for r in runs)}).")  # fmt: skip
+    return (
+        f"One training seed ({runs[0]['seed']})."
+        if n == 1
+        else f"Mean ± sample standard deviation over {n} training seeds ({', '.join(str(r['seed']) for r in runs)})."
+    )
 
 
 def matching_table(runs: list[dict], split: str, paper: dict, title: str) -> list[str]:
-    lines = [f"### {title}", "", _seeds_line(runs) + " ARI, H, C, Vm: means of per-frame scores (the paper's "
-             "protocol); pooled: all detections as one clustering.", "",
-             "| views | method | ARI | H | C | Vm | pooled ARI | pooled Vm | t_pp ms/frame | training s (steps) | "
-             "paper ARI | paper H | paper C | paper Vm |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        f"### {title}",
+        "",
+        _seeds_line(runs) + " ARI, H, C, Vm: means of per-frame scores (the paper's "
+        "protocol); pooled: all detections as one clustering.",
+        "",
+        "| views | method | ARI | H | C | Vm | pooled ARI | pooled Vm | t_pp ms/frame | training s (steps) | "
+        "paper ARI | paper H | paper C | paper Vm |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for views in runs[0]["matching"][split]:
         p = paper.get(int(views))
         fit = [r["training"][f"matcher-{views}"] for r in runs]
         thresholds = ", ".join(str(f["threshold"]) for f in fit)
         cutoffs = ", ".join(f"{f['geometric_cutoff_px']:g}" for f in fit)
-        names = {"gat": "ours (GAT, threshold 0.5: the paper's)",
-                 "gat_chosen": f"ours (GAT, threshold chosen on dev: {thresholds})",
-                 "geometric": f"epipolar (cutoff chosen on dev: {cutoffs} px)"}  # fmt: skip
+        names = {
+            "gat": "ours (GAT, threshold 0.5: the paper's)",
+            "gat_chosen": f"ours (GAT, threshold chosen on dev: {thresholds})",
+            "geometric": f"epipolar (cutoff chosen on dev: {cutoffs} px)",
+        }
         for m, name in names.items():
             row = f"matching/{split}/{views}/{m}"
             ref = " | ".join(f"{x:.4f}" for x in p) if (p and m == "gat") else " |  |  | "
             steps = "/".join(str(f["train_steps"]) for f in fit[:1])
-            train = "0 (none)" if m == "geometric" else f"{np.mean([f['train_seconds'] for f in fit]):.0f} ({steps})"
-            cells = " | ".join(_ms(runs, f"{row}/{k}", 4) for k in (*MATCHING_SCORES, "pooled_ari", "pooled_v_measure"))
-            lines.append(f"| {views} | {name} | {cells} | {_ms(runs, f'{row}/t_pp_ms')} | {train} | {ref} |")
+            train = (
+                "0 (none)"
+                if m == "geometric"
+                else f"{np.mean([f['train_seconds'] for f in fit]):.0f} ({steps})"
+            )
+            cells = " | ".join(
+                _ms(runs, f"{row}/{k}", 4)
+                for k in (*MATCHING_SCORES, "pooled_ari", "pooled_v_measure")
+            )
+            lines.append(
+                f"| {views} | {name} | {cells} | {_ms(runs, f'{row}/t_pp_ms')} | {train} | {ref} |"
+            )
     return lines + [""]
 
 
-POSE_NAMES = {"ours": "ours", "centroid": "triangulation (pairwise centroid, paper's)", "dlt": "triangulation (DLT)"}
+POSE_NAMES = {
+    "ours": "ours",
+    "centroid": "triangulation (pairwise centroid, paper's)",
+    "dlt": "triangulation (DLT)",
+}
 
 
 def pose_table(runs: list[dict], split: str) -> list[str]:
     lines = []
     sections = (
-        ("pipeline", "3D (Table 6): the whole pipeline, panoptic5, 5 views (5-view GAT proposals at its "
-                     "dev-chosen threshold; triangulation on the same proposals)", True),
-        ("true_groups", "3D, the estimator stage alone: true groupings (people seen in 2+ views)", False),
+        (
+            "pipeline",
+            "3D (Table 6): the whole pipeline, panoptic5, 5 views (5-view GAT proposals at its "
+            "dev-chosen threshold; triangulation on the same proposals)",
+            True,
+        ),
+        (
+            "true_groups",
+            "3D, the estimator stage alone: true groupings (people seen in 2+ views)",
+            False,
+        ),
     )
     metric_cols = ("pcp", "mpjpe_mm", "map", "mean_recall", "completeness")
     for key, title, timed in sections:
-        lines += [f"### {title}; {split} scenes", "", _seeds_line(runs) + " PCP over the 10 limbs, every "
-                  "person counted (a person no method found has every limb wrong).", "",
-                  "| variant | method | PCP | MPJPE mm | mAP | mR | complete % |" + (" t_pp ms | t_3Dg ms | t_3Di ms |" if timed else ""),
-                  "|---|---|---|---|---|---|---|" + ("---|---|---|" if timed else "")]  # fmt: skip
+        lines += [
+            f"### {title}; {split} scenes",
+            "",
+            _seeds_line(runs) + " PCP over the 10 limbs, every "
+            "person counted (a person no method found has every limb wrong).",
+            "",
+            "| variant | method | PCP | MPJPE mm | mAP | mR | complete % |"
+            + (" t_pp ms | t_3Dg ms | t_3Di ms |" if timed else ""),
+            "|---|---|---|---|---|---|---|" + ("---|---|---|" if timed else ""),
+        ]
         for variant in runs[0]["pose"][split]:
             base = f"pose/{split}/{variant}"
             rows = [(f"{base}/{key}/{k}", label, timed) for k, label in POSE_NAMES.items()]
             if key == "pipeline":
-                rows += [(f"{base}/gat_proposals_at_half/ours", "ours, GAT proposals at threshold 0.5 (the paper's)", False),
-                         (f"{base}/geometric_proposals/ours", "ours, epipolar proposals", False),
-                         (f"{base}/geometric_proposals/dlt", "triangulation (DLT), epipolar proposals", False)]  # fmt: skip
+                rows += [
+                    (
+                        f"{base}/gat_proposals_at_half/ours",
+                        "ours, GAT proposals at threshold 0.5 (the paper's)",
+                        False,
+                    ),
+                    (f"{base}/geometric_proposals/ours", "ours, epipolar proposals", False),
+                    (
+                        f"{base}/geometric_proposals/dlt",
+                        "triangulation (DLT), epipolar proposals",
+                        False,
+                    ),
+                ]
             for path, label, with_times in rows:
                 cells = " | ".join(_ms(runs, f"{path}/{k}") for k in metric_cols)
                 times = ""
                 if timed:
-                    times = (" " + " | ".join(_ms(runs, f"{path}/{k}") for k in ("t_pp_ms", "t_3Dg_ms", "t_3Di_ms")) + " |"
-                             if with_times else " | | |")  # fmt: skip
+                    times = (
+                        " "
+                        + " | ".join(
+                            _ms(runs, f"{path}/{k}") for k in ("t_pp_ms", "t_3Dg_ms", "t_3Di_ms")
+                        )
+                        + " |"
+                        if with_times
+                        else " | | |"
+                    )
                 lines.append(f"| D-{variant} | {label} | {cells} |" + times)
             for method in ("centroid", "dlt"):
-                lines.append(f"| D-{variant} | ours, on the keypoints {method} reconstructs | | "
-                             f"{_ms(runs, f'{base}/{key}/ours_on_{method}_keypoints/mpjpe_mm')} | | | |" + (" | | |" if timed else ""))
+                lines.append(
+                    f"| D-{variant} | ours, on the keypoints {method} reconstructs | | "
+                    f"{_ms(runs, f'{base}/{key}/ours_on_{method}_keypoints/mpjpe_mm')} | | | |"
+                    + (" | | |" if timed else "")
+                )
         lines.append("")
     lines += pcp_limb_table(runs, split)
     return lines
@@ -545,46 +780,77 @@ def pose_table(runs: list[dict], split: str) -> list[str]:
 
 def pcp_limb_table(runs: list[dict], split: str, variant: str = "detected") -> list[str]:
     """PCP per limb class and the spread over people (D-detected), as the multi-view papers give it."""
-    lines = [f"### PCP per limb and per person (D-{variant}; {split} scenes)", "",
-             "Per person: PCP of each ground-truth person over all their frames; the worst and the median "
-             "person (first seed).", "",
-             "| grouping | method | " + " | ".join(PCP_CLASSES) + " | all | worst person | median person |",
-             "|---|---|" + "---|" * (len(PCP_CLASSES) + 3)]  # fmt: skip
+    lines = [
+        f"### PCP per limb and per person (D-{variant}; {split} scenes)",
+        "",
+        "Per person: PCP of each ground-truth person over all their frames; the worst and the median "
+        "person (first seed).",
+        "",
+        "| grouping | method | "
+        + " | ".join(PCP_CLASSES)
+        + " | all | worst person | median person |",
+        "|---|---|" + "---|" * (len(PCP_CLASSES) + 3),
+    ]
     for key, grouping in (("pipeline", "GAT proposals"), ("true_groups", "true groups")):
         for k, label in POSE_NAMES.items():
             path = f"pose/{split}/{variant}/{key}/{k}"
             cells = " | ".join(_ms(runs, f"{path}/pcp_by_limb/{c}", 1) for c in PCP_CLASSES)
             people = np.array(list(_get(runs[0], f"{path}/pcp_by_person").values()), float)
             spread = f"{people.min():.1f} | {np.median(people):.1f}" if people.size else " | "
-            lines.append(f"| {grouping} | {label} | {cells} | {_ms(runs, f'{path}/pcp', 1)} | {spread} |")
+            lines.append(
+                f"| {grouping} | {label} | {cells} | {_ms(runs, f'{path}/pcp', 1)} | {spread} |"
+            )
     return lines + [""]
 
 
 def pose_papers_table() -> list[str]:
-    lines = ["Paper (CMU Panoptic, GPU; reference numbers, not ours):", "",
-             "| method | MPJPE mm | mAP | mR | t_pp ms | t_3Dg ms | t_3Di ms |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "Paper (CMU Panoptic, GPU; reference numbers, not ours):",
+        "",
+        "| method | MPJPE mm | mAP | mR | t_pp ms | t_3Dg ms | t_3Di ms |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, v in PAPER_TABLE6.items():
         lines.append(f"| {name} | " + " | ".join(f"{x:.2f}" for x in v) + " |")
-    return lines + ["", "AP and recall count a pose missing an evaluation keypoint as wrong; MPJPE is over the keypoints a",
-                    "method produced (minimum-total-error assignment). Times are per frame, amortised over batched",
-                    "chunks of 256 frames on this machine's CPU (the latency of one frame at a time is in",
-                    "`python -m benchmarks.run`).", ""]  # fmt: skip
+    return lines + [
+        "",
+        "AP and recall count a pose missing an evaluation keypoint as wrong; MPJPE is over the keypoints a",
+        "method produced (minimum-total-error assignment). Times are per frame, amortised over batched",
+        "chunks of 256 frames on this machine's CPU (the latency of one frame at a time is in",
+        "`python -m benchmarks.run`).",
+        "",
+    ]
 
 
 def arp_table(runs: list[dict], key: str, grouping: str, paper: bool = True) -> list[str]:
     first = runs[0][key]
     cams = list(next(iter(first.values()))["reprojection"])
-    lines = [f"### Camera subsets (Table 7): reprojection error per camera, px, mean / median; {grouping}; test scenes", "",
-             _seeds_line(runs), "",
-             "| model | people | " + " | ".join(cams) + " | MPJPE mm | PCP |", "|---|---|" + "---|" * len(cams) + "---|---|"]  # fmt: skip
+    lines = [
+        f"### Camera subsets (Table 7): reprojection error per camera, px, mean / median; {grouping}; test scenes",
+        "",
+        _seeds_line(runs),
+        "",
+        "| model | people | " + " | ".join(cams) + " | MPJPE mm | PCP |",
+        "|---|---|" + "---|" * len(cams) + "---|---|",
+    ]
     for name in first:
-        cells = [f"{_ms(runs, f'{key}/{name}/reprojection/{c}/mean', 1)} / {_ms(runs, f'{key}/{name}/reprojection/{c}/median', 1)}"
-                 for c in cams]  # fmt: skip
-        lines.append(f"| {name} | {_ms(runs, f'{key}/{name}/people', 0)} | " + " | ".join(cells)
-                     + f" | {_ms(runs, f'{key}/{name}/mpjpe_mm', 1)} | {_ms(runs, f'{key}/{name}/pcp', 1)} |")  # fmt: skip
+        cells = [
+            f"{_ms(runs, f'{key}/{name}/reprojection/{c}/mean', 1)} / {_ms(runs, f'{key}/{name}/reprojection/{c}/median', 1)}"
+            for c in cams
+        ]
+        lines.append(
+            f"| {name} | {_ms(runs, f'{key}/{name}/people', 0)} | "
+            + " | ".join(cells)
+            + f" | {_ms(runs, f'{key}/{name}/mpjpe_mm', 1)} | {_ms(runs, f'{key}/{name}/pcp', 1)} |"
+        )
     if paper:
-        lines += ["", "Paper (ARP Laboratory, cameras W0-W3 walls, R0-R1 robot; reference numbers, not ours):", "",
-                  "| model | W0 | W1 | W2 | W3 | R0 | R1 |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [
+            "",
+            "Paper (ARP Laboratory, cameras W0-W3 walls, R0-R1 robot; reference numbers, not ours):",
+            "",
+            "| model | W0 | W1 | W2 | W3 | R0 | R1 |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for name, v in PAPER_TABLE7.items():
             lines.append(f"| {name} | " + " | ".join(f"{a:.2f} / {b:.2f}" for a, b in v) + " |")
     wall = [c for c in cams if c not in ROBOT]
@@ -593,15 +859,20 @@ def arp_table(runs: list[dict], key: str, grouping: str, paper: bool = True) -> 
         r26 = [np.mean([r[key]["M_2/6"]["reprojection"][c][stat] for c in wall]) for r in runs]
         r22 = [np.mean([r[key]["M_2/2"]["reprojection"][c][stat] for c in wall]) for r in runs]
         ratio = np.array(r22) / np.array(r26)
-        lines += [f"Wall cameras, mean of {stat}s: M_2/6 {np.mean(r26):.1f} px, M_2/2 {np.mean(r22):.1f} px "
-                  f"({ratio.mean():.2f}x; per seed {', '.join(f'{x:.2f}' for x in ratio)}).", ""]  # fmt: skip
+        lines += [
+            f"Wall cameras, mean of {stat}s: M_2/6 {np.mean(r26):.1f} px, M_2/2 {np.mean(r22):.1f} px "
+            f"({ratio.mean():.2f}x; per seed {', '.join(f'{x:.2f}' for x in ratio)}).",
+            "",
+        ]
     return lines
 
 
 # --------------------------------------------------------------------------- experiments
 
 
-def paper_panoptic(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool) -> tuple[list[dict], list[str]]:
+def paper_panoptic(
+    sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool
+) -> tuple[list[dict], list[str]]:
     rig = load_rig("panoptic5")
     scenes = make_scenes(rig, sc, data_seed)
     views = {2: rig.names[:2], 3: rig.names[:3], 5: rig.names}
@@ -617,30 +888,46 @@ def paper_panoptic(sc: Scale, seeds: list[int], data_seed: int, out: Path, progr
             for split in SPLITS:
                 res["matching"][split][str(n)] = matching_rows(data, split, matchers[n], cams, fit)
         print(f"== seed {seed}: estimator, 5 views", flush=True)
-        est, res["training"]["estimator"] = fit_estimator(data, sc, rig.names, rig.names, seed, progress)
+        est, res["training"]["estimator"] = fit_estimator(
+            data, sc, rig.names, rig.names, seed, progress
+        )
         print(f"== seed {seed}: evaluating the pipeline", flush=True)
         for split in SPLITS:
-            res["pose"][split], samples = pose_rows(data, split, matchers[5], est, res["training"]["matcher-5"])
+            res["pose"][split], samples = pose_rows(
+                data, split, matchers[5], est, res["training"]["matcher-5"]
+            )
             if i == 0 and split == "test":
-                res["figures"] = sample_figures(samples, rig, data.scenes["test"][0].layout, out / "figures")
+                res["figures"] = sample_figures(
+                    samples, rig, data.scenes["test"][0].layout, out / "figures"
+                )
                 res["figures"].append(_curves(res["training"], out / "figures"))
         runs.append(res)
         _save_partial(runs, out)
     lines = ["## Test scenes (the reported results; read only for this table)", ""]
-    lines += matching_table(runs, "test", PAPER_TABLE3, "Matching (Table 3): panoptic5, test scenes with 1-8 people")
+    lines += matching_table(
+        runs, "test", PAPER_TABLE3, "Matching (Table 3): panoptic5, test scenes with 1-8 people"
+    )
     lines += pose_table(runs, "test") + pose_papers_table()
     lines += ["## Validation scenes (where settings are chosen)", ""]
-    lines += matching_table(runs, "validation", PAPER_TABLE3, "Matching: panoptic5, validation scenes with 1-8 people")
+    lines += matching_table(
+        runs, "validation", PAPER_TABLE3, "Matching: panoptic5, validation scenes with 1-8 people"
+    )
     lines += pose_table(runs, "validation")
     return runs, lines
 
 
-def paper_arp(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool) -> tuple[list[dict], list[str]]:
+def paper_arp(
+    sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool
+) -> tuple[list[dict], list[str]]:
     rig = load_rig("arplab6")
     scenes = make_scenes(rig, sc, data_seed)
     runs = []
-    models = {"M_1/6": (rig.names, ROBOT[:1]), "M_2/6": (rig.names, ROBOT), "M_6/6": (rig.names, rig.names),
-              "M_2/2": (ROBOT, ROBOT)}  # fmt: skip
+    models = {
+        "M_1/6": (rig.names, ROBOT[:1]),
+        "M_2/6": (rig.names, ROBOT),
+        "M_6/6": (rig.names, rig.names),
+        "M_2/2": (ROBOT, ROBOT),
+    }
     for i, seed in enumerate(seeds):
         data = make_data(rig, scenes, sc, seed, progress)
         res = {"seed": seed, "matching": {s: {} for s in SPLITS}, "training": {}}
@@ -654,23 +941,38 @@ def paper_arp(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: 
         estimators = {}
         for name, (train_cams, infer_cams) in models.items():
             print(f"== seed {seed}: estimator {name}", flush=True)
-            estimators[name], res["training"][f"estimator {name}"] = fit_estimator(data, sc, train_cams, infer_cams,
-                                                                                    seed, progress)  # fmt: skip
+            estimators[name], res["training"][f"estimator {name}"] = fit_estimator(
+                data, sc, train_cams, infer_cams, seed, progress
+            )
         print(f"== seed {seed}: evaluating", flush=True)
         res["camera_subsets"] = arp_rows(data, "test", matchers[6], estimators, "true")
-        res["camera_subsets_proposals"] = arp_rows(data, "test", matchers[6], estimators, "proposals",
-                                                   res["training"]["matcher-6"]["threshold"])  # fmt: skip
+        res["camera_subsets_proposals"] = arp_rows(
+            data,
+            "test",
+            matchers[6],
+            estimators,
+            "proposals",
+            res["training"]["matcher-6"]["threshold"],
+        )
         if i == 0:
             res["figures"] = [_curves(res["training"], out / "figures")]
         runs.append(res)
         _save_partial(runs, out)
     lines = ["## Test scenes (the reported results; read only for these tables)", ""]
-    lines += matching_table(runs, "test", PAPER_TABLE4, "Matching (Table 4): arplab6, test scenes with 1-8 people")
+    lines += matching_table(
+        runs, "test", PAPER_TABLE4, "Matching (Table 4): arplab6, test scenes with 1-8 people"
+    )
     lines += arp_table(runs, "camera_subsets", "true skeleton groups (the 3D stage alone)")
-    lines += arp_table(runs, "camera_subsets_proposals", "grouped by the 6-view GAT proposals (whole pipeline)",
-                       paper=False)  # fmt: skip
+    lines += arp_table(
+        runs,
+        "camera_subsets_proposals",
+        "grouped by the 6-view GAT proposals (whole pipeline)",
+        paper=False,
+    )
     lines += ["## Validation scenes (where settings are chosen)", ""]
-    lines += matching_table(runs, "validation", PAPER_TABLE4, "Matching: arplab6, validation scenes with 1-8 people")
+    lines += matching_table(
+        runs, "validation", PAPER_TABLE4, "Matching: arplab6, validation scenes with 1-8 people"
+    )
     return runs, lines
 
 
@@ -684,77 +986,141 @@ def _curves(training: dict, folder: Path) -> str:
     return str(save_figure(fig, folder / "training_curves.png"))
 
 
-def synthetic_summary(sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool) -> tuple[list[dict], list[str]]:
+def synthetic_summary(
+    sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool
+) -> tuple[list[dict], list[str]]:
     """A recording's contents and the triangulation baseline on its true groupings (no training)."""
     rig = load_rig("panoptic5")
-    rec = generate_recording(rig, num_people=4, num_frames=max(30, 12 * sc.test_frames), seed=data_seed,
-                             progress=progress)  # fmt: skip
+    rec = generate_recording(
+        rig,
+        num_people=4,
+        num_frames=max(30, 12 * sc.test_frames),
+        seed=data_seed,
+        progress=progress,
+    )
     ident = np.asarray(rec.identity)
     score = np.asarray(rec.detections.score)
     G = rec.ground_truth.valid.shape[1]
     res = {"seed": data_seed, "frames": rec.num_frames, "people": G, "variants": {}}
-    lines = ["### Triangulation on the true groupings, panoptic5 (4 people)", "",
-             "| variant | method | PCP | MPJPE mm | mAP | mR | complete % |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        "### Triangulation on the true groupings, panoptic5 (4 people)",
+        "",
+        "| variant | method | PCP | MPJPE mm | mAP | mR | complete % |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, variant in detection_variants(rec).items():
         xy, sc_ = people_from_identity(np.asarray(variant.detections.xy), score, ident, G)
         for method in ("centroid", "dlt"):
             poses, conf = triangulate_grouped(rig, xy, sc_, method)
             m = pose_metrics(poses, rec.ground_truth, confidence=conf, up=up_vector(rig))
             res["variants"].setdefault(name, {})[method] = m
-            lines.append(f"| D-{name} | {method} | {m['pcp']:.2f} | {m['mpjpe_mm']:.2f} | {m['map']:.2f} | "
-                         f"{m['mean_recall']:.2f} | {m['completeness']:.2f} |")  # fmt: skip
+            lines.append(
+                f"| D-{name} | {method} | {m['pcp']:.2f} | {m['mpjpe_mm']:.2f} | {m['map']:.2f} | "
+                f"{m['mean_recall']:.2f} | {m['completeness']:.2f} |"
+            )
     save_recording(rec, out / "recording.json")
     return [res], lines + [""]
 
 
-EXPERIMENTS = {"paper-panoptic": paper_panoptic, "paper-arp": paper_arp, "synthetic-summary": synthetic_summary}
+EXPERIMENTS = {
+    "paper-panoptic": paper_panoptic,
+    "paper-arp": paper_arp,
+    "synthetic-summary": synthetic_summary,
+}
 
 
 def machine() -> dict:
-    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                if ln.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else platform.processor()  # fmt: skip
+    cpu = (
+        next(
+            (
+                ln.split(":", 1)[1].strip()
+                for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")
+            ),
+            platform.processor(),
+        )
+        if Path("/proc/cpuinfo").exists()
+        else platform.processor()
+    )
     import os
 
-    return {"cpu": cpu, "cores": os.cpu_count(), "jax": jax.__version__,
-            "device": f"{jax.devices()[0].platform} ({jax.devices()[0].device_kind})"}  # fmt: skip
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "jax": jax.__version__,
+        "device": f"{jax.devices()[0].platform} ({jax.devices()[0].device_kind})",
+    }
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m experiments.run", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m experiments.run", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--experiment", choices=sorted(EXPERIMENTS), default="paper-panoptic")
-    ap.add_argument("--scale", choices=("quick", "paper"), default="quick",
-                    help="quick: small networks, minutes; paper: the paper's sizes and training lengths")  # fmt: skip
-    ap.add_argument("--smoke", action="store_true", help="a seconds-long run of the same code (tests)")
-    ap.add_argument("--seed", type=int, default=0,
-                    help="the scenes' seed and the first training seed (default 0)")  # fmt: skip
-    ap.add_argument("--seeds", type=int, default=1,
-                    help="training seeds (seed, seed+1, ...): tables give their mean ± sd (default 1; "
-                         "the reported tables use 3)")  # fmt: skip
+    ap.add_argument(
+        "--scale",
+        choices=("quick", "paper"),
+        default="quick",
+        help="quick: small networks, minutes; paper: the paper's sizes and training lengths",
+    )
+    ap.add_argument(
+        "--smoke", action="store_true", help="a seconds-long run of the same code (tests)"
+    )
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="the scenes' seed and the first training seed (default 0)",
+    )
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="training seeds (seed, seed+1, ...): tables give their mean ± sd (default 1; "
+        "the reported tables use 3)",
+    )
     ap.add_argument("--out", type=Path, help="output folder (default results/<experiment>)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     scale = "smoke" if args.smoke else args.scale
     out = args.out or Path("results") / args.experiment
     out.mkdir(parents=True, exist_ok=True)
-    command = " ".join(["python -m experiments.run", *(argv if argv is not None else sys.argv[1:])]).strip()
+    command = " ".join(
+        ["python -m experiments.run", *(argv if argv is not None else sys.argv[1:])]
+    ).strip()
     t0 = time.perf_counter()
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
     seeds = [args.seed + i for i in range(args.seeds)]
-    runs, lines = EXPERIMENTS[args.experiment](SCALES[scale], seeds, args.seed, out, not args.no_progress)
+    runs, lines = EXPERIMENTS[args.experiment](
+        SCALES[scale], seeds, args.seed, out, not args.no_progress
+    )
     seconds = time.perf_counter() - t0
-    meta = {"experiment": args.experiment, "scale": scale, "seed": args.seed, "seeds": seeds, "command": command,
-            "seconds": round(seconds, 1), "machine": machine()}  # fmt: skip
-    head = [f"# {args.experiment} ({scale} scale)", "",
-            f"Command: `{command}`; {seconds / 60:.1f} min on {meta['machine']['cpu']} "
-            f"({meta['machine']['cores']} cores, jax {meta['machine']['jax']}, {meta['machine']['device']}).",
-            "Synthetic data on the paper's real camera geometry; trained from scratch in this run, no 3D labels.",
-            "Splits: single-person training and dev recordings per training seed; multi-person validation scenes",
-            "(every setting a person picks is picked on them) and test scenes (read only for the reported",
-            f"tables), both from seed {args.seed}. Proposal settings (GAT threshold, epipolar cutoff) are chosen on",
-            "frames composed from the dev recordings.", ""]  # fmt: skip
+    meta = {
+        "experiment": args.experiment,
+        "scale": scale,
+        "seed": args.seed,
+        "seeds": seeds,
+        "command": command,
+        "seconds": round(seconds, 1),
+        "machine": machine(),
+    }
+    head = [
+        f"# {args.experiment} ({scale} scale)",
+        "",
+        f"Command: `{command}`; {seconds / 60:.1f} min on {meta['machine']['cpu']} "
+        f"({meta['machine']['cores']} cores, jax {meta['machine']['jax']}, {meta['machine']['device']}).",
+        "Synthetic data on the paper's real camera geometry; trained from scratch in this run, no 3D labels.",
+        "Splits: single-person training and dev recordings per training seed; multi-person validation scenes",
+        "(every setting a person picks is picked on them) and test scenes (read only for the reported",
+        f"tables), both from seed {args.seed}. Proposal settings (GAT threshold, epipolar cutoff) are chosen on",
+        "frames composed from the dev recordings.",
+        "",
+    ]
     text = "\n".join(head + lines) + "\n"
-    atomic_write_text(out / "metrics.json", json.dumps({**meta, "runs": to_jsonable(runs)}, indent=1) + "\n")
+    atomic_write_text(
+        out / "metrics.json", json.dumps({**meta, "runs": to_jsonable(runs)}, indent=1) + "\n"
+    )
     atomic_write_text(out / "tables.md", text)
     print(text)
     print(f"wrote {out}/metrics.json, tables.md and figures/")

@@ -26,8 +26,21 @@ from mvpose_jax.triangulate import triangulate_pairwise_centroid, triangulate_po
 __version__ = "0.1.0"
 
 __all__ = [
-    "Detections", "InputError", "Layout", "MvposeError", "Poses3D", "Rig", "camera_centres",
-    "convert_keypoints", "get_layout", "make_rig", "pixel_rays", "project_points",
-    "rig_centre_and_radius", "triangulate_pairwise_centroid", "triangulate_points",
-    "undistort_points", "up_vector",
-]  # fmt: skip
+    "Detections",
+    "InputError",
+    "Layout",
+    "MvposeError",
+    "Poses3D",
+    "Rig",
+    "camera_centres",
+    "convert_keypoints",
+    "get_layout",
+    "make_rig",
+    "pixel_rays",
+    "project_points",
+    "rig_centre_and_radius",
+    "triangulate_pairwise_centroid",
+    "triangulate_points",
+    "undistort_points",
+    "up_vector",
+]

@@ -62,9 +62,14 @@ class Rig:
         idx = [self.camera_index(c) for c in cameras]
         take = lambda a: jnp.asarray(a)[np.asarray(idx)]  # noqa: E731  (works under jit too)
         return Rig(
-            take(self.K), take(self.dist), take(self.R), take(self.t), take(self.size),
-            tuple(self.names[i] for i in idx), self.up,
-        )  # fmt: skip
+            take(self.K),
+            take(self.dist),
+            take(self.R),
+            take(self.t),
+            take(self.size),
+            tuple(self.names[i] for i in idx),
+            self.up,
+        )
 
     def camera_index(self, camera: str | int) -> int:
         """Index of a camera given by name or index; raises InputError if unknown."""
@@ -106,9 +111,12 @@ def make_rig(
         raise InputError(f"duplicate camera names {list(names)}", file=file, field="name")
     fields = {}
     for field, value, shape in (
-        ("K", K, (3, 3)), ("dist", dist, None), ("R", R, (3, 3)), ("t", t, (3,)),
+        ("K", K, (3, 3)),
+        ("dist", dist, None),
+        ("R", R, (3, 3)),
+        ("t", t, (3,)),
         ("size", size, (2,)),
-    ):  # fmt: skip
+    ):
         try:
             arr = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError) as e:
@@ -116,37 +124,47 @@ def make_rig(
         if arr.ndim == 0 or arr.shape[0] != num:
             raise InputError(
                 f"expected {num} entries (one per camera), got shape {arr.shape}",
-                file=file, field=field,
-            )  # fmt: skip
+                file=file,
+                field=field,
+            )
         if field == "dist":
             if arr.ndim != 2 or arr.shape[1] not in (4, 5):
                 raise InputError(
                     f"expected 4 or 5 coefficients [k1, k2, p1, p2(, k3)], got shape {arr.shape[1:]}",
-                    file=file, field=field,
-                )  # fmt: skip
+                    file=file,
+                    field=field,
+                )
             arr = np.pad(arr, ((0, 0), (0, 5 - arr.shape[1])))
         elif arr.shape[1:] != shape:
             raise InputError(f"expected shape {shape}, got {arr.shape[1:]}", file=file, field=field)
         for c in range(num):
             if not np.all(np.isfinite(arr[c])):
-                raise InputError("contains NaN or infinity", file=file, camera=names[c], field=field)
+                raise InputError(
+                    "contains NaN or infinity", file=file, camera=names[c], field=field
+                )
         fields[field] = arr
     for c, name in enumerate(names):
         k = fields["K"][c]
         if not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
             raise InputError(
-                "K must be upper triangular with last row [0, 0, 1]", file=file, camera=name, field="K"
-            )  # fmt: skip
+                "K must be upper triangular with last row [0, 0, 1]",
+                file=file,
+                camera=name,
+                field="K",
+            )
         if k[0, 0] <= 0 or k[1, 1] <= 0 or abs(np.linalg.det(k)) < 1e-9:
             raise InputError(
                 "K is singular (focal lengths must be positive)", file=file, camera=name, field="K"
-            )  # fmt: skip
+            )
         r = fields["R"][c]
         err = np.abs(r @ r.T - np.eye(3)).max()
         if err > 1e-4:
             raise InputError(
-                f"R is not orthonormal (max |R R^T - I| = {err:.3g})", file=file, camera=name, field="R"
-            )  # fmt: skip
+                f"R is not orthonormal (max |R R^T - I| = {err:.3g})",
+                file=file,
+                camera=name,
+                field="R",
+            )
         if np.linalg.det(r) < 0:
             raise InputError("R is a reflection (det < 0)", file=file, camera=name, field="R")
         if np.any(fields["size"][c] <= 0):
@@ -159,9 +177,14 @@ def make_rig(
         up_t = tuple(float(x) for x in u / np.linalg.norm(u))
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     return Rig(
-        f32(fields["K"]), f32(fields["dist"]), f32(fields["R"]), f32(fields["t"]),
-        f32(fields["size"]), names, up_t,
-    )  # fmt: skip
+        f32(fields["K"]),
+        f32(fields["dist"]),
+        f32(fields["R"]),
+        f32(fields["t"]),
+        f32(fields["size"]),
+        names,
+        up_t,
+    )
 
 
 # --------------------------------------------------------------------------- per-camera kernels
@@ -201,7 +224,9 @@ def _cam_from_world(R: jax.Array, t: jax.Array, points: jax.Array) -> jax.Array:
 
 def _max_r2(K: jax.Array, size: jax.Array) -> jax.Array:
     """MAX_R2_FACTOR times the largest squared normalised radius of the image corners."""
-    corners = jnp.stack([jnp.zeros(2), size * jnp.array([1.0, 0.0]), size * jnp.array([0.0, 1.0]), size])
+    corners = jnp.stack(
+        [jnp.zeros(2), size * jnp.array([1.0, 0.0]), size * jnp.array([0.0, 1.0]), size]
+    )
     return MAX_R2_FACTOR * jnp.max(jnp.sum(jnp.square(_from_pixels(K, corners)), axis=-1))
 
 

@@ -35,10 +35,15 @@ class Checkpoints:
         self._ocp = ocp
         self.directory = Path(directory).absolute()
         opts = dict(enable_async_checkpointing=False)
+
         # Handlers named up front (not only item names): the state's array metadata can then be
         # read before a restore, to refuse another model's checkpoint without reading its arrays.
-        handlers = lambda *json_items: {"state": ocp.StandardCheckpointHandler(),  # noqa: E731
-                                        **{k: ocp.JsonCheckpointHandler() for k in json_items}}  # fmt: skip
+        def handlers(*json_items):
+            return {
+                "state": ocp.StandardCheckpointHandler(),
+                **{k: ocp.JsonCheckpointHandler() for k in json_items},
+            }
+
         self.best = ocp.CheckpointManager(
             self.directory / "best",
             options=ocp.CheckpointManagerOptions(
@@ -70,7 +75,9 @@ class Checkpoints:
         step = int(state.step)
         if step in self.best.all_steps():
             return  # a resumed run passing the step again: the same state (runs are deterministic)
-        self.best.save(step, args=self._args(state, config), metrics={"val_loss": float(val_loss)}, force=True)
+        self.best.save(
+            step, args=self._args(state, config), metrics={"val_loss": float(val_loss)}, force=True
+        )
 
     def restore(
         self, abstract_state: TrainState, which: str = "best", step: int | None = None
@@ -84,7 +91,9 @@ class Checkpoints:
         ocp = self._ocp
         manager, step = self._step(which, step)
         self._check_shapes(manager, step, which, abstract_state)
-        args = ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state), config=ocp.args.JsonRestore())
+        args = ocp.args.Composite(
+            state=ocp.args.StandardRestore(abstract_state), config=ocp.args.JsonRestore()
+        )
         out = self._read(manager, step, which, args)
         state = out.state
         if all(getattr(a, "sharding", None) is None for a in jax.tree.leaves(abstract_state)):
@@ -104,9 +113,14 @@ class Checkpoints:
         ocp = self._ocp
         manager, step = self._step(which, step)
         self._check_shapes(manager, step, which, {"params": abstract_params}, only="params")
-        restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), abstract_params)
-        args = ocp.args.PyTreeRestore(item={"params": abstract_params}, restore_args={"params": restore_args},
-                                      partial_restore=True)  # fmt: skip
+        restore_args = jax.tree.map(
+            lambda _: ocp.RestoreArgs(restore_type=np.ndarray), abstract_params
+        )
+        args = ocp.args.PyTreeRestore(
+            item={"params": abstract_params},
+            restore_args={"params": restore_args},
+            partial_restore=True,
+        )
         path = self.directory / which / str(step) / "state"
         try:
             out = ocp.PyTreeCheckpointer().restore(path, args=args)
@@ -117,7 +131,9 @@ class Checkpoints:
     def read_config(self, which: str = "best", step: int | None = None) -> dict:
         """The run config saved with the ``which`` checkpoint (to rebuild the model first)."""
         manager, step = self._step(which, step)
-        out = self._read(manager, step, which, self._ocp.args.Composite(config=self._ocp.args.JsonRestore()))
+        out = self._read(
+            manager, step, which, self._ocp.args.Composite(config=self._ocp.args.JsonRestore())
+        )
         return dict(out.config)
 
     def read_progress(self, step: int | None = None) -> dict | None:
@@ -125,7 +141,9 @@ class Checkpoints:
         manager, step = self._step("latest", step)
         if not (self.directory / "latest" / str(step) / "fit").exists():
             return None
-        out = self._read(manager, step, "latest", self._ocp.args.Composite(fit=self._ocp.args.JsonRestore()))
+        out = self._read(
+            manager, step, "latest", self._ocp.args.Composite(fit=self._ocp.args.JsonRestore())
+        )
         return dict(out.fit)
 
     def close(self) -> None:
@@ -140,23 +158,37 @@ class Checkpoints:
             raise InputError(f"no {which} checkpoint", file=self.directory / which)
         return manager, step
 
-    def _check_shapes(self, manager, step: int, which: str, abstract_state, only: str | None = None) -> None:
+    def _check_shapes(
+        self, manager, step: int, which: str, abstract_state, only: str | None = None
+    ) -> None:
         try:
             meta = manager.item_metadata(step)["state"]
-            saved = {_path_names(p): tuple(m.shape) for p, m in jax.tree_util.tree_flatten_with_path(meta)[0]
-                     if hasattr(m, "shape")}  # fmt: skip
+            saved = {
+                _path_names(p): tuple(m.shape)
+                for p, m in jax.tree_util.tree_flatten_with_path(meta)[0]
+                if hasattr(m, "shape")
+            }
             if only is not None:
                 saved = {k: v for k, v in saved.items() if k[0] == only}
         except Exception:  # unreadable metadata: the restore itself reports the damage
             return
-        wanted = {_path_names(p): tuple(a.shape) for p, a in jax.tree_util.tree_flatten_with_path(abstract_state)[0]}
+        wanted = {
+            _path_names(p): tuple(a.shape)
+            for p, a in jax.tree_util.tree_flatten_with_path(abstract_state)[0]
+        }
         if not saved or saved == wanted:
             return
-        diff = [f"{'.'.join(k)}: checkpoint {saved.get(k, 'absent')}, model {wanted.get(k, 'absent')}"
-                for k in sorted(set(saved) | set(wanted), key=lambda k: (k[0] != "params", k))  # params first
-                if saved.get(k) != wanted.get(k)]  # fmt: skip
-        raise InputError(f"checkpoint holds another model ({'; '.join(diff[:3])}{'; ...' if len(diff) > 3 else ''})",
-                         file=self.directory / which / str(step))  # fmt: skip
+        diff = [
+            f"{'.'.join(k)}: checkpoint {saved.get(k, 'absent')}, model {wanted.get(k, 'absent')}"
+            for k in sorted(
+                set(saved) | set(wanted), key=lambda k: (k[0] != "params", k)
+            )  # params first
+            if saved.get(k) != wanted.get(k)
+        ]
+        raise InputError(
+            f"checkpoint holds another model ({'; '.join(diff[:3])}{'; ...' if len(diff) > 3 else ''})",
+            file=self.directory / which / str(step),
+        )
 
     def _read(self, manager, step: int, which: str, args):
         try:

@@ -18,7 +18,9 @@ if TYPE_CHECKING:
     from mvpose_jax.synthetic import SyntheticConfig
 
 # name -> (help, add_arguments(parser), run(args) -> exit status)
-_COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] = {}
+_COMMANDS: dict[
+    str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
+] = {}
 
 
 def command(name: str, help: str, arguments: Callable[[argparse.ArgumentParser], None]):
@@ -34,17 +36,25 @@ def command(name: str, help: str, arguments: Callable[[argparse.ArgumentParser],
 def add_rig_argument(p: argparse.ArgumentParser, default: str | None = "panoptic5") -> None:
     """The ``--rig`` option every subcommand that needs cameras shares."""
     p.add_argument(
-        "--rig", default=default, required=default is None,
+        "--rig",
+        default=default,
+        required=default is None,
         help="preset name (panoptic5, arplab6) or calibration file (.json native or CMU Panoptic, "
         ".toml anipose/Pose2Sim)",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--translation-scale", type=float, default=1.0,
+        "--translation-scale",
+        type=float,
+        default=1.0,
         help="TOML calibrations only: metres per translation unit (0.001 for millimetres)",
-    )  # fmt: skip
+    )
 
 
-@command("rig", "Show a rig (preset or calibration file): cameras, centres, image sizes, up.", add_rig_argument)
+@command(
+    "rig",
+    "Show a rig (preset or calibration file): cameras, centres, image sizes, up.",
+    add_rig_argument,
+)
 def _rig(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -54,12 +64,16 @@ def _rig(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig, translation_scale=args.translation_scale)
     centres = np.asarray(camera_centres(rig), np.float64)
     centre, radius = rig_centre_and_radius(rig)
-    print(f"{rig.num_cameras} cameras; up {np.round(up_vector(rig), 3).tolist()}"
-          f"{' (inferred)' if rig.up is None else ''}; centre {np.round(np.asarray(centre, np.float64), 3).tolist()} m,"
-          f" radius {float(radius):.3f} m")
+    print(
+        f"{rig.num_cameras} cameras; up {np.round(up_vector(rig), 3).tolist()}"
+        f"{' (inferred)' if rig.up is None else ''}; centre {np.round(np.asarray(centre, np.float64), 3).tolist()} m,"
+        f" radius {float(radius):.3f} m"
+    )
     for c, name in enumerate(rig.names):
         w, h = np.asarray(rig.size[c]).astype(int)
-        print(f"  {name:>12s}  {w}x{h}  f={float(rig.K[c, 0, 0]):.1f}px  centre {np.round(centres[c], 3).tolist()}")
+        print(
+            f"  {name:>12s}  {w}x{h}  f={float(rig.K[c, 0, 0]):.1f}px  centre {np.round(centres[c], 3).tolist()}"
+        )
     return 0
 
 
@@ -87,32 +101,48 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=500, help="frames per recording (default 500)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
-        "--out", required=True,
+        "--out",
+        required=True,
         help="output file (.json native, .npz) or, with --single-person-recordings, a folder",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--single-person-recordings", type=int, default=0, metavar="N",
+        "--single-person-recordings",
+        type=int,
+        default=0,
+        metavar="N",
         help="write N one-person training recordings into the --out folder instead of one scene",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--format", choices=("native", "npz"), default=None,
+        "--format",
+        choices=("native", "npz"),
+        default=None,
         help="file format for the single-person recordings (default native JSON)",
-    )  # fmt: skip
-    p.add_argument("--fps", type=float, default=MotionConfig.fps, help=f"frame rate (default {MotionConfig.fps:g})")
+    )
     p.add_argument(
-        "--floor-height", type=float, default=None,
+        "--fps",
+        type=float,
+        default=MotionConfig.fps,
+        help=f"frame rate (default {MotionConfig.fps:g})",
+    )
+    p.add_argument(
+        "--floor-height",
+        type=float,
+        default=None,
         help="floor height along the up vector, metres (default: estimated from the cameras)",
-    )  # fmt: skip
+    )
     p.add_argument(
-        "--clean", action="store_true",
+        "--clean",
+        action="store_true",
         help="a perfect detector: no noise, offsets, drops, misses, false positives or swaps",
-    )  # fmt: skip
+    )
     defaults = DetectorConfig()
     for option, field in _RATE_OPTIONS.items():
         p.add_argument(
-            f"--{option}", type=float, default=None,
+            f"--{option}",
+            type=float,
+            default=None,
             help=f"detector {field.replace('_', ' ')} (default {getattr(defaults, field):g})",
-        )  # fmt: skip
+        )
 
 
 def synthetic_config_from_args(args: argparse.Namespace) -> SyntheticConfig:
@@ -151,9 +181,13 @@ def _generate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.single_person_recordings > 0:
         recordings = generate_single_person_recordings(
-            rig, num_recordings=args.single_person_recordings, num_frames=args.frames,
-            config=config, seed=args.seed, progress=True,
-        )  # fmt: skip
+            rig,
+            num_recordings=args.single_person_recordings,
+            num_frames=args.frames,
+            config=config,
+            seed=args.seed,
+            progress=True,
+        )
         suffix = ".npz" if args.format == "npz" else ".json"
         width = len(str(len(recordings) - 1))
         for i, rec in enumerate(recordings):
@@ -162,9 +196,13 @@ def _generate(args: argparse.Namespace) -> int:
         print(f"wrote {len(recordings)} single-person recordings of {args.frames} frames to {out}/")
         return 0
     rec = generate_recording(
-        rig, num_people=args.people, num_frames=args.frames, config=config, seed=args.seed,
+        rig,
+        num_people=args.people,
+        num_frames=args.frames,
+        config=config,
+        seed=args.seed,
         progress=True,
-    )  # fmt: skip
+    )
     native = out.suffix.lower() != ".npz"
     save_recording(rec, out, rig=rig if native else None)
     det = rec.detections
@@ -181,8 +219,11 @@ def _synthetic_figure_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=150, help="frames to simulate (default 150)")
     p.add_argument("--frame", type=int, default=-1, help="frame to draw (default: the last)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--out", default="results/synthetic_frame.png",
-                   help="output PNG (default results/synthetic_frame.png)")  # fmt: skip
+    p.add_argument(
+        "--out",
+        default="results/synthetic_frame.png",
+        help="output PNG (default results/synthetic_frame.png)",
+    )
 
 
 @command(
@@ -200,9 +241,12 @@ def _synthetic_figure(args: argparse.Namespace) -> int:
     rec = generate_recording(rig, num_people=args.people, num_frames=args.frames, seed=args.seed)
     frame = args.frame % rec.num_frames
     out = render_frame_figure(
-        rec, rig, frame, args.out,
+        rec,
+        rig,
+        frame,
+        args.out,
         title=f"synthetic {args.rig}: {args.people} people, frame {frame}, seed {args.seed}",
-    )  # fmt: skip
+    )
     print(out)
     return 0
 
@@ -239,36 +283,64 @@ def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None =
         raise argparse.ArgumentTypeError(f"expected a device count >= 1 or 'all', got {value!r}")
 
     add_rig_argument(p, default=None)
-    p.add_argument("--train", required=True, help="single-person recordings: a file or a folder of them")
-    p.add_argument("--dev", required=dev_help is None,
-                   help=dev_help or "single-person validation recordings: a file or folder")  # fmt: skip
+    p.add_argument(
+        "--train", required=True, help="single-person recordings: a file or a folder of them"
+    )
+    p.add_argument(
+        "--dev",
+        required=dev_help is None,
+        help=dev_help or "single-person validation recordings: a file or folder",
+    )
     p.add_argument("--out", required=True, help="folder for the best and latest checkpoints")
     p.add_argument("--layout", default=None, help="keypoint layout to convert the recordings to")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--devices", type=devices, default=None, metavar="N|all",
-                   help="data-parallel training over N devices (all: every device of every host): each "
-                   "batch is split over them, parameters are replicated; default: one device")  # fmt: skip
-    p.add_argument("--checkpoint-every", type=int, default=500, metavar="STEPS",
-                   help="also save the latest state every this many steps (0: only at validations)")  # fmt: skip
-    p.add_argument("--coordinator-address", metavar="HOST:PORT",
-                   help="several hosts: process 0's address (every host runs the same command; or set "
-                   "JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID)")  # fmt: skip
+    p.add_argument(
+        "--devices",
+        type=devices,
+        default=None,
+        metavar="N|all",
+        help="data-parallel training over N devices (all: every device of every host): each "
+        "batch is split over them, parameters are replicated; default: one device",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=500,
+        metavar="STEPS",
+        help="also save the latest state every this many steps (0: only at validations)",
+    )
+    p.add_argument(
+        "--coordinator-address",
+        metavar="HOST:PORT",
+        help="several hosts: process 0's address (every host runs the same command; or set "
+        "JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID)",
+    )
     p.add_argument("--num-processes", type=int, help="several hosts: how many processes take part")
     p.add_argument("--process-id", type=int, help="several hosts: this process's index, 0 .. N-1")
-    p.add_argument("--resume", action="store_true",
-                   help="continue from the latest checkpoint in --out (same settings; training may be lengthened)")  # fmt: skip
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from the latest checkpoint in --out (same settings; training may be lengthened)",
+    )
 
 
 def _train_matcher_arguments(p: argparse.ArgumentParser) -> None:
     add_training_arguments(p)
-    p.add_argument("--cameras", nargs="+", help="inference cameras C_i (default: every camera of the rig)")
+    p.add_argument(
+        "--cameras", nargs="+", help="inference cameras C_i (default: every camera of the rig)"
+    )
     p.add_argument("--quick", action="store_true", help="small network and short epochs")
     p.add_argument("--max-epochs", type=int, help="override the epoch limit")
     p.add_argument("--learning-rate", type=float, help="override Adam's step size (paper 1e-4)")
-    p.add_argument("--max-people", type=int, help="most recordings composed into one frame (default 8)")
-    p.add_argument("--keypoint-dropout", type=float,
-                   help="missing-keypoint augmentation: largest per-skeleton drop rate (default 0, the paper; "
-                        "python -m experiments.run uses 0.5)")  # fmt: skip
+    p.add_argument(
+        "--max-people", type=int, help="most recordings composed into one frame (default 8)"
+    )
+    p.add_argument(
+        "--keypoint-dropout",
+        type=float,
+        help="missing-keypoint augmentation: largest per-skeleton drop rate (default 0, the paper; "
+        "python -m experiments.run uses 0.5)",
+    )
 
 
 @command(
@@ -291,49 +363,89 @@ def _train_matcher(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig, translation_scale=args.translation_scale)
     config = MatcherConfig.quick() if args.quick else MatcherConfig()
     train = dataclasses.replace(
-        config.train, seed=args.seed, num_devices=resolve_num_devices(args.devices),
+        config.train,
+        seed=args.seed,
+        num_devices=resolve_num_devices(args.devices),
         checkpoint_every_steps=args.checkpoint_every,
-        **{k: v for k, v in (("max_epochs", args.max_epochs), ("learning_rate", args.learning_rate)) if v is not None},
-    )  # fmt: skip
+        **{
+            k: v
+            for k, v in (("max_epochs", args.max_epochs), ("learning_rate", args.learning_rate))
+            if v is not None
+        },
+    )
     config = dataclasses.replace(
-        config, train=train, cameras=tuple(args.cameras) if args.cameras else None,
+        config,
+        train=train,
+        cameras=tuple(args.cameras) if args.cameras else None,
         **({"max_people": args.max_people} if args.max_people else {}),
-        **({"keypoint_dropout": args.keypoint_dropout} if args.keypoint_dropout is not None else {}),
-    )  # fmt: skip
+        **(
+            {"keypoint_dropout": args.keypoint_dropout} if args.keypoint_dropout is not None else {}
+        ),
+    )
     if not 0 <= config.keypoint_dropout < 1:
-        raise InputError(f"--keypoint-dropout must be in [0, 1), not {config.keypoint_dropout}",
-                         field="keypoint_dropout")  # fmt: skip
+        raise InputError(
+            f"--keypoint-dropout must be in [0, 1), not {config.keypoint_dropout}",
+            field="keypoint_dropout",
+        )
     train_recs = _recordings_in(args.train, args.layout)
     dev_recs = _recordings_in(args.dev, args.layout)
-    matcher, fit = train_matcher(rig, train_recs, dev_recs, config, checkpoint_dir=args.out, resume=args.resume)
-    print(f"best validation loss {fit.best_val_loss:.5f} after {fit.steps} steps ({fit.seconds:.0f} s); "
-          f"checkpoints in {args.out}")  # fmt: skip
+    matcher, fit = train_matcher(
+        rig, train_recs, dev_recs, config, checkpoint_dir=args.out, resume=args.resume
+    )
+    print(
+        f"best validation loss {fit.best_val_loss:.5f} after {fit.steps} steps ({fit.seconds:.0f} s); "
+        f"checkpoints in {args.out}"
+    )
     import jax
 
     if jax.process_index() == 0:
         threshold, ari, composed = choose_matcher_threshold(matcher, dev_recs, seed=args.seed)
         write_proposal_threshold(args.out, threshold, ari, composed)
-        print(f"proposal threshold {threshold} (ARI {ari[threshold]:.4f} on multi-person frames composed from "
-              f"--dev; 0.5: {ari[0.5]:.4f}), used by `infer --matcher {args.out}`")  # fmt: skip
+        print(
+            f"proposal threshold {threshold} (ARI {ari[threshold]:.4f} on multi-person frames composed from "
+            f"--dev; 0.5: {ari[0.5]:.4f}), used by `infer --matcher {args.out}`"
+        )
     return 0
 
 
 def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
-    add_training_arguments(p, dev_help="validation recordings (default: the last 10%% of --train's frames)")
-    p.add_argument("--train-cameras", nargs="+", help="training cameras C_t (default: every camera of the rig)")
-    p.add_argument("--infer-cameras", nargs="+", help="inference cameras C_i, a subset of C_t (default: C_t)")
-    p.add_argument("--paper-size", action="store_true", help="the paper's widths (3072 ... 1024); default: quick")
-    p.add_argument("--output", choices=("absolute", "anchored", "residual"), default="residual",
-                   help="what the MLP predicts: absolute = the paper's; residual = offsets from the "
-                   "triangulated initial estimate (default; see models.MLPConfig)")  # fmt: skip
-    p.add_argument("--loss-power", type=float, default=1.0,
-                   help="per-sample loss e^power (paper: 2; 1 resists gross detector errors)")  # fmt: skip
-    p.add_argument("--augment", type=int, default=4, help="view-subset samples per seed sample (paper: 4)")
+    add_training_arguments(
+        p, dev_help="validation recordings (default: the last 10%% of --train's frames)"
+    )
+    p.add_argument(
+        "--train-cameras", nargs="+", help="training cameras C_t (default: every camera of the rig)"
+    )
+    p.add_argument(
+        "--infer-cameras", nargs="+", help="inference cameras C_i, a subset of C_t (default: C_t)"
+    )
+    p.add_argument(
+        "--paper-size",
+        action="store_true",
+        help="the paper's widths (3072 ... 1024); default: quick",
+    )
+    p.add_argument(
+        "--output",
+        choices=("absolute", "anchored", "residual"),
+        default="residual",
+        help="what the MLP predicts: absolute = the paper's; residual = offsets from the "
+        "triangulated initial estimate (default; see models.MLPConfig)",
+    )
+    p.add_argument(
+        "--loss-power",
+        type=float,
+        default=1.0,
+        help="per-sample loss e^power (paper: 2; 1 resists gross detector errors)",
+    )
+    p.add_argument(
+        "--augment", type=int, default=4, help="view-subset samples per seed sample (paper: 4)"
+    )
     p.add_argument("--steps", type=int, default=4000, help="training steps")
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--learning-rate", type=float, default=1e-3, help="Adam's initial step size")
     p.add_argument("--constant-lr", action="store_true", help="no cosine decay (the paper's)")
-    p.add_argument("--patience", type=int, default=20, help="validations without improvement before stopping")
+    p.add_argument(
+        "--patience", type=int, default=20, help="validations without improvement before stopping"
+    )
 
 
 @command(
@@ -366,20 +478,38 @@ def _train_estimator(args: argparse.Namespace) -> int:
         xy, score, dev_xy, dev_score = xy[:-n], score[:-n], xy[-n:], score[-n:]
     mlp = MLPConfig() if args.paper_size else MLPConfig.quick()
     config = EstimatorConfig(
-        train_cameras=train_cams, infer_cameras=infer_cams,
-        mlp=MLPConfig(widths=mlp.widths, output=args.output), num_augment=args.augment,
+        train_cameras=train_cams,
+        infer_cameras=infer_cams,
+        mlp=MLPConfig(widths=mlp.widths, output=args.output),
+        num_augment=args.augment,
         loss_power=args.loss_power,
-        train=TrainConfig(learning_rate=args.learning_rate, batch_size=args.batch_size,
-                          max_steps=args.steps, patience=args.patience, seed=args.seed,
-                          final_lr_fraction=1.0 if args.constant_lr else 0.01,
-                          num_devices=resolve_num_devices(args.devices), checkpoint_every_steps=args.checkpoint_every),
-    )  # fmt: skip
-    _, fit = train_estimator(rig.select(list(train_cams)), xy, score, dev_xy, dev_score, config,
-                             checkpoint_dir=args.out, resume=args.resume)  # fmt: skip
+        train=TrainConfig(
+            learning_rate=args.learning_rate,
+            batch_size=args.batch_size,
+            max_steps=args.steps,
+            patience=args.patience,
+            seed=args.seed,
+            final_lr_fraction=1.0 if args.constant_lr else 0.01,
+            num_devices=resolve_num_devices(args.devices),
+            checkpoint_every_steps=args.checkpoint_every,
+        ),
+    )
+    _, fit = train_estimator(
+        rig.select(list(train_cams)),
+        xy,
+        score,
+        dev_xy,
+        dev_score,
+        config,
+        checkpoint_dir=args.out,
+        resume=args.resume,
+    )
     best = min(fit.history, key=lambda h: h["val_loss"]) if fit.history else {}
-    print(f"{len(xy)} training people; best validation reprojection error "
-          f"{best.get('val_px_per_keypoint', float('nan')):.2f} px per keypoint after {fit.steps} steps "
-          f"({fit.seconds:.0f} s); checkpoints in {args.out}")  # fmt: skip
+    print(
+        f"{len(xy)} training people; best validation reprojection error "
+        f"{best.get('val_px_per_keypoint', float('nan')):.2f} px per keypoint after {fit.steps} steps "
+        f"({fit.seconds:.0f} s); checkpoints in {args.out}"
+    )
     return 0
 
 
@@ -401,30 +531,60 @@ def _load_detections(args: argparse.Namespace, rig):
 
 def _detection_arguments(p: argparse.ArgumentParser) -> None:
     add_rig_argument(p, default=None)
-    p.add_argument("--detections", required=True,
-                   help="2D detections: native JSON, the original repository's JSON, .npz, or an OpenPose "
-                   "folder (one subfolder per camera of per-frame *_keypoints.json, BODY_25 or COCO)")  # fmt: skip
-    p.add_argument("--layout", default=None,
-                   help="keypoint layout to work in (default: the file's; coco18 for OpenPose and the original format)")
-    p.add_argument("--missing-frames", choices=("error", "empty"), default=None,
-                   help="OpenPose folders: a frame missing in some cameras is an error (default) or empty there")
+    p.add_argument(
+        "--detections",
+        required=True,
+        help="2D detections: native JSON, the original repository's JSON, .npz, or an OpenPose "
+        "folder (one subfolder per camera of per-frame *_keypoints.json, BODY_25 or COCO)",
+    )
+    p.add_argument(
+        "--layout",
+        default=None,
+        help="keypoint layout to work in (default: the file's; coco18 for OpenPose and the original format)",
+    )
+    p.add_argument(
+        "--missing-frames",
+        choices=("error", "empty"),
+        default=None,
+        help="OpenPose folders: a frame missing in some cameras is an error (default) or empty there",
+    )
 
 
 def _infer_arguments(p: argparse.ArgumentParser) -> None:
     _detection_arguments(p)
-    p.add_argument("--cameras", nargs="+", help="use only these cameras of the recording (default: all)")
-    p.add_argument("--matcher", help="folder of a trained matcher (train-matcher --out); default: the geometric "
-                   "matcher (symmetric epipolar distance) on every camera")  # fmt: skip
-    p.add_argument("--estimator", help="folder of a trained estimator (train-estimator --out); default: "
-                   "triangulation of the keypoints seen in 2+ views")  # fmt: skip
-    p.add_argument("--method", choices=("dlt", "centroid"), default="dlt",
-                   help="triangulation without --estimator: score-weighted DLT, or the paper's pairwise centroid")
-    p.add_argument("--threshold", type=float, default=None,
-                   help="proposals: least match score to join two skeletons (default: the one train-matcher "
-                   "chose, in the --matcher folder's proposal_threshold.json; else 0.5, the paper's)")  # fmt: skip
+    p.add_argument(
+        "--cameras", nargs="+", help="use only these cameras of the recording (default: all)"
+    )
+    p.add_argument(
+        "--matcher",
+        help="folder of a trained matcher (train-matcher --out); default: the geometric "
+        "matcher (symmetric epipolar distance) on every camera",
+    )
+    p.add_argument(
+        "--estimator",
+        help="folder of a trained estimator (train-estimator --out); default: "
+        "triangulation of the keypoints seen in 2+ views",
+    )
+    p.add_argument(
+        "--method",
+        choices=("dlt", "centroid"),
+        default="dlt",
+        help="triangulation without --estimator: score-weighted DLT, or the paper's pairwise centroid",
+    )
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="proposals: least match score to join two skeletons (default: the one train-matcher "
+        "chose, in the --matcher folder's proposal_threshold.json; else 0.5, the paper's)",
+    )
     p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
-    p.add_argument("--half-score-px", type=float, default=30.0,
-                   help="geometric matcher: epipolar distance (px) that scores 0.5")
+    p.add_argument(
+        "--half-score-px",
+        type=float,
+        default=30.0,
+        help="geometric matcher: epipolar distance (px) that scores 0.5",
+    )
     p.add_argument("--chunk-frames", type=int, default=256, help="frames per batch (bounds memory)")
     p.add_argument("--out", required=True, help="output folder: poses.json and poses.npz")
 
@@ -449,17 +609,35 @@ def _infer(args: argparse.Namespace) -> int:
     estimator = load_estimator(args.estimator, rig) if args.estimator else None
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
-    res = run_pipeline(rig, rec.detections, matcher=matcher, estimator=estimator, method=args.method,
-                       threshold=read_proposal_threshold(args.matcher, args.threshold), min_views=args.min_views,
-                       half_score_px=args.half_score_px,
-                       chunk_frames=args.chunk_frames, progress=True)  # fmt: skip
-    out = PoseResults(res.poses, res.confidence, res.members, res.identity, res.cameras, rec.layout, rec.timestamps)
+    res = run_pipeline(
+        rig,
+        rec.detections,
+        matcher=matcher,
+        estimator=estimator,
+        method=args.method,
+        threshold=read_proposal_threshold(args.matcher, args.threshold),
+        min_views=args.min_views,
+        half_score_px=args.half_score_px,
+        chunk_frames=args.chunk_frames,
+        progress=True,
+    )
+    out = PoseResults(
+        res.poses,
+        res.confidence,
+        res.members,
+        res.identity,
+        res.cameras,
+        rec.layout,
+        rec.timestamps,
+    )
     npz_path, json_path = save_poses(out, args.out)
     F = len(res.confidence)
     people = int(np.asarray(res.poses.valid).sum())
-    print(f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame); proposals "
-          f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
-          f"ms/frame; wrote {json_path} and {npz_path}")  # fmt: skip
+    print(
+        f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame); proposals "
+        f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
+        f"ms/frame; wrote {json_path} and {npz_path}"
+    )
     return 0
 
 
@@ -477,18 +655,27 @@ def _poses_and_detections(args: argparse.Namespace):
     args.cameras = list(poses.cameras)
     rec, rig = _load_detections(args, rig_all)
     if rec.layout != poses.layout:
-        raise InputError(f"poses are in layout {poses.layout!r}, the detections in {rec.layout!r}; pass --layout",
-                         file=args.poses, field="layout")  # fmt: skip
+        raise InputError(
+            f"poses are in layout {poses.layout!r}, the detections in {rec.layout!r}; pass --layout",
+            file=args.poses,
+            field="layout",
+        )
     F, P = rec.num_frames, np.shape(rec.detections.score)[2]
     if len(poses.confidence) != F or poses.identity.shape[2] > P:
-        raise InputError(f"poses have {len(poses.confidence)} frames and {poses.identity.shape[2]} skeletons per "
-                         f"view; the detections {F} and {P}", file=args.poses, field="frames")  # fmt: skip
+        raise InputError(
+            f"poses have {len(poses.confidence)} frames and {poses.identity.shape[2]} skeletons per "
+            f"view; the detections {F} and {P}",
+            file=args.poses,
+            field="frames",
+        )
     return poses, rec, rig
 
 
 def _evaluate_arguments(p: argparse.ArgumentParser) -> None:
     _detection_arguments(p)
-    p.add_argument("--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer")
+    p.add_argument(
+        "--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer"
+    )
     p.add_argument("--out", help="also write the metrics to this JSON file")
 
 
@@ -511,23 +698,35 @@ def _evaluate(args: argparse.Namespace) -> int:
     F = rec.num_frames
     out = {"frames": F, "people": int(poses.poses.valid.sum())}
     if rec.ground_truth is not None:
-        out["pose"] = pose_metrics(poses.poses, rec.ground_truth, layout=rec.layout, confidence=poses.confidence)
+        out["pose"] = pose_metrics(
+            poses.poses, rec.ground_truth, layout=rec.layout, confidence=poses.confidence
+        )
     if rec.identity is not None:
         P = np.shape(rec.detections.score)[2]
-        ident = np.pad(poses.identity, [(0, 0), (0, 0), (0, P - poses.identity.shape[2])], constant_values=-1)
-        out["matching"] = matching_scores(np.asarray(rec.identity), ident, np.asarray(rec.detections.count))
+        ident = np.pad(
+            poses.identity, [(0, 0), (0, 0), (0, P - poses.identity.shape[2])], constant_values=-1
+        )
+        out["matching"] = matching_scores(
+            np.asarray(rec.identity), ident, np.asarray(rec.detections.count)
+        )
     p_xy, p_sc = group_people(rec.detections.xy, rec.detections.score, poses.members)
     v = np.asarray(poses.poses.valid)
-    out["reprojection_px"] = reprojection_errors(rig, poses.poses.xyz[v], poses.poses.keypoint_valid[v], p_xy[v], p_sc[v])
+    out["reprojection_px"] = reprojection_errors(
+        rig, poses.poses.xyz[v], poses.poses.keypoint_valid[v], p_xy[v], p_sc[v]
+    )
     lines = [f"{F} frames, {out['people']} people"]
     if "pose" in out:
         m = out["pose"]
-        lines.append(f"3D vs ground truth: MPJPE {m['mpjpe_mm']:.2f} mm, mAP {m['map']:.2f}, mean recall "
-                     f"{m['mean_recall']:.2f}, PCP {m['pcp']:.2f}, completeness {m['completeness']:.2f} %")  # fmt: skip
+        lines.append(
+            f"3D vs ground truth: MPJPE {m['mpjpe_mm']:.2f} mm, mAP {m['map']:.2f}, mean recall "
+            f"{m['mean_recall']:.2f}, PCP {m['pcp']:.2f}, completeness {m['completeness']:.2f} %"
+        )
     if "matching" in out:
         m = out["matching"]
-        lines.append(f"matching vs true identities: ARI {m['ari']:.4f}, H {m['homogeneity']:.4f}, "
-                     f"C {m['completeness']:.4f}, Vm {m['v_measure']:.4f}")  # fmt: skip
+        lines.append(
+            f"matching vs true identities: ARI {m['ari']:.4f}, H {m['homogeneity']:.4f}, "
+            f"C {m['completeness']:.4f}, Vm {m['v_measure']:.4f}"
+        )
     lines.append("reprojection error (px, mean / median / keypoints):")
     for cam, e in out["reprojection_px"].items():
         lines.append(f"  {cam:>12s}  {e['mean']:8.2f} / {e['median']:8.2f} / {int(e['count'])}")
@@ -539,15 +738,30 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 def _render_arguments(p: argparse.ArgumentParser) -> None:
     _detection_arguments(p)
-    p.add_argument("--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer")
-    p.add_argument("--out", required=True, help="output folder (per-frame PNGs, figures) or an .mp4 file")
-    p.add_argument("--frames", type=int, nargs="+", help="frames to draw (default: every --every-th frame)")
+    p.add_argument(
+        "--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer"
+    )
+    p.add_argument(
+        "--out", required=True, help="output folder (per-frame PNGs, figures) or an .mp4 file"
+    )
+    p.add_argument(
+        "--frames", type=int, nargs="+", help="frames to draw (default: every --every-th frame)"
+    )
     p.add_argument("--every", type=int, default=1, help="draw every N-th frame (default 1)")
-    p.add_argument("--images", help="folder of the camera images (the recording's image names, relative to it); "
-                   "default: a white canvas")  # fmt: skip
-    p.add_argument("--scale", type=float, default=0.5, help="size of each camera view (default 0.5)")
+    p.add_argument(
+        "--images",
+        help="folder of the camera images (the recording's image names, relative to it); "
+        "default: a white canvas",
+    )
+    p.add_argument(
+        "--scale", type=float, default=0.5, help="size of each camera view (default 0.5)"
+    )
     p.add_argument("--fps", type=float, default=25.0, help="frame rate of an .mp4")
-    p.add_argument("--figures-3d", action="store_true", help="also a 3D skeleton figure per frame (folder output)")
+    p.add_argument(
+        "--figures-3d",
+        action="store_true",
+        help="also a 3D skeleton figure per frame (folder output)",
+    )
 
 
 @command(
@@ -602,11 +816,30 @@ def _render(args: argparse.Namespace) -> int:
             n = int(count[f, c])
             ident = poses.identity[f, c, :n] if n <= P else np.full(n, -1)
             xyz = np.where(v[:, None, None], poses.poses.xyz[f], np.nan)
-            views.append(draw_view(rig, c, rec.layout, image=image_of(f, c), detections=(xy[f, c, :n], score[f, c, :n]),
-                                   identity=ident, xyz=xyz, keypoint_valid=poses.poses.keypoint_valid[f] & v[:, None],
-                                   scale=args.scale))  # fmt: skip
+            views.append(
+                draw_view(
+                    rig,
+                    c,
+                    rec.layout,
+                    image=image_of(f, c),
+                    detections=(xy[f, c, :n], score[f, c, :n]),
+                    identity=ident,
+                    xyz=xyz,
+                    keypoint_valid=poses.poses.keypoint_valid[f] & v[:, None],
+                    scale=args.scale,
+                )
+            )
         img = tile(views)
-        cv2.putText(img, f"frame {f}", (8, img.shape[0] - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (40, 40, 40), 1, cv2.LINE_AA)
+        cv2.putText(
+            img,
+            f"frame {f}",
+            (8, img.shape[0] - 10),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.6,
+            (40, 40, 40),
+            1,
+            cv2.LINE_AA,
+        )
         return img
 
     written = 0
@@ -624,9 +857,17 @@ def _render(args: argparse.Namespace) -> int:
             panels = {"ours": (poses.poses.xyz[f][v], poses.poses.keypoint_valid[f][v])}
             if rec.ground_truth is not None:
                 gv = np.asarray(rec.ground_truth.valid[f])
-                panels = {"ground truth": (np.asarray(rec.ground_truth.xyz[f])[gv],
-                                           np.asarray(rec.ground_truth.keypoint_valid[f])[gv]), **panels}  # fmt: skip
-            save_figure(skeleton_figure(panels, rec.layout, rig=rig, title=f"frame {f}"), out / f"frame_{f:06d}_3d.png")
+                panels = {
+                    "ground truth": (
+                        np.asarray(rec.ground_truth.xyz[f])[gv],
+                        np.asarray(rec.ground_truth.keypoint_valid[f])[gv],
+                    ),
+                    **panels,
+                }
+            save_figure(
+                skeleton_figure(panels, rec.layout, rig=rig, title=f"frame {f}"),
+                out / f"frame_{f:06d}_3d.png",
+            )
         written += 1
     print(f"wrote {written} frames to {out}")
     return 0

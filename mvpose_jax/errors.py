@@ -44,7 +44,7 @@ class InputError(MvposeError, ValueError):
         prefix = ", ".join(where)
         super().__init__(f"{prefix}: {reason}" if prefix else reason)
 
-    def at(self, **where) -> "InputError":
+    def at(self, **where) -> InputError:
         """Returns a copy with missing location parts filled in (existing ones win)."""
         merged = dict(file=self.file, frame=self.frame, camera=self.camera, field=self.field)
         for k, v in where.items():

@@ -83,7 +83,9 @@ class EstimatorInputs(NamedTuple):
 
 
 @jax.jit
-def estimator_inputs(rig: Rig, xy: jax.Array, score: jax.Array, normalisation=None) -> EstimatorInputs:
+def estimator_inputs(
+    rig: Rig, xy: jax.Array, score: jax.Array, normalisation=None
+) -> EstimatorInputs:
     """Per-person inputs of the 3D estimator, before view selection.
 
     Args:
@@ -97,8 +99,11 @@ def estimator_inputs(rig: Rig, xy: jax.Array, score: jax.Array, normalisation=No
       `EstimatorInputs`.
     """
     centre, radius = rig_centre_and_radius(rig) if normalisation is None else normalisation
-    keypoint = jnp.moveaxis(keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0), (centre, radius)),
-                            0, 1)  # fmt: skip
+    keypoint = jnp.moveaxis(
+        keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0), (centre, radius)),
+        0,
+        1,
+    )
     pair_xyz, pair_ok = triangulate_pairs(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))
     pair_xyz = jnp.where(pair_ok[..., None], (pair_xyz - centre.reshape(1, 1, 1, 3)) / radius, 0.0)
     return EstimatorInputs(keypoint, pair_xyz, pair_ok)
@@ -172,9 +177,13 @@ def single_person_samples(
     for r, rec in enumerate(recordings):
         missing = [c for c in cameras if c not in rec.cameras]
         if missing:
-            raise InputError(f"recording {r} lacks cameras {missing}", camera=missing[0], field="cameras")
+            raise InputError(
+                f"recording {r} lacks cameras {missing}", camera=missing[0], field="cameras"
+            )
         idx = [list(rec.cameras).index(c) for c in cameras]
-        m_xy, m_score = main_skeletons(np.asarray(rec.detections.xy)[:, idx], np.asarray(rec.detections.score)[:, idx])
+        m_xy, m_score = main_skeletons(
+            np.asarray(rec.detections.xy)[:, idx], np.asarray(rec.detections.score)[:, idx]
+        )
         xy.append(m_xy)
         score.append(m_score)
     return np.concatenate(xy), np.concatenate(score)

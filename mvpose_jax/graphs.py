@@ -121,13 +121,17 @@ def detection_features(rig: Rig, xy: np.ndarray, score: np.ndarray) -> np.ndarra
     # One jit call with the axis moves inside: run eagerly, each move was a dispatch of its own,
     # and together they cost more than the features of a frame.
     # np.array: a writable copy, as before (np.asarray of a jax.Array is read-only).
-    return np.array(_detection_features(rig, np.asarray(xy, np.float32), np.asarray(score, np.float32)))
+    return np.array(
+        _detection_features(rig, np.asarray(xy, np.float32), np.asarray(score, np.float32))
+    )
 
 
 @jax.jit
 def _detection_features(rig: Rig, xy: jax.Array, score: jax.Array) -> jax.Array:
     F, C, P, K = score.shape
-    feats = keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))  # (C, F, P, K, 10)
+    feats = keypoint_features(
+        rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)
+    )  # (C, F, P, K, 10)
     return jnp.moveaxis(feats, 0, 1).reshape(F, C, P, K * NUM_KEYPOINT_FEATURES)
 
 
@@ -204,8 +208,9 @@ def build_graphs(
     if budget.nodes <= N_real or budget.edges < E_real or budget.graphs <= F or budget.dets < D:
         raise InputError(
             f"budget {budget} too small for {N_real} nodes, {D} detections, {E_real} edges, "
-            f"{F} graphs", field="budget",
-        )  # fmt: skip
+            f"{F} graphs",
+            field="budget",
+        )
     N, E, G, Db = budget.nodes, budget.edges, budget.graphs, budget.dets
     pad_node = N_real  # first padding node: jraph points every padding edge at it
 
@@ -286,7 +291,9 @@ def match_table(batch: GraphBatch, scores: np.ndarray) -> np.ndarray:
     pair = np.asarray(batch.pair)[is_match]
     cam, skel = np.asarray(batch.node_camera), np.asarray(batch.node_skeleton)
     frame = node_graph(batch)[is_match]
-    rows = np.stack([frame, cam[pair[:, 0]], skel[pair[:, 0]], cam[pair[:, 1]], skel[pair[:, 1]]], axis=1)
+    rows = np.stack(
+        [frame, cam[pair[:, 0]], skel[pair[:, 0]], cam[pair[:, 1]], skel[pair[:, 1]]], axis=1
+    )
     return rows.astype(np.int64), np.asarray(scores)[is_match]
 
 
@@ -330,9 +337,13 @@ def make_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
     for r, rec in enumerate(recordings):
         missing = [c for c in rig.names if c not in rec.cameras]
         if missing:
-            raise InputError(f"recording {r} lacks cameras {missing}", camera=missing[0], field="cameras")
+            raise InputError(
+                f"recording {r} lacks cameras {missing}", camera=missing[0], field="cameras"
+            )
         if K is not None and rec.num_keypoints != K:
-            raise InputError(f"recording {r} has {rec.num_keypoints} keypoints, others {K}", field="layout")
+            raise InputError(
+                f"recording {r} has {rec.num_keypoints} keypoints, others {K}", field="layout"
+            )
         K = rec.num_keypoints
         idx = np.array([rec.cameras.index(c) for c in rig.names])
         det = rec.detections
@@ -448,7 +459,9 @@ def sample_batches(
     **compose_kwargs,
 ) -> list[GraphBatch]:
     """``num_batches`` padded training batches of ``graphs_per_batch`` composed frames each."""
-    feats, valid, identity = compose_samples(pool, rng, num_batches * graphs_per_batch, **compose_kwargs)
+    feats, valid, identity = compose_samples(
+        pool, rng, num_batches * graphs_per_batch, **compose_kwargs
+    )
     out = []
     for b in range(num_batches):
         sl = slice(b * graphs_per_batch, (b + 1) * graphs_per_batch)
@@ -512,7 +525,9 @@ def split_graph_batch(batch: GraphBatch, num_shards: int) -> tuple[GraphBatch, n
             out[:count] = a[start : start + count] - shift
             return out
 
-        counts = lambda a, total, used: np.concatenate([a[g0:g1], [total - used], np.zeros(G - k - 1, a.dtype)])  # noqa: E731
+        def counts(a, total, used, g0=g0, g1=g1, k=k):
+            return np.concatenate([a[g0:g1], [total - used], np.zeros(G - k - 1, a.dtype)])
+
         graphs = g._replace(
             nodes=fill(g.nodes, N, 0, n, n0),
             senders=fill(g.senders, E, pad_node, e, e0, n0),
@@ -522,17 +537,19 @@ def split_graph_batch(batch: GraphBatch, num_shards: int) -> tuple[GraphBatch, n
         )
         pair = fill(b.pair, N, -1, n, n0)
         pair[:n] = np.where(b.pair[n0:n1] >= 0, b.pair[n0:n1] - n0, -1)
-        shards.append(GraphBatch(
-            graphs=graphs,
-            det_features=fill(b.det_features, D, 0, d, d0),
-            det_node=fill(b.det_node, D, pad_node, d, d0, n0),
-            det_mask=np.arange(D) < d,
-            node_mask=np.arange(N) < n,
-            is_match=fill(b.is_match, N, False, n, n0),
-            label=fill(b.label, N, 0, n, n0),
-            pair=pair,
-            node_camera=fill(b.node_camera, N, -1, n, n0),
-            node_skeleton=fill(b.node_skeleton, N, -1, n, n0),
-        ))  # fmt: skip
+        shards.append(
+            GraphBatch(
+                graphs=graphs,
+                det_features=fill(b.det_features, D, 0, d, d0),
+                det_node=fill(b.det_node, D, pad_node, d, d0, n0),
+                det_mask=np.arange(D) < d,
+                node_mask=np.arange(N) < n,
+                is_match=fill(b.is_match, N, False, n, n0),
+                label=fill(b.label, N, 0, n, n0),
+                pair=pair,
+                node_camera=fill(b.node_camera, N, -1, n, n0),
+                node_skeleton=fill(b.node_skeleton, N, -1, n, n0),
+            )
+        )
         origin[s, :n] = np.arange(n0, n1)
     return jax.tree.map(lambda *a: np.stack(a), *shards), origin

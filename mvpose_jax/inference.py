@@ -80,7 +80,11 @@ def _predict(graphdef, rest, params, rig: Rig, normalisation, xy, score):
 
 
 def predict_people(
-    estimator: Estimator, xy: np.ndarray, score: np.ndarray, *, mesh: jax.sharding.Mesh | None = None
+    estimator: Estimator,
+    xy: np.ndarray,
+    score: np.ndarray,
+    *,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> np.ndarray:
     """3D keypoints of N people from their views in the estimator's inference cameras.
 
@@ -94,16 +98,32 @@ def predict_people(
     """
     xy_p, score_p = _pad_people(xy, score)
     if mesh is None:
-        out = _predict(estimator.graphdef, estimator.rest, estimator.params, estimator.rig_infer,
-                       estimator.normalisation, xy_p, score_p)  # fmt: skip
+        out = _predict(
+            estimator.graphdef,
+            estimator.rest,
+            estimator.params,
+            estimator.rig_infer,
+            estimator.normalisation,
+            xy_p,
+            score_p,
+        )
         return np.asarray(out)[: len(xy)]
     # Local imports: this function is the only place inference needs the mesh helpers.
     from mvpose_jax.parallel import mesh_size, pad_leading, replicate, shard_batch, to_host
 
     n = mesh_size(mesh)
-    xy_p, score_p = shard_batch(mesh, (pad_leading(xy_p, n), pad_leading(score_p, n)))  # (B, ...) split
-    out = _predict(estimator.graphdef, estimator.rest, replicate(mesh, estimator.params), estimator.rig_infer,
-                   replicate(mesh, estimator.normalisation), xy_p, score_p)  # fmt: skip
+    xy_p, score_p = shard_batch(
+        mesh, (pad_leading(xy_p, n), pad_leading(score_p, n))
+    )  # (B, ...) split
+    out = _predict(
+        estimator.graphdef,
+        estimator.rest,
+        replicate(mesh, estimator.params),
+        estimator.rig_infer,
+        replicate(mesh, estimator.normalisation),
+        xy_p,
+        score_p,
+    )
     return to_host(out)[: len(xy)]
 
 
@@ -138,9 +158,7 @@ def triangulate_people(
     return np.asarray(xyz)[: len(xy)], np.asarray(ok)[: len(xy)]
 
 
-def poses_from_people(
-    xyz: np.ndarray, keypoint_valid: np.ndarray, exists: np.ndarray
-) -> Poses3D:
+def poses_from_people(xyz: np.ndarray, keypoint_valid: np.ndarray, exists: np.ndarray) -> Poses3D:
     """Packs per-person results (F, G, K, 3) / (F, G, K) / (F, G) into `Poses3D` (numpy).
 
     The one gate every 3D result leaves through: a non-finite keypoint (degenerate geometry) is
@@ -150,7 +168,9 @@ def poses_from_people(
     xyz = np.asarray(xyz)
     kv = keypoint_valid & exists[..., None] & np.isfinite(xyz).all(axis=-1)
     exists = exists & kv.any(axis=-1)
-    return Poses3D(np.where(kv[..., None], xyz, 0.0).astype(np.float32), exists.astype(bool), kv.astype(bool))
+    return Poses3D(
+        np.where(kv[..., None], xyz, 0.0).astype(np.float32), exists.astype(bool), kv.astype(bool)
+    )
 
 
 def estimate_grouped(
@@ -215,7 +235,9 @@ def _match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
     return bound_model_fn(_match_scores_fn, graphdef)(rest, params, batch)
 
 
-def match_scores(matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh | None = None) -> np.ndarray:
+def match_scores(
+    matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh | None = None
+) -> np.ndarray:
     """The matcher's (N,) node scores for a padded batch of graphs (one jit call).
 
     With a data ``mesh`` (`parallel.make_data_mesh`) the graphs are split, whole, over its
@@ -230,8 +252,9 @@ def match_scores(matcher: Matcher, batch: GraphBatch, *, mesh: jax.sharding.Mesh
     from mvpose_jax.parallel import mesh_size, replicate, shard_batch, to_host
 
     stacked, origin = split_graph_batch(batch, mesh_size(mesh))  # (S, ...), origin (S, N_s)
-    out = stacked_match_scores(matcher.graphdef, matcher.rest, replicate(mesh, matcher.params),
-                               shard_batch(mesh, stacked))  # fmt: skip
+    out = stacked_match_scores(
+        matcher.graphdef, matcher.rest, replicate(mesh, matcher.params), shard_batch(mesh, stacked)
+    )
     scores = np.zeros(np.shape(batch.node_mask), np.float32)
     real = origin >= 0
     scores[origin[real]] = to_host(out)[real]
@@ -248,8 +271,9 @@ class _FrameGraphs(NamedTuple):
     rows: np.ndarray  # (M, 5) their ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``
 
 
-def _frame_graphs(count_bytes: bytes, num_frames: int, num_cameras: int, num_skeletons: int,
-                  num_graphs: int) -> _FrameGraphs:  # fmt: skip
+def _frame_graphs(
+    count_bytes: bytes, num_frames: int, num_cameras: int, num_skeletons: int, num_graphs: int
+) -> _FrameGraphs:
     """The graphs of frames with these skeleton counts ((F, C) int64 as bytes)."""
     F, C, P = num_frames, num_cameras, num_skeletons
     count = np.frombuffer(count_bytes, np.int64).reshape(F, C)
@@ -260,8 +284,13 @@ def _frame_graphs(count_bytes: bytes, num_frames: int, num_cameras: int, num_ske
     cam, skel = batch.node_camera[node], batch.node_skeleton[node]
     source = np.where(batch.det_mask, (frame * C + cam) * P + skel, 0).astype(np.int32)
     rows, _ = match_table(batch, np.zeros(len(batch.node_mask), np.float32))
-    return _FrameGraphs(jax.device_put(batch), jax.device_put(source), jax.device_put(np.maximum(cam, 0)),
-                        np.flatnonzero(batch.is_match), rows)  # fmt: skip
+    return _FrameGraphs(
+        jax.device_put(batch),
+        jax.device_put(source),
+        jax.device_put(np.maximum(cam, 0)),
+        np.flatnonzero(batch.is_match),
+        rows,
+    )
 
 
 class _GraphCache:
@@ -277,7 +306,9 @@ class _GraphCache:
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
-        self._entries: collections.OrderedDict[tuple, tuple[_FrameGraphs, int]] = collections.OrderedDict()
+        self._entries: collections.OrderedDict[tuple, tuple[_FrameGraphs, int]] = (
+            collections.OrderedDict()
+        )
         self._bytes = 0
 
     @staticmethod
@@ -307,15 +338,21 @@ class _GraphCache:
 _single_frame_graphs = _GraphCache(max_bytes=64 << 20)
 
 
-def _frame_scores_fn(graphdef, rest, params, rig: Rig, xy, score, batch: GraphBatch, det_source, det_camera):
+def _frame_scores_fn(
+    graphdef, rest, params, rig: Rig, xy, score, batch: GraphBatch, det_source, det_camera
+):
     """Detection features (`graphs.detection_features`) and the GAT in one call.
 
     xy (F, C, P, K, 2), score (F, C, P, K) -> (N,) node scores of ``batch`` (the same numbers as
     `match_scores` on the batch `graphs.build_graphs` makes from the features).
     """
     F, C, P, K = score.shape
-    feats = keypoint_features(rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))  # (C, F, P, K, 10)
-    rows = jnp.moveaxis(feats, 0, 1).reshape(F * C * P, K * NUM_KEYPOINT_FEATURES)[det_source]  # (D, K*10)
+    feats = keypoint_features(
+        rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)
+    )  # (C, F, P, K, 10)
+    rows = jnp.moveaxis(feats, 0, 1).reshape(F * C * P, K * NUM_KEYPOINT_FEATURES)[
+        det_source
+    ]  # (D, K*10)
     in_slot = (det_camera[:, None] == jnp.arange(C)[None]) & batch.det_mask[:, None]  # (D, C)
     det = jnp.where(in_slot[..., None], rows[:, None, :], 0.0).reshape(rows.shape[0], -1)
     return nnx.merge(graphdef, params, rest)(batch._replace(det_features=det))
@@ -343,8 +380,10 @@ def gat_match_table(
     score = np.asarray(detections.score, np.float32)
     count = np.asarray(detections.count, np.int64)
     F, C, P, K = score.shape
-    if C != matcher.rig.num_cameras:
-        raise InputError(f"detections have {C} cameras, the matcher {matcher.rig.num_cameras}", field="cameras")
+    if matcher.rig.num_cameras != C:
+        raise InputError(
+            f"detections have {C} cameras, the matcher {matcher.rig.num_cameras}", field="cameras"
+        )
     scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef)
     rows, scores = [], []
     for start in range(0, F, frames_per_call):
@@ -353,12 +392,26 @@ def gat_match_table(
         n_graphs = min(frames_per_call, next_power_of_two(stop - start))
         xy_c, score_c = xy[start:stop], score[start:stop]
         if n_graphs > stop - start:
-            xy_c = np.concatenate([xy_c, np.zeros((n_graphs - (stop - start),) + xy.shape[1:], np.float32)])
-            score_c = np.concatenate([score_c, np.zeros((n_graphs - (stop - start),) + score.shape[1:], np.float32)])
+            xy_c = np.concatenate(
+                [xy_c, np.zeros((n_graphs - (stop - start),) + xy.shape[1:], np.float32)]
+            )
+            score_c = np.concatenate(
+                [score_c, np.zeros((n_graphs - (stop - start),) + score.shape[1:], np.float32)]
+            )
         build = _single_frame_graphs if stop - start == 1 else _frame_graphs
-        graphs = build(np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, P, n_graphs)
-        out = scores_fn(matcher.rest, matcher.params, matcher.rig, xy_c, score_c, graphs.batch,
-                        graphs.det_source, graphs.det_camera)  # fmt: skip
+        graphs = build(
+            np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, P, n_graphs
+        )
+        out = scores_fn(
+            matcher.rest,
+            matcher.params,
+            matcher.rig,
+            xy_c,
+            score_c,
+            graphs.batch,
+            graphs.det_source,
+            graphs.det_camera,
+        )
         r = graphs.rows.copy()
         r[:, 0] += start
         rows.append(r)
@@ -382,7 +435,9 @@ def _epipolar_distances(rig: Rig, xy: jax.Array, score: jax.Array, *, min_shared
     for i, j in camera_pairs(rig.num_cameras):
         r_rel = rig.R[j] @ rig.R[i].T
         t_rel = rig.t[j] - r_rel @ rig.t[i]
-        tx = jnp.array([[0.0, -t_rel[2], t_rel[1]], [t_rel[2], 0.0, -t_rel[0]], [-t_rel[1], t_rel[0], 0.0]])
+        tx = jnp.array(
+            [[0.0, -t_rel[2], t_rel[1]], [t_rel[2], 0.0, -t_rel[0]], [-t_rel[1], t_rel[0], 0.0]]
+        )
         fund = k_inv[j].T @ tx @ r_rel @ k_inv[i]  # x_j^T F x_i = 0
         line_j = jnp.einsum("ab,fpkb->fpka", fund, u_h[i])  # lines in view j of view i's points
         line_i = jnp.einsum("ba,fqkb->fqka", fund, u_h[j])
@@ -417,7 +472,9 @@ def geometric_match_table(
     Returns:
       rows (M, 5) and scores (M,), as `gat_match_table`.
     """
-    rows, d = epipolar_match_distances(rig, detections, min_shared=min_shared, frames_per_call=frames_per_call)
+    rows, d = epipolar_match_distances(
+        rig, detections, min_shared=min_shared, frames_per_call=frames_per_call
+    )
     return rows, np.exp2(-d / half_score_px).astype(np.float32)
 
 
@@ -442,10 +499,16 @@ def epipolar_match_distances(
     dist = []
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
-        pad = [(0, min(frames_per_call, next_power_of_two(stop - start)) - (stop - start))] + [(0, 0)] * 3
+        pad = [(0, min(frames_per_call, next_power_of_two(stop - start)) - (stop - start))] + [
+            (0, 0)
+        ] * 3
         xy_c = np.moveaxis(np.pad(xy[start:stop], pad + [(0, 0)]), 1, 0)
         sc_c = np.moveaxis(np.pad(score[start:stop], pad), 1, 0)
-        dist.append(np.asarray(_epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared))[:, : stop - start])
+        dist.append(
+            np.asarray(_epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared))[
+                :, : stop - start
+            ]
+        )
     dist = np.concatenate(dist, axis=1)  # (Q, F, P, P)
     ok = np.arange(P)[None, None] < count[..., None]  # (F, C, P)
     both = ok[:, pairs[:, 0], :, None] & ok[:, pairs[:, 1], None, :]  # (F, Q, P, P)
@@ -481,21 +544,32 @@ def composed_frames(
     """
     pool = make_pool(rig, recordings)
     _, valid, ident, xy, score = compose_samples(
-        pool, np.random.default_rng([seed, 1 << 29]), num_samples, max_people=max_people,
-        subset_probability=subset_probability, min_views=min_views, keypoint_dropout=keypoint_dropout,
+        pool,
+        np.random.default_rng([seed, 1 << 29]),
+        num_samples,
+        max_people=max_people,
+        subset_probability=subset_probability,
+        min_views=min_views,
+        keypoint_dropout=keypoint_dropout,
         with_detections=True,
-    )  # fmt: skip
+    )
     # Each view's skeletons first, padding after: the layout `count` describes.
     order = np.argsort(~valid, axis=-1, kind="stable")
     valid = np.take_along_axis(valid, order, axis=-1)
     xy = np.take_along_axis(xy, order[..., None, None], axis=2)
     score = np.take_along_axis(score, order[..., None], axis=2)
     ident = np.where(valid, np.take_along_axis(ident, order, axis=-1), -1)
-    return Detections(xy.astype(np.float32), score.astype(np.float32), valid.sum(-1).astype(np.int32)), ident
+    return Detections(
+        xy.astype(np.float32), score.astype(np.float32), valid.sum(-1).astype(np.int32)
+    ), ident
 
 
 def composed_match_table(
-    matcher: Matcher, recordings: Sequence, *, num_samples: int = 1024, seed: int = 0,
+    matcher: Matcher,
+    recordings: Sequence,
+    *,
+    num_samples: int = 1024,
+    seed: int = 0,
     frames_per_call: int = FRAMES_PER_CALL,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The matcher's scores on frames composed from single-person recordings (`composed_frames`,
@@ -505,45 +579,68 @@ def composed_match_table(
       rows (M, 5) and scores (M,) as `gat_match_table`, identity (S, C, Q) and count (S, C).
     """
     cfg = matcher.config
-    det, ident = composed_frames(matcher.rig, recordings, num_samples=num_samples, seed=seed,
-                                 max_people=cfg.max_people, subset_probability=cfg.subset_probability,
-                                 min_views=cfg.min_views, keypoint_dropout=cfg.keypoint_dropout)  # fmt: skip
+    det, ident = composed_frames(
+        matcher.rig,
+        recordings,
+        num_samples=num_samples,
+        seed=seed,
+        max_people=cfg.max_people,
+        subset_probability=cfg.subset_probability,
+        min_views=cfg.min_views,
+        keypoint_dropout=cfg.keypoint_dropout,
+    )
     rows, scores = gat_match_table(matcher, det, frames_per_call=frames_per_call)
     return rows, scores, ident, np.asarray(det.count)
 
 
-def choose_matcher_threshold(matcher: Matcher, dev_recordings: Sequence, *, num_samples: int = 1024,
-                             seed: int = 0) -> tuple[float, dict[float, float], int]:  # fmt: skip
+def choose_matcher_threshold(
+    matcher: Matcher, dev_recordings: Sequence, *, num_samples: int = 1024, seed: int = 0
+) -> tuple[float, dict[float, float], int]:
     """A matcher's proposal threshold, chosen on frames composed from held-out single-person
     recordings (`composed_match_table`, `proposals.choose_proposal_threshold`).
 
     Returns:
       (the threshold, {threshold: per-frame ARI}, number of composed frames).
     """
-    rows, scores, identity, count = composed_match_table(matcher, dev_recordings, num_samples=num_samples, seed=seed)
+    rows, scores, identity, count = composed_match_table(
+        matcher, dev_recordings, num_samples=num_samples, seed=seed
+    )
     threshold, ari = choose_proposal_threshold(rows, scores, identity, count)
     return threshold, ari, len(count)
 
 
-def propose_with_matcher(matcher: Matcher, detections: Detections, *, threshold: float = 0.5,
-                         min_views: int = 2) -> Proposals:  # fmt: skip
+def propose_with_matcher(
+    matcher: Matcher, detections: Detections, *, threshold: float = 0.5, min_views: int = 2
+) -> Proposals:
     """`gat_match_table` then `propose_people` (single-camera matchers: one person per skeleton)."""
     count = np.asarray(detections.count)
     if matcher.rig.num_cameras == 1:
         rows, scores = np.zeros((0, 5), np.int64), np.zeros(0)
     else:
         rows, scores = gat_match_table(matcher, detections)
-    return propose_people(rows, scores, count, num_skeletons=np.shape(detections.score)[2],
-                          threshold=threshold, min_views=min_views)  # fmt: skip
+    return propose_people(
+        rows,
+        scores,
+        count,
+        num_skeletons=np.shape(detections.score)[2],
+        threshold=threshold,
+        min_views=min_views,
+    )
 
 
-def propose_geometric(rig: Rig, detections: Detections, *, threshold: float = 0.5, min_views: int = 2,
-                      **kwargs) -> Proposals:  # fmt: skip
+def propose_geometric(
+    rig: Rig, detections: Detections, *, threshold: float = 0.5, min_views: int = 2, **kwargs
+) -> Proposals:
     """`geometric_match_table` then `propose_people`."""
     rows, scores = geometric_match_table(rig, detections, **kwargs)
-    return propose_people(rows, scores, np.asarray(detections.count), num_skeletons=np.shape(detections.score)[2],
-                          threshold=threshold, min_views=min_views)  # fmt: skip
-
+    return propose_people(
+        rows,
+        scores,
+        np.asarray(detections.count),
+        num_skeletons=np.shape(detections.score)[2],
+        threshold=threshold,
+        min_views=min_views,
+    )
 
 
 # =========================================================================== the pipeline
@@ -572,7 +669,9 @@ class PipelineResult(NamedTuple):
     seconds: dict[str, float]
 
 
-def group_people(xy: np.ndarray, score: np.ndarray, members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def group_people(
+    xy: np.ndarray, score: np.ndarray, members: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Gathers each proposed person's skeletons: xy (F, C, P, K, 2), score (F, C, P, K) and
     members (F, G, C) -> xy (F, G, C, K, 2), score (F, G, C, K) (zeros where a person has no
     skeleton in a camera)."""
@@ -581,8 +680,10 @@ def group_people(xy: np.ndarray, score: np.ndarray, members: np.ndarray) -> tupl
     c = np.arange(C)[None, None, :]
     p = np.maximum(members, 0)
     have = members >= 0
-    return (np.where(have[..., None, None], np.asarray(xy)[f, c, p], 0.0).astype(np.float32),
-            np.where(have[..., None], np.asarray(score)[f, c, p], 0.0).astype(np.float32))  # fmt: skip
+    return (
+        np.where(have[..., None, None], np.asarray(xy)[f, c, p], 0.0).astype(np.float32),
+        np.where(have[..., None], np.asarray(score)[f, c, p], 0.0).astype(np.float32),
+    )
 
 
 def poses_of_members(
@@ -618,8 +719,10 @@ def poses_of_members(
 def _camera_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
     missing = [c for c in wanted if c not in names]
     if missing:
-        raise InputError(f"{what} cameras {missing} are not among the detections' cameras {list(names)}",
-                         field="cameras")  # fmt: skip
+        raise InputError(
+            f"{what} cameras {missing} are not among the detections' cameras {list(names)}",
+            field="cameras",
+        )
     return [list(names).index(c) for c in wanted]
 
 
@@ -655,15 +758,23 @@ def stream_pipeline(
     score = np.asarray(detections.score, np.float32)
     count = np.asarray(detections.count)
     if xy.shape[1] != rig.num_cameras:
-        raise InputError(f"detections have {xy.shape[1]} cameras, the rig {rig.num_cameras}", field="cameras")
+        raise InputError(
+            f"detections have {xy.shape[1]} cameras, the rig {rig.num_cameras}", field="cameras"
+        )
     prop_cams = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
     prop_idx = _camera_columns(rig.names, prop_cams, "the matcher's")
     prop_rig = rig.select(list(prop_cams))
     K = xy.shape[3]
-    for what, model, k_of in (("matcher", matcher, _matcher_keypoints), ("estimator", estimator, _estimator_keypoints)):
+    for what, model, k_of in (
+        ("matcher", matcher, _matcher_keypoints),
+        ("estimator", estimator, _estimator_keypoints),
+    ):
         if model is not None and k_of(model) != K:
-            raise InputError(f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
-                             "(convert the layout)", field="keypoints")  # fmt: skip
+            raise InputError(
+                f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
+                "(convert the layout)",
+                field="keypoints",
+            )
     if estimator is not None:
         _camera_columns(prop_cams, estimator.rig_infer.names, "the estimator's inference")
     elif method not in ("dlt", "centroid"):
@@ -673,23 +784,42 @@ def stream_pipeline(
     try:
         for start in range(0, F, chunk_frames):
             stop = min(F, start + chunk_frames)
-            det = Detections(xy[start:stop, prop_idx], score[start:stop, prop_idx], count[start:stop, prop_idx])
+            det = Detections(
+                xy[start:stop, prop_idx], score[start:stop, prop_idx], count[start:stop, prop_idx]
+            )
             t0 = time.perf_counter()
             if matcher is not None:
-                proposals = propose_with_matcher(matcher, det, threshold=threshold, min_views=min_views)
+                proposals = propose_with_matcher(
+                    matcher, det, threshold=threshold, min_views=min_views
+                )
             else:
-                proposals = propose_geometric(prop_rig, det, threshold=threshold, min_views=min_views,
-                                              half_score_px=half_score_px)  # fmt: skip
+                proposals = propose_geometric(
+                    prop_rig,
+                    det,
+                    threshold=threshold,
+                    min_views=min_views,
+                    half_score_px=half_score_px,
+                )
             members = _members_table(proposals, stop - start, len(prop_cams))
             t1 = time.perf_counter()
-            poses, conf = poses_of_members(prop_rig, det, members, estimator=estimator, method=method,
-                                           min_views=min_views)  # fmt: skip
+            poses, conf = poses_of_members(
+                prop_rig, det, members, estimator=estimator, method=method, min_views=min_views
+            )
             t2 = time.perf_counter()
             # A person is kept only where the 3D stage produced one; its members say so too.
             members = np.where(poses.valid[..., None], members, -1).astype(np.int32)
             identity = _identity_from_members(members, det.score.shape[:3])
-            yield start, PipelineResult(poses, conf, members, identity, prop_cams,
-                                        {"proposals": t1 - t0, "poses": t2 - t1})  # fmt: skip
+            yield (
+                start,
+                PipelineResult(
+                    poses,
+                    conf,
+                    members,
+                    identity,
+                    prop_cams,
+                    {"proposals": t1 - t0, "poses": t2 - t1},
+                ),
+            )
             bar.update(stop - start)
     finally:
         bar.close()
@@ -701,11 +831,23 @@ def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
     parts = [r for _, r in stream_pipeline(rig, detections, **kwargs)]
     if not parts:
         F, C, P, K = np.shape(detections.score)
-        cams = tuple(kwargs["matcher"].rig.names) if kwargs.get("matcher") is not None else tuple(rig.names)
-        return PipelineResult(Poses3D(np.zeros((0, 1, K, 3), np.float32), np.zeros((0, 1), bool),
-                                      np.zeros((0, 1, K), bool)), np.zeros((0, 1), np.float32),
-                              np.zeros((0, 1, len(cams)), np.int32), np.zeros((0, len(cams), P), np.int32),
-                              cams, {"proposals": 0.0, "poses": 0.0})  # fmt: skip
+        cams = (
+            tuple(kwargs["matcher"].rig.names)
+            if kwargs.get("matcher") is not None
+            else tuple(rig.names)
+        )
+        return PipelineResult(
+            Poses3D(
+                np.zeros((0, 1, K, 3), np.float32),
+                np.zeros((0, 1), bool),
+                np.zeros((0, 1, K), bool),
+            ),
+            np.zeros((0, 1), np.float32),
+            np.zeros((0, 1, len(cams)), np.int32),
+            np.zeros((0, len(cams), P), np.int32),
+            cams,
+            {"proposals": 0.0, "poses": 0.0},
+        )
     return concat_results(parts)
 
 
@@ -715,13 +857,25 @@ def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
 
     def pad(a, fill=0):
         a = np.asarray(a)
-        return np.pad(a, [(0, 0), (0, G - a.shape[1])] + [(0, 0)] * (a.ndim - 2), constant_values=fill)
+        return np.pad(
+            a, [(0, 0), (0, G - a.shape[1])] + [(0, 0)] * (a.ndim - 2), constant_values=fill
+        )
 
     cat = lambda get, fill=0: np.concatenate([pad(get(r), fill) for r in parts])  # noqa: E731
-    poses = Poses3D(cat(lambda r: r.poses.xyz), cat(lambda r: r.poses.valid), cat(lambda r: r.poses.keypoint_valid))
+    poses = Poses3D(
+        cat(lambda r: r.poses.xyz),
+        cat(lambda r: r.poses.valid),
+        cat(lambda r: r.poses.keypoint_valid),
+    )
     seconds = {k: float(sum(r.seconds[k] for r in parts)) for k in parts[0].seconds}
-    return PipelineResult(poses, cat(lambda r: r.confidence), cat(lambda r: r.members, -1),
-                          np.concatenate([r.identity for r in parts]), parts[0].cameras, seconds)  # fmt: skip
+    return PipelineResult(
+        poses,
+        cat(lambda r: r.confidence),
+        cat(lambda r: r.members, -1),
+        np.concatenate([r.identity for r in parts]),
+        parts[0].cameras,
+        seconds,
+    )
 
 
 def _estimator_keypoints(estimator: Estimator) -> int:

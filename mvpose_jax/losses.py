@@ -19,9 +19,7 @@ def masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
     return jnp.sum(values * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
-def reprojection_error_l1(
-    rig: Rig, xyz: jax.Array, xy: jax.Array, score: jax.Array
-) -> jax.Array:
+def reprojection_error_l1(rig: Rig, xyz: jax.Array, xy: jax.Array, score: jax.Array) -> jax.Array:
     """Per-sample Manhattan reprojection error, summed over cameras and detected keypoints.
 
     Args:

@@ -49,7 +49,9 @@ def _pair_errors(pred_xyz, pred_kv, gt_xyz, gt_kv, require_complete=False):
     return np.where(bad, np.inf, err)
 
 
-def match_people(pred: Poses3D, gt: Poses3D, keypoints: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def match_people(
+    pred: Poses3D, gt: Poses3D, keypoints: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per frame, the minimum-total-error assignment of valid predictions to valid ground truth.
 
     Args:
@@ -68,9 +70,11 @@ def match_people(pred: Poses3D, gt: Poses3D, keypoints: np.ndarray) -> list[tupl
             out.append((np.zeros(0, int), np.zeros(0, int)))
             continue
         err = _pair_errors(
-            pred.xyz[f][p_idx][:, keypoints], pred.keypoint_valid[f][p_idx][:, keypoints],
-            gt.xyz[f][g_idx][:, keypoints], gt.keypoint_valid[f][g_idx][:, keypoints],
-        )  # fmt: skip
+            pred.xyz[f][p_idx][:, keypoints],
+            pred.keypoint_valid[f][p_idx][:, keypoints],
+            gt.xyz[f][g_idx][:, keypoints],
+            gt.keypoint_valid[f][g_idx][:, keypoints],
+        )
         cost = np.where(np.isfinite(err), err, 1e6)
         rows, cols = linear_sum_assignment(cost)
         keep = np.isfinite(err[rows, cols])
@@ -112,8 +116,10 @@ def pose_metrics(
     pred = _finite_only(Poses3D(*(np.asarray(a) for a in pred)))
     gt = Poses3D(*(np.asarray(a) for a in gt))
     if pred.valid.shape[0] != gt.valid.shape[0]:
-        raise ValueError(f"predictions cover {pred.valid.shape[0]} frames, the ground truth {gt.valid.shape[0]}: "
-                         "every frame must be scored")  # fmt: skip
+        raise ValueError(
+            f"predictions cover {pred.valid.shape[0]} frames, the ground truth {gt.valid.shape[0]}: "
+            "every frame must be scored"
+        )
     kps = evaluation_keypoints(layout)
 
     # MPJPE and completeness over the minimum-total-error matching.
@@ -157,13 +163,19 @@ def _ap_and_recall(pred, gt, kps, confidence, thresholds_mm, require_complete):
             for p in p_idx:
                 records.append((_conf(confidence, f, p), np.inf, f, -1))
             continue
-        args = (pred.xyz[f][p_idx][:, kps], pred.keypoint_valid[f][p_idx][:, kps],
-                gt.xyz[f][g_idx][:, kps], gt.keypoint_valid[f][g_idx][:, kps])  # fmt: skip
+        args = (
+            pred.xyz[f][p_idx][:, kps],
+            pred.keypoint_valid[f][p_idx][:, kps],
+            gt.xyz[f][g_idx][:, kps],
+            gt.keypoint_valid[f][g_idx][:, kps],
+        )
         # The nearest ground truth by shared keypoints; its error for AP may then be infinite.
         nearest = _pair_errors(*args).argmin(axis=1)
         err = _pair_errors(*args, require_complete=require_complete)
         for i, p in enumerate(p_idx):
-            records.append((_conf(confidence, f, p), 1000.0 * err[i, nearest[i]], f, g_idx[nearest[i]]))
+            records.append(
+                (_conf(confidence, f, p), 1000.0 * err[i, nearest[i]], f, g_idx[nearest[i]])
+            )
     # Highest confidence first; ties keep frame order (stable).
     order = sorted(range(len(records)), key=lambda i: -records[i][0])
     out = {"num_gt": float(num_gt), "num_pred": float(len(records))}
@@ -248,8 +260,10 @@ def limb_endpoints(
     lay = get_layout(layout)
     xyz = np.asarray(xyz, np.float64)
     kv = np.asarray(keypoint_valid, bool) & np.isfinite(xyz).all(-1)
-    point = {n: (xyz[..., lay.index(n), :], kv[..., lay.index(n)])
-             for n in ("nose", "l_shoulder", "r_shoulder", "l_hip", "r_hip")}  # fmt: skip
+    point = {
+        n: (xyz[..., lay.index(n), :], kv[..., lay.index(n)])
+        for n in ("nose", "l_shoulder", "r_shoulder", "l_hip", "r_hip")
+    }
 
     def mid(a: str, b: str):
         return 0.5 * (point[a][0] + point[b][0]), point[a][1] & point[b][1]
@@ -311,7 +325,9 @@ def pcp_scores(
     gt_kv = np.asarray(gt.keypoint_valid, bool)
     if up is None:
         hips = 0.5 * (gt_xyz[..., lay.index("l_hip"), :] + gt_xyz[..., lay.index("r_hip"), :])
-        shoulders = 0.5 * (gt_xyz[..., lay.index("l_shoulder"), :] + gt_xyz[..., lay.index("r_shoulder"), :])
+        shoulders = 0.5 * (
+            gt_xyz[..., lay.index("l_shoulder"), :] + gt_xyz[..., lay.index("r_shoulder"), :]
+        )
         axis = shoulders - hips
         gt_up = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-9)
     else:
@@ -331,17 +347,29 @@ def pcp_scores(
             hit[f, gi] = ok & counted[f, gi] & (err <= 0.5 * length)
     pct = lambda h, n: 100.0 * float(h) / max(float(n), 1.0)  # noqa: E731
     names = [n for n, _, _ in PCP_LIMBS]
-    by_limb = {c: pct(hit[..., [names.index(m) for m in members]].sum(),
-                      counted[..., [names.index(m) for m in members]].sum())
-               for c, members in PCP_CLASSES.items()}  # fmt: skip
-    ids = np.broadcast_to(np.arange(counted.shape[1]), counted.shape[:2]) if person_ids is None else person_ids
+    by_limb = {
+        c: pct(
+            hit[..., [names.index(m) for m in members]].sum(),
+            counted[..., [names.index(m) for m in members]].sum(),
+        )
+        for c, members in PCP_CLASSES.items()
+    }
+    ids = (
+        np.broadcast_to(np.arange(counted.shape[1]), counted.shape[:2])
+        if person_ids is None
+        else person_ids
+    )
     ids = np.asarray(ids)
     by_person = {}
     for pid in np.unique(ids[counted.any(-1)]):
         sel = ids == pid
         by_person[int(pid)] = pct(hit[sel].sum(), counted[sel].sum())
-    return {"pcp": pct(hit.sum(), counted.sum()), "pcp_by_limb": by_limb, "pcp_by_person": by_person,
-            "pcp_limbs": int(counted.sum())}  # fmt: skip
+    return {
+        "pcp": pct(hit.sum(), counted.sum()),
+        "pcp_by_limb": by_limb,
+        "pcp_by_person": by_person,
+        "pcp_limbs": int(counted.sum()),
+    }
 
 
 def reprojection_errors(
@@ -356,7 +384,9 @@ def reprojection_errors(
     Returns:
       {camera name: {"mean": px, "median": px, "count": n}}.
     """
-    px = np.moveaxis(np.asarray(project_points(rig, np.asarray(xyz, np.float32))), 0, 1)  # (N, C, K, 2)
+    px = np.moveaxis(
+        np.asarray(project_points(rig, np.asarray(xyz, np.float32))), 0, 1
+    )  # (N, C, K, 2)
     d = np.linalg.norm(px - np.asarray(xy), axis=-1)  # (N, C, K)
     use = (np.asarray(score) > 0) & np.asarray(keypoint_valid)[:, None, :]
     out = {}
@@ -428,8 +458,12 @@ def clustering_scores(labels_true: np.ndarray, labels_pred: np.ndarray) -> dict[
     completeness = mi / h_pred if h_pred else 1.0
     total = homogeneity + completeness
     v = 0.0 if total == 0 else 2.0 * homogeneity * completeness / total
-    return {"ari": float(ari), "homogeneity": float(homogeneity), "completeness": float(completeness),
-            "v_measure": float(v)}  # fmt: skip
+    return {
+        "ari": float(ari),
+        "homogeneity": float(homogeneity),
+        "completeness": float(completeness),
+        "v_measure": float(v),
+    }
 
 
 def detection_clusters(identity: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -454,7 +488,9 @@ def detection_clusters(identity: np.ndarray, count: np.ndarray) -> np.ndarray:
     return np.where(person >= 0, f * width + person, singleton)
 
 
-def matching_scores(true_identity: np.ndarray, pred_identity: np.ndarray, count: np.ndarray) -> dict[str, float]:
+def matching_scores(
+    true_identity: np.ndarray, pred_identity: np.ndarray, count: np.ndarray
+) -> dict[str, float]:
     """Clustering scores of proposals against the truth: per-frame means (the paper's) and pooled.
 
     The paper's evaluation scores every frame's detections as one clustering and averages the
@@ -475,13 +511,19 @@ def matching_scores(true_identity: np.ndarray, pred_identity: np.ndarray, count:
     count = np.asarray(count)
     true_identity, pred_identity = np.asarray(true_identity), np.asarray(pred_identity)
     if true_identity.shape != pred_identity.shape or true_identity.shape[:2] != count.shape:
-        raise ValueError(f"identities {true_identity.shape} and {pred_identity.shape} do not cover "
-                         f"the same detections (count {count.shape})")  # fmt: skip
+        raise ValueError(
+            f"identities {true_identity.shape} and {pred_identity.shape} do not cover "
+            f"the same detections (count {count.shape})"
+        )
     t = detection_clusters(true_identity, count)
     pooled = clustering_scores(t, detection_clusters(pred_identity, count))
-    per = [clustering_scores(detection_clusters(true_identity[f : f + 1], count[f : f + 1]),
-                             detection_clusters(pred_identity[f : f + 1], count[f : f + 1]))
-           for f in np.flatnonzero(count.sum(-1) > 0)]  # fmt: skip
+    per = [
+        clustering_scores(
+            detection_clusters(true_identity[f : f + 1], count[f : f + 1]),
+            detection_clusters(pred_identity[f : f + 1], count[f : f + 1]),
+        )
+        for f in np.flatnonzero(count.sum(-1) > 0)
+    ]
     out = {k: float(np.mean([s[k] for s in per])) if per else 1.0 for k in CLUSTERING_SCORES}
     out.update({f"pooled_{k}": pooled[k] for k in CLUSTERING_SCORES})
     out["detections"] = float(len(t))

@@ -74,7 +74,9 @@ class PoseMLP(nnx.Module):
 
     def __init__(self, num_cameras: int, num_keypoints: int, config: MLPConfig, *, rngs: nnx.Rngs):
         if config.output not in ("absolute", "anchored", "residual"):
-            raise ValueError(f"MLPConfig.output must be absolute, anchored or residual, not {config.output!r}")
+            raise ValueError(
+                f"MLPConfig.output must be absolute, anchored or residual, not {config.output!r}"
+            )
         self.num_keypoints = num_keypoints
         self.slope = config.slope
         self.output = config.output
@@ -83,11 +85,18 @@ class PoseMLP(nnx.Module):
             num_inputs += num_keypoints * 4  # the pose-relative initial estimate, see __call__
         sizes = (num_inputs,) + tuple(config.widths)
         self.hidden = nnx.List(
-            [FeatureMajorLinear(a, b, rngs=rngs) for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
+            [
+                FeatureMajorLinear(a, b, rngs=rngs)
+                for a, b in zip(sizes[:-1], sizes[1:], strict=True)
+            ]
         )
         # Offset outputs start at zero, so an untrained network returns its anchor (the
         # triangulation, for "residual") instead of noise around it.
-        init = nnx.initializers.zeros if config.output != "absolute" else nnx.initializers.lecun_normal()
+        init = (
+            nnx.initializers.zeros
+            if config.output != "absolute"
+            else nnx.initializers.lecun_normal()
+        )
         self.out = FeatureMajorLinear(sizes[-1], num_keypoints * 3, kernel_init=init, rngs=rngs)
 
     def __call__(self, features: jax.Array) -> jax.Array:
@@ -100,7 +109,9 @@ class PoseMLP(nnx.Module):
             # pose's shape independent of where the person stands.
             xyz, has, anchor = _initial_estimate(features)
             rel = jnp.where(has[..., None] > 0, xyz - anchor[..., None, :], 0.0)
-            h = jnp.concatenate([h, jnp.concatenate([has[..., None], rel], -1).reshape(batch + (-1,))], -1)
+            h = jnp.concatenate(
+                [h, jnp.concatenate([has[..., None], rel], -1).reshape(batch + (-1,))], -1
+            )
         # Rows become columns once, for the whole stack (see FeatureMajorLinear).
         h = h.reshape(-1, h.shape[-1]).T
         for layer in self.hidden:
@@ -116,9 +127,10 @@ def _initial_estimate(features: jax.Array) -> tuple[jax.Array, jax.Array, jax.Ar
     flag = features[..., 10]  # (..., C, K): 1 in present views of keypoints with an estimate
     has = flag.max(axis=-2)  # (..., K)
     # Every present slot holds the same estimate: their mean is it.
-    xyz = jnp.sum(features[..., 11:14] * flag[..., None], axis=-3) / jnp.maximum(
-        flag.sum(axis=-2), 1.0
-    )[..., None]
+    xyz = (
+        jnp.sum(features[..., 11:14] * flag[..., None], axis=-3)
+        / jnp.maximum(flag.sum(axis=-2), 1.0)[..., None]
+    )
     anchor = jnp.sum(xyz * has[..., None], axis=-2) / jnp.maximum(has.sum(axis=-1), 1.0)[..., None]
     return xyz, has, anchor
 
@@ -144,7 +156,9 @@ def initial_estimate(features: jax.Array, per_keypoint: bool) -> jax.Array:
     # A keypoint one view sees lies on that view's ray: take the point of the ray as far from the
     # camera as the anchor is (bodies are shallow next to camera distances).
     seen = features[..., 0]  # (..., C, K) visible flags
-    cam = jnp.sum(features[..., 4:7] * seen[..., None], axis=-3)  # the one view's camera (..., K, 3)
+    cam = jnp.sum(
+        features[..., 4:7] * seen[..., None], axis=-3
+    )  # the one view's camera (..., K, 3)
     ray = jnp.sum(features[..., 7:10] * seen[..., None], axis=-3)  # and its unit ray
     depth = jnp.linalg.norm(anchor - cam, axis=-1, keepdims=True)
     on_ray = cam + ray * depth
@@ -220,8 +234,16 @@ class GATLayer(nnx.Module):
     instead of loading transposed.
     """
 
-    def __init__(self, in_dim: int, width: int, heads: int, slope: float, *, feature_major: bool = False,
-                 rngs: nnx.Rngs):  # fmt: skip
+    def __init__(
+        self,
+        in_dim: int,
+        width: int,
+        heads: int,
+        slope: float,
+        *,
+        feature_major: bool = False,
+        rngs: nnx.Rngs,
+    ):
         self.heads, self.head_dim, self.slope = heads, width // heads, slope
         self.feature_major = feature_major
         if feature_major:
@@ -250,9 +272,15 @@ class GATLayer(nnx.Module):
         num_nodes = z.shape[0]
         src = (z * self.attn_src[...][None]).sum(-1)  # (N, heads): a_l . z of each node
         dst = (z * self.attn_dst[...][None]).sum(-1)
-        logits = jax.nn.leaky_relu(src[graphs.senders] + dst[graphs.receivers], self.slope)  # (E, heads)
-        alpha = jraph.segment_softmax(logits, graphs.receivers, num_nodes)[..., None]  # (E, heads, 1)
-        out = jax.ops.segment_sum(alpha * z[graphs.senders], graphs.receivers, num_nodes)  # (N, heads, head_dim)
+        logits = jax.nn.leaky_relu(
+            src[graphs.senders] + dst[graphs.receivers], self.slope
+        )  # (E, heads)
+        alpha = jraph.segment_softmax(logits, graphs.receivers, num_nodes)[
+            ..., None
+        ]  # (E, heads, 1)
+        out = jax.ops.segment_sum(
+            alpha * z[graphs.senders], graphs.receivers, num_nodes
+        )  # (N, heads, head_dim)
         return out.reshape(num_nodes, self.heads * self.head_dim)
 
     def __call__(self, h: jax.Array, graphs: jraph.GraphsTuple) -> jax.Array:
@@ -276,10 +304,12 @@ class MatchingGAT(nnx.Module):
         self.in_dim = 2 + num_cameras * num_keypoints * NUM_KEYPOINT_FEATURES
         self.between_slope = config.between_slope
         dims = (self.in_dim,) + tuple(config.widths[:-1])
-        self.layers = nnx.List([
-            GATLayer(d, w, h, config.inner_slope, feature_major=i == 0, rngs=rngs)
-            for i, (d, w, h) in enumerate(zip(dims, config.widths, config.heads, strict=True))
-        ])  # fmt: skip
+        self.layers = nnx.List(
+            [
+                GATLayer(d, w, h, config.inner_slope, feature_major=i == 0, rngs=rngs)
+                for i, (d, w, h) in enumerate(zip(dims, config.widths, config.heads, strict=True))
+            ]
+        )
 
     def first_projection(self, batch: GraphBatch) -> jax.Array:
         """z of the first layer, (N, heads, head_dim), without densifying the node features."""
@@ -289,7 +319,7 @@ class MatchingGAT(nnx.Module):
         # Match and padding nodes carry only their one-hot (or nothing): their z is one of two rows.
         kind = batch.graphs.nodes  # (N, 2)
         table = project(jnp.stack([w1[:, MATCH] + b1, b1]))  # (2, width): match, padding
-        is_match = kind[:, MATCH:MATCH + 1]
+        is_match = kind[:, MATCH : MATCH + 1]
         z = is_match * table[0][None] + (1.0 - is_match) * table[1][None]  # (N, width)
         # Detection rows: the full product of their dense rows [one-hot, camera slots], as columns.
         # Prepending the one-hot to the rows (not slicing W1's one-hot columns off) keeps W1 in

@@ -63,7 +63,9 @@ def resolve_num_devices(spec: str | int | None) -> int | None:
     return jax.device_count() if spec == "all" else int(spec)
 
 
-def make_data_mesh(num_devices: int | None = None, devices: Sequence[jax.Device] | None = None) -> Mesh:
+def make_data_mesh(
+    num_devices: int | None = None, devices: Sequence[jax.Device] | None = None
+) -> Mesh:
     """A one-axis ``("data",)`` mesh over the first ``num_devices`` devices (of every process).
 
     Args:
@@ -78,7 +80,9 @@ def make_data_mesh(num_devices: int | None = None, devices: Sequence[jax.Device]
         raise ValueError(f"asked for {n} devices, {len(devices)} available ({devices[0].platform})")
     # Auto axes: the compiler propagates shardings through the step (the model code needs no
     # sharding annotations; jax's default Explicit axes would ask every op to type its sharding).
-    return jax.make_mesh((n,), (DATA_AXIS,), axis_types=(jax.sharding.AxisType.Auto,), devices=devices[:n])
+    return jax.make_mesh(
+        (n,), (DATA_AXIS,), axis_types=(jax.sharding.AxisType.Auto,), devices=devices[:n]
+    )
 
 
 def mesh_size(mesh: Mesh) -> int:
@@ -110,7 +114,9 @@ def shard_batch(mesh: Mesh, batch: Any) -> Any:
     n = mesh_size(mesh)
     for leaf in jax.tree.leaves(batch):
         if np.ndim(leaf) == 0 or np.shape(leaf)[0] % n:
-            raise ValueError(f"leading axis of shape {np.shape(leaf)} does not split over {n} devices")
+            raise ValueError(
+                f"leading axis of shape {np.shape(leaf)} does not split over {n} devices"
+            )
     return _put(batch, data_sharding(mesh))
 
 
@@ -145,6 +151,7 @@ def to_host(x: jax.Array) -> np.ndarray:
 def _put(tree: Any, sharding: NamedSharding) -> Any:
     if jax.process_count() == 1:
         return jax.device_put(tree, sharding)
+
     # Several processes: every process holds the same global values; each builds the blocks of
     # its own devices from them (device_put cannot address other processes' devices).
     def one(x):

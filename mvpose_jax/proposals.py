@@ -26,8 +26,12 @@ from mvpose_jax.metrics import matching_scores
 class Proposals(NamedTuple):
     """People proposed in F frames of C views (P skeletons per view, padded)."""
 
-    identity: np.ndarray  # (F, C, P) int32: the person (0.. within its frame) of each skeleton, -1 none
-    people: list[np.ndarray]  # per frame (num_people, C) int32: each person's skeleton per view, -1 none
+    identity: (
+        np.ndarray
+    )  # (F, C, P) int32: the person (0.. within its frame) of each skeleton, -1 none
+    people: list[
+        np.ndarray
+    ]  # per frame (num_people, C) int32: each person's skeleton per view, -1 none
 
 
 def propose_people(
@@ -74,7 +78,9 @@ def propose_people(
     return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
 
 
-def union_find_exclusive(num_items: int, a: list[int], b: list[int], group: np.ndarray) -> np.ndarray:
+def union_find_exclusive(
+    num_items: int, a: list[int], b: list[int], group: np.ndarray
+) -> np.ndarray:
     """Greedy union-find that never joins two items of the same group (camera).
 
     Args:
@@ -157,7 +163,22 @@ def choose_proposal_threshold(
     return best, ari
 
 
-GEOMETRIC_CUTOFFS_PX = (4.0, 6.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0, 60.0, 80.0, 100.0)
+GEOMETRIC_CUTOFFS_PX = (
+    4.0,
+    6.0,
+    8.0,
+    10.0,
+    12.0,
+    15.0,
+    20.0,
+    25.0,
+    30.0,
+    40.0,
+    50.0,
+    60.0,
+    80.0,
+    100.0,
+)
 
 
 def choose_geometric_cutoff(
@@ -196,7 +217,9 @@ def _ari_by_threshold(rows, scores, identity, count, thresholds, min_views) -> d
     P = np.shape(identity)[2]
     ari = {}
     for th in thresholds:
-        pred = propose_people(rows, scores, count, num_skeletons=P, threshold=th, min_views=min_views)
+        pred = propose_people(
+            rows, scores, count, num_skeletons=P, threshold=th, min_views=min_views
+        )
         ari[float(th)] = matching_scores(identity, pred.identity, count)["ari"]
     return ari
 
@@ -204,13 +227,17 @@ def _ari_by_threshold(rows, scores, identity, count, thresholds, min_views) -> d
 PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
 
 
-def write_proposal_threshold(folder: str | os.PathLike, threshold: float, ari: dict[float, float],
-                             composed_frames: int) -> Path:  # fmt: skip
+def write_proposal_threshold(
+    folder: str | os.PathLike, threshold: float, ari: dict[float, float], composed_frames: int
+) -> Path:
     """Writes a matcher's chosen threshold beside its checkpoints (`PROPOSAL_THRESHOLD_FILE`)."""
-    record = {"threshold": threshold, "ari_by_threshold": {str(k): round(v, 6) for k, v in ari.items()},
-              "composed_frames": int(composed_frames),
-              "how": "the best per-frame adjusted Rand index of the proposals on multi-person frames composed "
-                     "from the dev recordings (inference.choose_matcher_threshold)"}  # fmt: skip
+    record = {
+        "threshold": threshold,
+        "ari_by_threshold": {str(k): round(v, 6) for k, v in ari.items()},
+        "composed_frames": int(composed_frames),
+        "how": "the best per-frame adjusted Rand index of the proposals on multi-person frames composed "
+        "from the dev recordings (inference.choose_matcher_threshold)",
+    }
     path = Path(folder) / PROPOSAL_THRESHOLD_FILE
     atomic_write_text(path, json.dumps(record, indent=1) + "\n")
     return path
@@ -226,4 +253,6 @@ def read_proposal_threshold(folder: str | os.PathLike | None, given: float | Non
     try:
         return float(json.loads(path.read_text())["threshold"])
     except (ValueError, KeyError, TypeError) as e:
-        raise InputError(f"unreadable proposal threshold ({e})", file=path, field="threshold") from e
+        raise InputError(
+            f"unreadable proposal threshold ({e})", file=path, field="threshold"
+        ) from e

@@ -32,8 +32,15 @@ if TYPE_CHECKING:
     from mvpose_jax.data.recording import Recording
 
 # Distinct BGR colours (Okabe-Ito without black) for people 0, 1, ...; grey for unassigned.
-PALETTE_BGR = ((0, 159, 230), (233, 180, 86), (115, 158, 0), (66, 228, 240), (178, 114, 0), (0, 94, 213),
-               (167, 121, 204))  # fmt: skip
+PALETTE_BGR = (
+    (0, 159, 230),
+    (233, 180, 86),
+    (115, 158, 0),
+    (66, 228, 240),
+    (178, 114, 0),
+    (0, 94, 213),
+    (167, 121, 204),
+)
 UNASSIGNED_BGR = (150, 150, 150)
 
 
@@ -75,9 +82,15 @@ def draw_view(
     """
     lay = get_layout(layout)
     w, h = (int(v) for v in np.asarray(rig.size)[camera])
-    canvas = np.full((h, w, 3), 255, np.uint8) if image is None else np.ascontiguousarray(image[..., :3], np.uint8)
+    canvas = (
+        np.full((h, w, 3), 255, np.uint8)
+        if image is None
+        else np.ascontiguousarray(image[..., :3], np.uint8)
+    )
     if scale != 1.0:
-        canvas = cv2.resize(canvas, (max(1, round(canvas.shape[1] * scale)), max(1, round(canvas.shape[0] * scale))))
+        canvas = cv2.resize(
+            canvas, (max(1, round(canvas.shape[1] * scale)), max(1, round(canvas.shape[0] * scale)))
+        )
     sx = canvas.shape[1] / w
     sy = canvas.shape[0] / h
     thin = max(1, round(2 * scale))
@@ -89,7 +102,14 @@ def draw_view(
         pts = np.round(np.where(seen[:, None], pts, 0.0)).astype(np.int64)
         for a, b in lay.bones:
             if seen[a] and seen[b]:
-                cv2.line(canvas, tuple(map(int, pts[a])), tuple(map(int, pts[b])), colour, width, cv2.LINE_AA)
+                cv2.line(
+                    canvas,
+                    tuple(map(int, pts[a])),
+                    tuple(map(int, pts[b])),
+                    colour,
+                    width,
+                    cv2.LINE_AA,
+                )
         for k in np.nonzero(seen)[0]:
             cv2.circle(canvas, tuple(map(int, pts[k])), radius, colour, -1, cv2.LINE_AA)
 
@@ -102,13 +122,28 @@ def draw_view(
         xyz = np.asarray(xyz, np.float32)
         kv = np.ones(xyz.shape[:2], bool) if keypoint_valid is None else np.asarray(keypoint_valid)
         px = np.asarray(project_points(rig.select([rig.names[camera]]), xyz))[0]  # (G, K, 2)
-        depth = (np.asarray(rig.R)[camera] @ xyz[..., None])[..., 2, 0] + np.asarray(rig.t)[camera, 2]
+        depth = (np.asarray(rig.R)[camera] @ xyz[..., None])[..., 2, 0] + np.asarray(rig.t)[
+            camera, 2
+        ]
         for g in range(len(xyz)):
             if kv[g].any():
-                draw(px[g], kv[g] & (depth[g] > 0) & np.isfinite(px[g]).all(-1), person_colour(g),
-                     3 * thin, 2 * thin + 1)  # fmt: skip
-    cv2.putText(canvas, rig.names[camera], (8, 8 + round(20 * scale)), cv2.FONT_HERSHEY_SIMPLEX,
-                0.7 * scale, (40, 40, 40), max(1, round(1.5 * scale)), cv2.LINE_AA)  # fmt: skip
+                draw(
+                    px[g],
+                    kv[g] & (depth[g] > 0) & np.isfinite(px[g]).all(-1),
+                    person_colour(g),
+                    3 * thin,
+                    2 * thin + 1,
+                )
+    cv2.putText(
+        canvas,
+        rig.names[camera],
+        (8, 8 + round(20 * scale)),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.7 * scale,
+        (40, 40, 40),
+        max(1, round(1.5 * scale)),
+        cv2.LINE_AA,
+    )
     return canvas
 
 
@@ -119,8 +154,15 @@ def tile(images: Sequence[np.ndarray], columns: int = 3) -> np.ndarray:
     w = max(im.shape[1] for im in resized)
     rows = []
     for i in range(0, len(resized), columns):
-        row = [np.pad(im, [(0, 0), (0, w - im.shape[1]), (0, 0)], constant_values=255) for im in resized[i : i + columns]]
-        row += [np.full((h, w, 3), 255, np.uint8)] * (columns - len(row)) if len(resized) > columns else []
+        row = [
+            np.pad(im, [(0, 0), (0, w - im.shape[1]), (0, 0)], constant_values=255)
+            for im in resized[i : i + columns]
+        ]
+        row += (
+            [np.full((h, w, 3), 255, np.uint8)] * (columns - len(row))
+            if len(resized) > columns
+            else []
+        )
         rows.append(np.concatenate(row, axis=1))
     return np.concatenate(rows, axis=0)
 
@@ -177,7 +219,9 @@ class VideoWriter:
     def write(self, frame: np.ndarray) -> None:
         if self._writer is None:
             h, w = frame.shape[:2]
-            self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+            self._writer = cv2.VideoWriter(
+                str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h)
+            )
             if not self._writer.isOpened():
                 raise InputError("OpenCV cannot write mp4 here (no mp4v encoder)", file=self.path)
         self._writer.write(frame)
@@ -267,7 +311,10 @@ def skeleton_figure(
     return fig
 
 
-def curves_figure(histories: Mapping[str, Sequence[Mapping[str, float]]], keys: Sequence[str] = ("train_loss", "val_loss")):
+def curves_figure(
+    histories: Mapping[str, Sequence[Mapping[str, float]]],
+    keys: Sequence[str] = ("train_loss", "val_loss"),
+):
     """Training curves: one panel per run, ``keys`` of its history against the step (log scale).
 
     Args:
@@ -295,7 +342,7 @@ def curves_figure(histories: Mapping[str, Sequence[Mapping[str, float]]], keys: 
         ax.set_title(name, fontsize=10)
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
-    for ax in list(axes.flat)[len(histories):]:
+    for ax in list(axes.flat)[len(histories) :]:
         ax.axis("off")
     fig.tight_layout()
     return fig
@@ -361,7 +408,7 @@ def render_frame_figure(
             if recording.projected is not None and ident >= 0:
                 pr = np.asarray(recording.projected)[frame, c, p]
                 ax.scatter(pr[ok, 0], pr[ok, 1], s=3, color="k", alpha=0.35, zorder=4)
-        fps = np.sum((recording.identity[frame, c, :n] < 0)) if recording.identity is not None else 0
+        fps = np.sum(recording.identity[frame, c, :n] < 0) if recording.identity is not None else 0
         ax.set_title(f"{recording.cameras[c]}: {n} detections ({fps} false)", fontsize=9)
 
     # The 3D panel takes the rest of the last row.

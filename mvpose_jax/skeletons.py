@@ -92,60 +92,134 @@ def _layout(name: str, keypoints: tuple[str, ...], bones: tuple[tuple[str, str],
 
 
 _COCO17 = (
-    "nose", "l_eye", "r_eye", "l_ear", "r_ear", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow",
-    "l_wrist", "r_wrist", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle",
-)  # fmt: skip
+    "nose",
+    "l_eye",
+    "r_eye",
+    "l_ear",
+    "r_ear",
+    "l_shoulder",
+    "r_shoulder",
+    "l_elbow",
+    "r_elbow",
+    "l_wrist",
+    "r_wrist",
+    "l_hip",
+    "r_hip",
+    "l_knee",
+    "r_knee",
+    "l_ankle",
+    "r_ankle",
+)
 _LIMBS = (
-    ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"), ("r_shoulder", "r_elbow"),
-    ("r_elbow", "r_wrist"), ("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("r_hip", "r_knee"),
-    ("r_knee", "r_ankle"), ("nose", "l_eye"), ("nose", "r_eye"), ("l_eye", "l_ear"),
+    ("l_shoulder", "l_elbow"),
+    ("l_elbow", "l_wrist"),
+    ("r_shoulder", "r_elbow"),
+    ("r_elbow", "r_wrist"),
+    ("l_hip", "l_knee"),
+    ("l_knee", "l_ankle"),
+    ("r_hip", "r_knee"),
+    ("r_knee", "r_ankle"),
+    ("nose", "l_eye"),
+    ("nose", "r_eye"),
+    ("l_eye", "l_ear"),
     ("r_eye", "r_ear"),
-)  # fmt: skip
+)
 _BODY25 = (
-    "nose", "neck", "r_shoulder", "r_elbow", "r_wrist", "l_shoulder", "l_elbow", "l_wrist",
-    "mid_hip", "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle", "r_eye", "l_eye",
-    "r_ear", "l_ear", "l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel",
-)  # fmt: skip
+    "nose",
+    "neck",
+    "r_shoulder",
+    "r_elbow",
+    "r_wrist",
+    "l_shoulder",
+    "l_elbow",
+    "l_wrist",
+    "mid_hip",
+    "r_hip",
+    "r_knee",
+    "r_ankle",
+    "l_hip",
+    "l_knee",
+    "l_ankle",
+    "r_eye",
+    "l_eye",
+    "r_ear",
+    "l_ear",
+    "l_big_toe",
+    "l_small_toe",
+    "l_heel",
+    "r_big_toe",
+    "r_small_toe",
+    "r_heel",
+)
 
 COCO17 = _layout(
     "coco17",
     _COCO17,
     _LIMBS
     + (
-        ("l_shoulder", "r_shoulder"), ("l_hip", "r_hip"), ("l_shoulder", "l_hip"),
-        ("r_shoulder", "r_hip"), ("l_ear", "l_shoulder"), ("r_ear", "r_shoulder"),
+        ("l_shoulder", "r_shoulder"),
+        ("l_hip", "r_hip"),
+        ("l_shoulder", "l_hip"),
+        ("r_shoulder", "r_hip"),
+        ("l_ear", "l_shoulder"),
+        ("r_ear", "r_shoulder"),
     ),
-)  # fmt: skip
+)
 _COCO18_BONES = _LIMBS + (
-    ("neck", "nose"), ("neck", "l_shoulder"), ("neck", "r_shoulder"), ("neck", "l_hip"),
-    ("neck", "r_hip"), ("l_hip", "r_hip"),
-)  # fmt: skip
+    ("neck", "nose"),
+    ("neck", "l_shoulder"),
+    ("neck", "r_shoulder"),
+    ("neck", "l_hip"),
+    ("neck", "r_hip"),
+    ("l_hip", "r_hip"),
+)
 COCO18 = _layout("coco18", _COCO17 + ("neck",), _COCO18_BONES)
 # OpenPose's COCO model: coco18's keypoints in another order (see the module docstring).
 OPENPOSE_COCO18 = _layout(
     "openpose_coco18",
     (
-        "nose", "neck", "r_shoulder", "r_elbow", "r_wrist", "l_shoulder", "l_elbow", "l_wrist",
-        "r_hip", "r_knee", "r_ankle", "l_hip", "l_knee", "l_ankle", "r_eye", "l_eye", "r_ear",
+        "nose",
+        "neck",
+        "r_shoulder",
+        "r_elbow",
+        "r_wrist",
+        "l_shoulder",
+        "l_elbow",
+        "l_wrist",
+        "r_hip",
+        "r_knee",
+        "r_ankle",
+        "l_hip",
+        "l_knee",
+        "l_ankle",
+        "r_eye",
+        "l_eye",
+        "r_ear",
         "l_ear",
     ),
     _COCO18_BONES,
-)  # fmt: skip
+)
 BODY25 = _layout(
     "body25",
     _BODY25,
     _LIMBS
     + (
-        ("neck", "nose"), ("neck", "l_shoulder"), ("neck", "r_shoulder"), ("neck", "mid_hip"),
-        ("mid_hip", "l_hip"), ("mid_hip", "r_hip"), ("l_ankle", "l_heel"),
-        ("l_ankle", "l_big_toe"), ("l_big_toe", "l_small_toe"), ("r_ankle", "r_heel"),
-        ("r_ankle", "r_big_toe"), ("r_big_toe", "r_small_toe"),
+        ("neck", "nose"),
+        ("neck", "l_shoulder"),
+        ("neck", "r_shoulder"),
+        ("neck", "mid_hip"),
+        ("mid_hip", "l_hip"),
+        ("mid_hip", "r_hip"),
+        ("l_ankle", "l_heel"),
+        ("l_ankle", "l_big_toe"),
+        ("l_big_toe", "l_small_toe"),
+        ("r_ankle", "r_heel"),
+        ("r_ankle", "r_big_toe"),
+        ("r_big_toe", "r_small_toe"),
     ),
-)  # fmt: skip
+)
 
-LAYOUTS: dict[str, Layout] = {
-    lay.name: lay for lay in (COCO18, COCO17, BODY25, OPENPOSE_COCO18)
-}
+LAYOUTS: dict[str, Layout] = {lay.name: lay for lay in (COCO18, COCO17, BODY25, OPENPOSE_COCO18)}
 DEFAULT_LAYOUT = "coco18"
 
 # Keypoints of one layout that other layouts lack, as the mean of keypoints they share.

@@ -72,7 +72,9 @@ def make_optimizer(config: TrainConfig, steps_per_epoch: int = 1) -> optax.Gradi
     lr = config.learning_rate
     if config.final_lr_fraction < 1.0:
         total = config.max_steps or config.max_epochs * steps_per_epoch
-        lr = optax.cosine_decay_schedule(config.learning_rate, total, alpha=config.final_lr_fraction)
+        lr = optax.cosine_decay_schedule(
+            config.learning_rate, total, alpha=config.final_lr_fraction
+        )
     return optax.chain(optax.clip_by_global_norm(config.clip_norm), optax.adam(lr))
 
 
@@ -84,7 +86,9 @@ def init_train_state(model: nnx.Module, tx: optax.GradientTransformation):
     return graphdef, rest, jax.device_put(state)
 
 
-def make_train_step(graphdef, rest, tx, loss_fn: Callable, *, mesh: jax.sharding.Mesh | None = None):
+def make_train_step(
+    graphdef, rest, tx, loss_fn: Callable, *, mesh: jax.sharding.Mesh | None = None
+):
     """A jitted ``(state, batch, key) -> (state, metrics)``.
 
     ``loss_fn(model, batch, key) -> (per_item, mask, metrics)``: unreduced losses and their mask;
@@ -187,7 +191,9 @@ class FitProgress:
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
-        d["best_val_loss"] = None if math.isinf(self.best_val_loss) else self.best_val_loss  # JSON has no inf
+        d["best_val_loss"] = (
+            None if math.isinf(self.best_val_loss) else self.best_val_loss
+        )  # JSON has no inf
         d["history"], d["train_metrics"] = list(self.history), list(self.train_metrics)
         return d
 
@@ -197,14 +203,21 @@ class FitProgress:
         try:
             best = d["best_val_loss"]
             return cls(
-                step=int(d["step"]), epoch=int(d["epoch"]), index=int(d["index"]), seed=int(d["seed"]),
+                step=int(d["step"]),
+                epoch=int(d["epoch"]),
+                index=int(d["index"]),
+                seed=int(d["seed"]),
                 best_val_loss=math.inf if best is None else float(best),
                 best_step=None if d["best_step"] is None else int(d["best_step"]),
-                bad_checks=int(d["bad_checks"]), history=tuple(dict(h) for h in d["history"]),
-                train_metrics=tuple(dict(m) for m in d["train_metrics"]), seconds=float(d["seconds"]),
-            )  # fmt: skip
+                bad_checks=int(d["bad_checks"]),
+                history=tuple(dict(h) for h in d["history"]),
+                train_metrics=tuple(dict(m) for m in d["train_metrics"]),
+                seconds=float(d["seconds"]),
+            )
         except (KeyError, TypeError, ValueError) as e:
-            raise InputError(f"checkpoint's fit state is malformed ({type(e).__name__}: {e})", field="fit") from None
+            raise InputError(
+                f"checkpoint's fit state is malformed ({type(e).__name__}: {e})", field="fit"
+            ) from None
 
 
 def fit(
@@ -250,10 +263,15 @@ def fit(
     best_state = jax.tree.map(jnp.copy, state if best_state is None else best_state)
     step = int(state.step)
     if resume_from is None:
-        resume_from = FitProgress(step, *divmod(step, steps_per_epoch), seed=config.seed, best_val_loss=best_val_loss)
+        resume_from = FitProgress(
+            step, *divmod(step, steps_per_epoch), seed=config.seed, best_val_loss=best_val_loss
+        )
     if resume_from.step != step or resume_from.seed != config.seed:
-        raise InputError(f"fit state of step {resume_from.step} (seed {resume_from.seed}) does not go with a train "
-                         f"state of step {step} (seed {config.seed})", field="fit")  # fmt: skip
+        raise InputError(
+            f"fit state of step {resume_from.step} (seed {resume_from.seed}) does not go with a train "
+            f"state of step {step} (seed {config.seed})",
+            field="fit",
+        )
     first_epoch, skip = resume_from.epoch, resume_from.index
     best, best_step, bad_checks = best_val_loss, resume_from.best_step, resume_from.bad_checks
     history = [dict(h) for h in resume_from.history]
@@ -264,16 +282,34 @@ def fit(
     def progress_at(epoch: int, index: int, train_metrics: list) -> dict:
         # Floats, in place: later saves and the epoch's mean need no further transfers.
         train_metrics[:] = [{k: float(v) for k, v in m.items()} for m in train_metrics]
-        return FitProgress(step, epoch, index, config.seed, best, best_step, bad_checks, tuple(history),
-                           tuple(train_metrics), time.perf_counter() - start).to_json()  # fmt: skip
+        return FitProgress(
+            step,
+            epoch,
+            index,
+            config.seed,
+            best,
+            best_step,
+            bad_checks,
+            tuple(history),
+            tuple(train_metrics),
+            time.perf_counter() - start,
+        ).to_json()
 
-    bar = tqdm(total=total, initial=min(step, total), desc=desc, unit="step", disable=not progress,
-               dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(
+        total=total,
+        initial=min(step, total),
+        desc=desc,
+        unit="step",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
     try:
         for epoch in range(first_epoch, config.max_epochs):
             if step >= max_steps or bad_checks >= config.patience:
                 break  # (a resumed run that had stopped early stays stopped)
-            train_metrics = [dict(m) for m in resume_from.train_metrics] if epoch == first_epoch else []
+            train_metrics = (
+                [dict(m) for m in resume_from.train_metrics] if epoch == first_epoch else []
+            )
             next_index, exhausted = 0, True
             for i, batch in enumerate(epoch_batches(epoch)):
                 if epoch == first_epoch and i < skip:
@@ -281,7 +317,9 @@ def fit(
                 if checkpoints is not None and every and step % every == 0 and step != last_saved:
                     # Saved before running batch i, never between a step and its epoch's
                     # validation: every checkpoint is a point the loop can resume from as is.
-                    checkpoints.save_latest(state, run_config or {}, progress_at(epoch, i, train_metrics))
+                    checkpoints.save_latest(
+                        state, run_config or {}, progress_at(epoch, i, train_metrics)
+                    )
                     last_saved = step
                 state, metrics = train_step(state, batch, base_key)
                 train_metrics.append(metrics)
@@ -293,7 +331,10 @@ def fit(
                     break
             stop = step >= max_steps
             if train_metrics and ((epoch + 1) % config.eval_every == 0 or stop):
-                record = {k: float(np.mean([float(m[k]) for m in train_metrics])) for k in train_metrics[0]}
+                record = {
+                    k: float(np.mean([float(m[k]) for m in train_metrics]))
+                    for k in train_metrics[0]
+                }
                 record = {f"train_{k}": v for k, v in record.items()}
                 record.update({k: float(v) for k, v in evaluate(state).items()})
                 record.update(epoch=epoch + 1, step=step, seconds=time.perf_counter() - start)
@@ -310,10 +351,15 @@ def fit(
                     bad_checks += 1
                 if checkpoints is not None:
                     position = (epoch + 1, 0) if exhausted else (epoch, next_index)
-                    checkpoints.save_latest(state, run_config or {}, progress_at(*position, train_metrics))
+                    checkpoints.save_latest(
+                        state, run_config or {}, progress_at(*position, train_metrics)
+                    )
                     last_saved = step
-                bar.set_postfix(loss=f"{record['train_loss']:.4g}", val=f"{record['val_loss']:.4g}",
-                                best=f"{best:.4g}")  # fmt: skip
+                bar.set_postfix(
+                    loss=f"{record['train_loss']:.4g}",
+                    val=f"{record['val_loss']:.4g}",
+                    best=f"{best:.4g}",
+                )
                 if bad_checks >= config.patience:
                     break
             if stop:
@@ -351,19 +397,32 @@ def resume_state(checkpoints: Checkpoints, state: TrainState, run_config: dict) 
     wanted = _without_length(run_config)
     if saved != wanted:
         diff = sorted(k for k in set(saved) | set(wanted) if saved.get(k) != wanted.get(k))
-        train = sorted(k for k in set(saved.get("train", {})) | set(wanted.get("train", {}))
-                       if saved.get("train", {}).get(k) != wanted.get("train", {}).get(k))  # fmt: skip
+        train = sorted(
+            k
+            for k in set(saved.get("train", {})) | set(wanted.get("train", {}))
+            if saved.get("train", {}).get(k) != wanted.get("train", {}).get(k)
+        )
         where = diff if diff != ["train"] else [f"train.{k}" for k in train]
-        raise InputError(f"checkpoint was written with another config (differs in {where}); "
-                         "use another folder or the same settings", file=checkpoints.directory)  # fmt: skip
-    abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=_sharding_of(a)), state)
+        raise InputError(
+            f"checkpoint was written with another config (differs in {where}); "
+            "use another folder or the same settings",
+            file=checkpoints.directory,
+        )
+    abstract = jax.tree.map(
+        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=_sharding_of(a)), state
+    )
     latest, _ = checkpoints.restore(abstract, "latest", step)
     raw = checkpoints.read_progress(step)
     if raw is None:  # a checkpoint of an older version: position from the step, fresh patience
         if checkpoints.best.best_step() is None:
             return Resumed(latest, latest, math.inf, None)
         best, _ = checkpoints.restore(abstract, "best")
-        return Resumed(latest, best, float(checkpoints.best.metrics(checkpoints.best.best_step())["val_loss"]), None)
+        return Resumed(
+            latest,
+            best,
+            float(checkpoints.best.metrics(checkpoints.best.best_step())["val_loss"]),
+            None,
+        )
     try:
         progress = FitProgress.from_json(raw)
     except InputError as e:
@@ -385,7 +444,13 @@ def _sharding_of(a):
 
 
 # Keys of TrainConfig that say how a run is executed, not what it computes.
-_EXECUTION_KEYS = ("max_steps", "max_epochs", "num_devices", "checkpoint_every_steps", "max_to_keep")
+_EXECUTION_KEYS = (
+    "max_steps",
+    "max_epochs",
+    "num_devices",
+    "checkpoint_every_steps",
+    "max_to_keep",
+)
 
 
 def _without_length(config: dict) -> dict:
@@ -431,12 +496,16 @@ def make_estimator_batch(
     rig_infer = rig_train.select(list(idx))
     xy = jnp.asarray(xy, jnp.float32)
     score = jnp.asarray(score, jnp.float32)
-    inputs = estimator_inputs(rig_infer, xy[:, idx], score[:, idx], rig_centre_and_radius(rig_train))
+    inputs = estimator_inputs(
+        rig_infer, xy[:, idx], score[:, idx], rig_centre_and_radius(rig_train)
+    )
     available = (score[:, idx] > 0).any(axis=-1)
     return EstimatorBatch(inputs, available, xy, score)
 
 
-def random_view_subsets(key: jax.Array, available: jax.Array, num: int) -> tuple[jax.Array, jax.Array]:
+def random_view_subsets(
+    key: jax.Array, available: jax.Array, num: int
+) -> tuple[jax.Array, jax.Array]:
     """Random non-empty proper subsets of each sample's available views.
 
     Args:
@@ -450,7 +519,9 @@ def random_view_subsets(key: jax.Array, available: jax.Array, num: int) -> tuple
     n_avail = available.sum(axis=-1)  # (N,)
     k_size, k_order = jax.random.split(key)
     # Subset size uniform in 1 .. n_avail - 1, then that many views chosen at random.
-    size = 1 + jnp.floor(jax.random.uniform(k_size, (num, N)) * jnp.maximum(n_avail - 1, 1)[None]).astype(jnp.int32)
+    size = 1 + jnp.floor(
+        jax.random.uniform(k_size, (num, N)) * jnp.maximum(n_avail - 1, 1)[None]
+    ).astype(jnp.int32)
     priority = jnp.where(available[None], jax.random.uniform(k_order, (num, N, C)), -1.0)
     rank = jnp.argsort(jnp.argsort(-priority, axis=-1), axis=-1)  # 0 = highest priority
     masks = (rank < size[..., None]) & available[None]
@@ -510,15 +581,19 @@ def train_estimator(
     rig_train = rig.select(list(train_names))
     missing = [c for c in infer_names if c not in train_names]
     if missing:
-        raise InputError(f"inference cameras {missing} are not training cameras", field="infer_cameras")
+        raise InputError(
+            f"inference cameras {missing} are not training cameras", field="infer_cameras"
+        )
     infer_idx = [train_names.index(c) for c in infer_names]
     rig_infer = rig_train.select(infer_idx)
     K = train_xy.shape[-2]
     tcfg = config.train
 
     def batches_of(xy, score, chunk=4096):
-        parts = [make_estimator_batch(rig_train, infer_idx, xy[i : i + chunk], score[i : i + chunk])
-                 for i in range(0, len(xy), chunk)]  # fmt: skip
+        parts = [
+            make_estimator_batch(rig_train, infer_idx, xy[i : i + chunk], score[i : i + chunk])
+            for i in range(0, len(xy), chunk)
+        ]
         return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
 
     train_data = batches_of(train_xy, train_score)
@@ -529,8 +604,11 @@ def train_estimator(
     steps_per_epoch = math.ceil(n_train / batch)
     mesh = _mesh(tcfg)
     if mesh is not None and batch % mesh_size(mesh):
-        raise InputError(f"batch size {batch} does not split over {mesh_size(mesh)} devices; use a multiple of "
-                         f"{mesh_size(mesh)}", field="batch_size")  # fmt: skip
+        raise InputError(
+            f"batch size {batch} does not split over {mesh_size(mesh)} devices; use a multiple of "
+            f"{mesh_size(mesh)}",
+            field="batch_size",
+        )
     model = PoseMLP(len(infer_idx), K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
     tx = make_optimizer(tcfg, steps_per_epoch)
     graphdef, rest, state = init_train_state(model, tx)
@@ -554,14 +632,28 @@ def train_estimator(
 
     run_config = to_jsonable(dataclasses.asdict(config))
     # What restoring needs beyond the config: the resolved cameras and the keypoint count.
-    run_config.update(train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K))
+    run_config.update(
+        train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K)
+    )
     centre, radius = rig_centre_and_radius(rig_train)
     # The normalised frame travels with the model (inference may hold only the inference cameras).
     run_config["frame"] = [float(x) for x in np.asarray(centre)] + [float(radius)]
-    result = _fit_resumable(state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
-                            checkpoint_dir=checkpoint_dir, run_config=run_config, resume=resume, desc="estimator",
-                            progress=progress)  # fmt: skip
-    return Estimator(graphdef, rest, result.state.params, rig_infer, config, (centre, radius)), result
+    result = _fit_resumable(
+        state,
+        step,
+        epoch_batches,
+        evaluate,
+        tcfg,
+        steps_per_epoch=steps_per_epoch,
+        checkpoint_dir=checkpoint_dir,
+        run_config=run_config,
+        resume=resume,
+        desc="estimator",
+        progress=progress,
+    )
+    return Estimator(
+        graphdef, rest, result.state.params, rig_infer, config, (centre, radius)
+    ), result
 
 
 def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, data: EstimatorBatch):
@@ -572,7 +664,10 @@ def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, da
     err = reprojection_error_l1(rig_train, xyz, data.xy, data.score)
     ok = data.available.any(-1)
     n_kp = jnp.maximum((data.score > 0).sum(axis=(1, 2)), 1)
-    return {"val_loss": masked_mean(err**loss_power, ok), "val_px_per_keypoint": masked_mean(err / n_kp, ok)}
+    return {
+        "val_loss": masked_mean(err**loss_power, ok),
+        "val_px_per_keypoint": masked_mean(err / n_kp, ok),
+    }
 
 
 def _mesh(config: TrainConfig) -> jax.sharding.Mesh | None:
@@ -585,21 +680,46 @@ def _mesh(config: TrainConfig) -> jax.sharding.Mesh | None:
         raise InputError(str(e), field="num_devices") from None
 
 
-def _fit_resumable(state, train_step, epoch_batches, evaluate, config: TrainConfig, *, steps_per_epoch: int,
-                   checkpoint_dir: str | Path | None, run_config: dict, resume: bool, desc: str,
-                   progress: bool) -> FitResult:  # fmt: skip
+def _fit_resumable(
+    state,
+    train_step,
+    epoch_batches,
+    evaluate,
+    config: TrainConfig,
+    *,
+    steps_per_epoch: int,
+    checkpoint_dir: str | Path | None,
+    run_config: dict,
+    resume: bool,
+    desc: str,
+    progress: bool,
+) -> FitResult:
     """`fit` with the checkpoints of ``checkpoint_dir`` (optional), continuing the latest one
     when ``resume`` (`resume_state`); both trainers' loop."""
-    checkpoints = None if checkpoint_dir is None else Checkpoints(checkpoint_dir, max_to_keep=config.max_to_keep)
+    checkpoints = (
+        None
+        if checkpoint_dir is None
+        else Checkpoints(checkpoint_dir, max_to_keep=config.max_to_keep)
+    )
     try:
         resumed = Resumed(state, None, math.inf, None)
         if resume and checkpoints is not None:
             resumed = resume_state(checkpoints, state, run_config)
         return fit(
-            resumed.state, train_step, epoch_batches, evaluate, config, steps_per_epoch=steps_per_epoch,
-            checkpoints=checkpoints, run_config=run_config, desc=desc, progress=progress,
-            best_val_loss=resumed.best_val_loss, best_state=resumed.best_state, resume_from=resumed.progress,
-        )  # fmt: skip
+            resumed.state,
+            train_step,
+            epoch_batches,
+            evaluate,
+            config,
+            steps_per_epoch=steps_per_epoch,
+            checkpoints=checkpoints,
+            run_config=run_config,
+            desc=desc,
+            progress=progress,
+            best_val_loss=resumed.best_val_loss,
+            best_state=resumed.best_state,
+            resume_from=resumed.progress,
+        )
     finally:
         if checkpoints is not None:
             checkpoints.close()
@@ -612,13 +732,19 @@ def _fit_resumable(state, train_step, epoch_batches, evaluate, config: TrainConf
 # The paper's matcher optimisation: Adam 1e-4, 15 graphs per batch, validation every 5 epochs,
 # early stop after 5 checks without improvement. (Gradient clipping at 10 is ours; it only acts
 # on rare spikes.)
-def matcher_loss_fn(model: MatchingGAT, batch: GraphBatch, key) -> tuple[jax.Array, jax.Array, dict]:
+def matcher_loss_fn(
+    model: MatchingGAT, batch: GraphBatch, key
+) -> tuple[jax.Array, jax.Array, dict]:
     """``loss_fn(model, batch, key)`` of the matcher for `make_train_step`: MSE on match nodes."""
     del key  # augmentation happens on the host, when samples are composed
     scores = model(batch)
     mask = batch.is_match & batch.node_mask
     correct = (scores > 0.5) == (batch.label > 0.5)
-    return match_mse(scores, batch.label), mask, {"accuracy": masked_mean(correct.astype(jnp.float32), mask)}
+    return (
+        match_mse(scores, batch.label),
+        mask,
+        {"accuracy": masked_mean(correct.astype(jnp.float32), mask)},
+    )
 
 
 def train_matcher(
@@ -649,12 +775,18 @@ def train_matcher(
     rig_infer = rig.select(list(config.cameras or rig.names))
     train_pool = make_pool(rig_infer, train_recordings)
     dev_pool = make_pool(rig_infer, dev_recordings)
-    compose = dict(max_people=config.max_people, subset_probability=config.subset_probability,
-                   min_views=config.min_views, keypoint_dropout=config.keypoint_dropout)  # fmt: skip
+    compose = dict(
+        max_people=config.max_people,
+        subset_probability=config.subset_probability,
+        min_views=config.min_views,
+        keypoint_dropout=config.keypoint_dropout,
+    )
     per_batch = tcfg.batch_size
     steps_per_epoch = config.steps_per_epoch
     num_dev = max(1, math.ceil(config.num_dev_samples / per_batch))
-    dev_batches = sample_batches(dev_pool, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, per_batch, **compose)
+    dev_batches = sample_batches(
+        dev_pool, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, per_batch, **compose
+    )
 
     K = train_recordings[0].num_keypoints
     model = MatchingGAT(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
@@ -668,7 +800,9 @@ def train_matcher(
         step = make_train_step(graphdef, rest, tx, stacked_loss_fn(matcher_loss_fn), mesh=mesh)
         eval_batch = jax.jit(functools.partial(_stacked_matcher_eval, graphdef, rest))
         state = replicate(mesh, state)
-        dev_batches = [shard_batch(mesh, split_graph_batch(b, mesh_size(mesh))[0]) for b in dev_batches]
+        dev_batches = [
+            shard_batch(mesh, split_graph_batch(b, mesh_size(mesh))[0]) for b in dev_batches
+        ]
 
     def epoch_batches(epoch):
         rng = np.random.default_rng([tcfg.seed, epoch])
@@ -676,7 +810,11 @@ def train_matcher(
         for _ in range(steps_per_epoch):
             batch = sample_batches(train_pool, rng, 1, per_batch, **compose)[0]
             # The global batch (the same on every host), one padded block of graphs per device.
-            yield batch if mesh is None else shard_batch(mesh, split_graph_batch(batch, mesh_size(mesh))[0])
+            yield (
+                batch
+                if mesh is None
+                else shard_batch(mesh, split_graph_batch(batch, mesh_size(mesh))[0])
+            )
 
     def evaluate(state):
         sums = [eval_batch(state.params, b) for b in dev_batches]
@@ -685,9 +823,19 @@ def train_matcher(
         return {"val_loss": total["sq_error"] / n, "val_accuracy": total["correct"] / n}
 
     run_config = {**to_jsonable(dataclasses.asdict(config)), "num_keypoints": K}
-    result = _fit_resumable(state, step, epoch_batches, evaluate, tcfg, steps_per_epoch=steps_per_epoch,
-                            checkpoint_dir=checkpoint_dir, run_config=run_config, resume=resume, desc="matcher",
-                            progress=progress)  # fmt: skip
+    result = _fit_resumable(
+        state,
+        step,
+        epoch_batches,
+        evaluate,
+        tcfg,
+        steps_per_epoch=steps_per_epoch,
+        checkpoint_dir=checkpoint_dir,
+        run_config=run_config,
+        resume=resume,
+        desc="matcher",
+        progress=progress,
+    )
     return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
 
 
@@ -695,8 +843,11 @@ def _matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Ar
     scores = nnx.merge(graphdef, params, rest)(batch)
     mask = (batch.is_match & batch.node_mask).astype(jnp.float32)
     correct = ((scores > 0.5) == (batch.label > 0.5)).astype(jnp.float32)
-    return {"sq_error": jnp.sum(match_mse(scores, batch.label) * mask), "correct": jnp.sum(correct * mask),
-            "count": jnp.sum(mask)}  # fmt: skip
+    return {
+        "sq_error": jnp.sum(match_mse(scores, batch.label) * mask),
+        "correct": jnp.sum(correct * mask),
+        "count": jnp.sum(mask),
+    }
 
 
 def _stacked_matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:

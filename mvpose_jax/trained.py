@@ -108,9 +108,13 @@ def estimator_config_from_dict(d: dict) -> EstimatorConfig:
     try:
         mlp = MLPConfig(**{**d["mlp"], "widths": tuple(d["mlp"]["widths"])})
         return EstimatorConfig(
-            train_cameras=tup(d["train_cameras"]), infer_cameras=tup(d["infer_cameras"]), mlp=mlp,
-            train=TrainConfig(**d["train"]), num_augment=d["num_augment"], loss_power=d["loss_power"],
-        )  # fmt: skip
+            train_cameras=tup(d["train_cameras"]),
+            infer_cameras=tup(d["infer_cameras"]),
+            mlp=mlp,
+            train=TrainConfig(**d["train"]),
+            num_augment=d["num_augment"],
+            loss_power=d["loss_power"],
+        )
     except (KeyError, TypeError) as e:
         raise InputError(f"not an estimator config ({e})", field="config") from None
 
@@ -127,11 +131,14 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
         saved = checkpoints.read_config(which)
         config = estimator_config_from_dict(saved)
         if "num_keypoints" not in saved:
-            raise InputError("checkpoint config lacks num_keypoints", file=directory, field="config")
+            raise InputError(
+                "checkpoint config lacks num_keypoints", file=directory, field="config"
+            )
         rig_infer = rig.select(list(config.infer_cameras or config.train_cameras or rig.names))
         K = int(saved["num_keypoints"])
-        graphdef, params, rest = nnx.split(PoseMLP(rig_infer.num_cameras, K, config.mlp, rngs=nnx.Rngs(0)),
-                                           nnx.Param, ...)  # fmt: skip
+        graphdef, params, rest = nnx.split(
+            PoseMLP(rig_infer.num_cameras, K, config.mlp, rngs=nnx.Rngs(0)), nnx.Param, ...
+        )
         params = checkpoints.restore_params(jax.eval_shape(lambda: params), which)
     finally:
         checkpoints.close()
@@ -140,8 +147,11 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
     if "frame" in saved:
         f = np.asarray(saved["frame"], np.float32)
         if f.shape != (4,) or not np.isfinite(f).all() or f[3] <= 0:
-            raise InputError("the saved normalisation frame is not [cx, cy, cz, radius > 0]", file=directory,
-                             field="config.frame")  # fmt: skip
+            raise InputError(
+                "the saved normalisation frame is not [cx, cy, cz, radius > 0]",
+                file=directory,
+                field="config.frame",
+            )
         normalisation = (jnp.asarray(f[:3]), jnp.asarray(f[3]))
     return Estimator(graphdef, rest, params, rig_infer, config, normalisation)
 
@@ -149,7 +159,9 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
 # =========================================================================== skeleton matching
 
 
-MATCHER_TRAIN = TrainConfig(learning_rate=1e-4, batch_size=15, max_epochs=1000, eval_every=5, patience=5)
+MATCHER_TRAIN = TrainConfig(
+    learning_rate=1e-4, batch_size=15, max_epochs=1000, eval_every=5, patience=5
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,8 +201,13 @@ class MatcherConfig:
     def quick(cls, cameras: tuple[str, ...] | None = None) -> MatcherConfig:
         """The small network, a larger step size and short epochs (tests, quick experiments)."""
         train = dataclasses.replace(MATCHER_TRAIN, learning_rate=1e-3, max_epochs=50, eval_every=2)
-        return cls(cameras=cameras, gat=GATConfig.quick(), train=train, samples_per_epoch=300,
-                   num_dev_samples=90)  # fmt: skip
+        return cls(
+            cameras=cameras,
+            gat=GATConfig.quick(),
+            train=train,
+            samples_per_epoch=300,
+            num_dev_samples=90,
+        )
 
 
 class Matcher(NamedTuple):
@@ -206,16 +223,27 @@ class Matcher(NamedTuple):
 def matcher_config_from_dict(d: dict) -> MatcherConfig:
     """Rebuilds a `MatcherConfig` from its saved JSON form (`dataclasses.asdict`)."""
     try:
-        gat = GATConfig(**{**d["gat"], "widths": tuple(d["gat"]["widths"]), "heads": tuple(d["gat"]["heads"])})
+        gat = GATConfig(
+            **{**d["gat"], "widths": tuple(d["gat"]["widths"]), "heads": tuple(d["gat"]["heads"])}
+        )
         fields = {f.name for f in dataclasses.fields(MatcherConfig)} - {"cameras", "gat", "train"}
-        return MatcherConfig(cameras=None if d["cameras"] is None else tuple(d["cameras"]), gat=gat,
-                             train=TrainConfig(**d["train"]), **{k: d[k] for k in fields if k in d})  # fmt: skip
+        return MatcherConfig(
+            cameras=None if d["cameras"] is None else tuple(d["cameras"]),
+            gat=gat,
+            train=TrainConfig(**d["train"]),
+            **{k: d[k] for k in fields if k in d},
+        )
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(f"not a matcher config ({e})", field="config") from None
 
 
-def load_matcher(directory: str | Path, rig: Rig, config: MatcherConfig | None = None,
-                 num_keypoints: int | None = None, which: str = "best") -> Matcher:  # fmt: skip
+def load_matcher(
+    directory: str | Path,
+    rig: Rig,
+    config: MatcherConfig | None = None,
+    num_keypoints: int | None = None,
+    which: str = "best",
+) -> Matcher:
     """Restores a matcher saved by `train_matcher`.
 
     ``config`` and ``num_keypoints`` default to those saved with the checkpoint (checkpoints of
@@ -230,7 +258,9 @@ def load_matcher(directory: str | Path, rig: Rig, config: MatcherConfig | None =
         config = config or matcher_config_from_dict(saved)
         if num_keypoints is None:
             if "num_keypoints" not in saved:
-                raise InputError("checkpoint config lacks num_keypoints; pass it", file=directory, field="config")
+                raise InputError(
+                    "checkpoint config lacks num_keypoints; pass it", file=directory, field="config"
+                )
             num_keypoints = int(saved["num_keypoints"])
     rig_infer = rig.select(list(config.cameras or rig.names))
     model = MatchingGAT(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))

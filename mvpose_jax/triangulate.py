@@ -49,7 +49,10 @@ def _view_normals(Rt: jax.Array, xy: jax.Array, w: jax.Array) -> tuple[jax.Array
       m (B, C, 3, 3) and b (B, C, 3): view c contributes m[:, c] X = b[:, c].
     """
     P = Rt[None]  # (1, C, 3, 4)
-    rows = jnp.stack([xy[..., 0:1] * P[..., 2, :] - P[..., 0, :], xy[..., 1:2] * P[..., 2, :] - P[..., 1, :]], axis=-2)
+    rows = jnp.stack(
+        [xy[..., 0:1] * P[..., 2, :] - P[..., 0, :], xy[..., 1:2] * P[..., 2, :] - P[..., 1, :]],
+        axis=-2,
+    )
     rows = rows * w[..., None, None]  # (B, C, 2, 4)
     a, c = rows[..., :3], rows[..., 3]
     return jnp.einsum("...ri,...rj->...ij", a, a), -jnp.einsum("...ri,...r->...i", a, c)
@@ -68,7 +71,9 @@ def _solve_normals(m: jax.Array, b: jax.Array, num_views: jax.Array) -> tuple[ja
       is not (nearly) singular, i.e. rays not (nearly) parallel nor all through one centre.
     """
     r0, r1, r2 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
-    cof = jnp.stack([jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)], axis=-2)  # adj(m), symmetric
+    cof = jnp.stack(
+        [jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)], axis=-2
+    )  # adj(m), symmetric
     det = jnp.sum(r0 * cof[..., 0, :], axis=-1)
     trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     # det = l_min l_mid l_max and trace >= l_max >= l_mid: det > rtol trace^3 implies
@@ -92,9 +97,7 @@ def _flatten(rig: Rig, px: jax.Array, weight: jax.Array):
 
 
 @jax.jit
-def triangulate_points(
-    rig: Rig, px: jax.Array, weight: jax.Array
-) -> tuple[jax.Array, jax.Array]:
+def triangulate_points(rig: Rig, px: jax.Array, weight: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Score-weighted DLT triangulation over any number of views, batched.
 
     Args:

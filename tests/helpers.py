@@ -37,10 +37,21 @@ def random_rig(seed: int = 0, num_cameras: int = 4):
         R.append(rot)
         t.append(-rot @ centre)
         f = rng.uniform(1200, 1600)
-        K.append([[f, 0, 960 + rng.uniform(-20, 20)], [0, f * rng.uniform(0.99, 1.01), 540], [0, 0, 1]])
-        dist.append([rng.uniform(-0.28, -0.1), rng.uniform(0.0, 0.15), rng.uniform(-2e-3, 2e-3),
-                     rng.uniform(-2e-3, 2e-3), rng.uniform(-0.03, 0.02)])  # fmt: skip
-    return make_rig(K, dist, R, t, [[1920, 1080]] * num_cameras, [f"cam{c}" for c in range(num_cameras)])
+        K.append(
+            [[f, 0, 960 + rng.uniform(-20, 20)], [0, f * rng.uniform(0.99, 1.01), 540], [0, 0, 1]]
+        )
+        dist.append(
+            [
+                rng.uniform(-0.28, -0.1),
+                rng.uniform(0.0, 0.15),
+                rng.uniform(-2e-3, 2e-3),
+                rng.uniform(-2e-3, 2e-3),
+                rng.uniform(-0.03, 0.02),
+            ]
+        )
+    return make_rig(
+        K, dist, R, t, [[1920, 1080]] * num_cameras, [f"cam{c}" for c in range(num_cameras)]
+    )
 
 
 def scene_points(rig, seed, shape):
@@ -153,7 +164,9 @@ def json_paths(node, prefix=()):
             yield from json_paths(v, prefix + (i,))
 
 
-def random_frames(rng: np.random.Generator, F: int, C: int = 3, P: int = 3, K: int = 4, p_valid: float = 0.6):
+def random_frames(
+    rng: np.random.Generator, F: int, C: int = 3, P: int = 3, K: int = 4, p_valid: float = 0.6
+):
     """Random detection features (F, C, P, K*10), validity (F, C, P) and identities (F, C, P)
     (-1 for a fifth of the skeletons), for graph building."""
     feats = rng.normal(size=(F, C, P, K * 10)).astype(np.float32)

@@ -27,8 +27,12 @@ def smoke_run(tmp_path_factory):
     # One process (no per-group subprocesses) keeps the smoke run short; the CLI path is the same.
     proc = subprocess.run(
         [sys.executable, "-m", "benchmarks.run", "--smoke", "--in-process", "--out", str(out)],
-        cwd=REPO, env=env, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
     return json.loads((out / "run.json").read_text()), (out / "run.md").read_text()
 
@@ -41,7 +45,17 @@ def _check_stats(s: dict):
 @pytest.mark.slow  # the harness smoke run (a minute)
 def test_smoke_run_has_every_section(smoke_run):
     run, md = smoke_run
-    for key in ("machine", "git", "peaks", "latency", "offline", "training", "memory", "targets", "profile"):
+    for key in (
+        "machine",
+        "git",
+        "peaks",
+        "latency",
+        "offline",
+        "training",
+        "memory",
+        "targets",
+        "profile",
+    ):
         assert key in run, key
     assert not run["errors"]
     m = run["machine"]
@@ -77,8 +91,14 @@ def test_smoke_run_has_every_section(smoke_run):
 
     assert len(run["targets"]) == 4
     assert all(t["status"] in ("pass", "miss", "n/a") for t in run["targets"])
-    for heading in ("## Targets", "## Per-frame latency", "## Offline throughput", "## Training throughput",
-                    "## Peak memory", "## Breakdown"):  # fmt: skip
+    for heading in (
+        "## Targets",
+        "## Per-frame latency",
+        "## Offline throughput",
+        "## Training throughput",
+        "## Peak memory",
+        "## Breakdown",
+    ):
         assert heading in md
 
 
@@ -92,7 +112,9 @@ def _fake_run(t_pp: float, t_3dg: float, t_tri: float, stage3_gflops: float) -> 
         "peaks": {"matmul_gflops": 300.0, "bandwidth_gbs": 40.0},
         "latency": {
             "rows": [{**where, "model": "paper", "t_pp": _stats(t_pp), "t_3Dg": _stats(t_3dg)}],
-            "triangulation": [{**where, "method": m, "t_tri": _stats(t_tri)} for m in ("dlt", "centroid")],
+            "triangulation": [
+                {**where, "method": m, "t_tri": _stats(t_tri)} for m in ("dlt", "centroid")
+            ],
             "models": {"5v-paper": {"mlp_bytes": 120_000_000}},  # bound 3 ms at 40 GB/s
         },
         "offline": {"models": {"paper": {"stage3": {"gflops": stage3_gflops}}}},
@@ -112,10 +134,14 @@ def test_targets_pass_and_miss():
 def test_opencv_reference_matches_the_library_centroid():
     rig = scenes.ring_rig(4)
     rng = np.random.default_rng(0)
-    xyz = rng.normal(size=(3, 18, 3)).astype(np.float32) * 0.4 + np.array([0.0, -1.0, 0.0], np.float32)
+    xyz = rng.normal(size=(3, 18, 3)).astype(np.float32) * 0.4 + np.array(
+        [0.0, -1.0, 0.0], np.float32
+    )
     px = np.asarray(project_points(rig, xyz))  # (C, 3, 18, 2)
     score = (rng.random(px.shape[:-1]) < 0.8).astype(np.float32)
-    ref, ok = scenes.opencv_pairwise_centroid(scenes.opencv_cameras(rig), np.moveaxis(px, 0, 1), np.moveaxis(score, 0, 1))
+    ref, ok = scenes.opencv_pairwise_centroid(
+        scenes.opencv_cameras(rig), np.moveaxis(px, 0, 1), np.moveaxis(score, 0, 1)
+    )
     ours, ours_ok = triangulate_pairwise_centroid(rig, px, score)
     np.testing.assert_array_equal(ok, np.asarray(ours_ok))
     np.testing.assert_allclose(ref[ok], np.asarray(ours)[ok], atol=2e-3)

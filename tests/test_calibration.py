@@ -71,8 +71,15 @@ def test_rodrigues_matches_opencv():
 
 
 def _native(**overrides):
-    cam = {"name": "cam0", "width": 1920, "height": 1080, "K": [[1000, 0, 960], [0, 1000, 540], [0, 0, 1]],
-           "dist": [0, 0, 0, 0, 0], "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 3]}  # fmt: skip
+    cam = {
+        "name": "cam0",
+        "width": 1920,
+        "height": 1080,
+        "K": [[1000, 0, 960], [0, 1000, 540], [0, 0, 1]],
+        "dist": [0, 0, 0, 0, 0],
+        "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+        "t": [0, 0, 3],
+    }
     cam.update(overrides)
     return {"cameras": [cam]}
 
@@ -89,7 +96,12 @@ def _native(**overrides):
         (json.dumps(_native(dist=[0, 0, 0])), "dist", "cam0", "4 or 5"),
         (json.dumps(_native(t=[0, "x", 1])), "t", "cam0", "numbers"),
         (json.dumps(_native(width=-5)), "size", "cam0", "positive"),
-        (json.dumps(_native()).replace('"t": [0, 0, 3]', '"t": [0, NaN, 3]'), None, None, "non-finite"),
+        (
+            json.dumps(_native()).replace('"t": [0, 0, 3]', '"t": [0, NaN, 3]'),
+            None,
+            None,
+            "non-finite",
+        ),
         (json.dumps({"cameras": []}), "cameras", None, "non-empty"),
         (json.dumps(_native(name=None)), "name", 0, "camera name"),
         (json.dumps({"cameras": [{"name": "a"}]}), "K", "a", "missing"),
@@ -110,10 +122,18 @@ def test_native_loader_rejects_bad_input(tmp_path, text, field, camera, match):
     [
         ("[cam_1\nname = 'a'", None, "malformed TOML"),
         ("[metadata]\nerror = 0.0\n", "cameras", "no camera tables"),
-        ('[cam_1]\nname = "a"\nsize = [1920, 1080]\nmatrix = [[1000, 0, 960], [0, 1000, 540], [0, 0, 1]]\n'
-         'distortions = [0, 0, 0, 0]\nrotation = [0, 0, 0]\ntranslation = [0, nan, 0]\n', "translation", "NaN"),
-        ('[cam_1]\nname = "a"\nsize = [1920, 1080]\nmatrix = [[1000, 0, 960], [0, 1000, 540], [0, 0, 1]]\n'
-         "distortions = [0, 0, 0, 0]\nrotation = [0, 0, 0]\n", "translation", "missing"),
+        (
+            '[cam_1]\nname = "a"\nsize = [1920, 1080]\nmatrix = [[1000, 0, 960], [0, 1000, 540], [0, 0, 1]]\n'
+            "distortions = [0, 0, 0, 0]\nrotation = [0, 0, 0]\ntranslation = [0, nan, 0]\n",
+            "translation",
+            "NaN",
+        ),
+        (
+            '[cam_1]\nname = "a"\nsize = [1920, 1080]\nmatrix = [[1000, 0, 960], [0, 1000, 540], [0, 0, 1]]\n'
+            "distortions = [0, 0, 0, 0]\nrotation = [0, 0, 0]\n",
+            "translation",
+            "missing",
+        ),
         ('[cam_1]\nname = "a"\nfisheye = true\n', "fisheye", "not supported"),
     ],
 )

@@ -14,8 +14,12 @@ from tests.helpers import random_rig
 
 
 def _cam(rig, c):
-    return (np.asarray(rig.K[c], np.float64), np.asarray(rig.dist[c], np.float64),
-            np.asarray(rig.R[c], np.float64), np.asarray(rig.t[c], np.float64))  # fmt: skip
+    return (
+        np.asarray(rig.K[c], np.float64),
+        np.asarray(rig.dist[c], np.float64),
+        np.asarray(rig.R[c], np.float64),
+        np.asarray(rig.t[c], np.float64),
+    )
 
 
 def _cv_undistort(px, K, D, iters=None):
@@ -71,9 +75,13 @@ def test_undistort_points_matches_opencv_on_every_camera(preset_rig, ring_rig):
             K, D, _, _ = _cam(rig, c)
             to_px = lambda xy: xy @ K[:2, :2].T + K[:2, 2]  # noqa: E731
             # OpenCV's default stops after 5 iterations: num_iters=5 reproduces it exactly.
-            np.testing.assert_allclose(ours5[c], to_px(_cv_undistort(px[c], K, D)), atol=1e-3, rtol=0)
+            np.testing.assert_allclose(
+                ours5[c], to_px(_cv_undistort(px[c], K, D)), atol=1e-3, rtol=0
+            )
             # Our default iterates to convergence; compare with OpenCV run to convergence.
-            np.testing.assert_allclose(ours[c], to_px(_cv_undistort(px[c], K, D, 200)), atol=1e-3, rtol=0)
+            np.testing.assert_allclose(
+                ours[c], to_px(_cv_undistort(px[c], K, D, 200)), atol=1e-3, rtol=0
+            )
 
 
 def test_undistort_inverts_project(ring_rig):
@@ -90,7 +98,9 @@ def test_project_points_batch_shapes(ring_rig, batch):
     X = jnp.asarray(np.random.default_rng(2).normal(size=batch + (3,)), jnp.float32)
     px = jax.jit(cameras.project_points)(ring_rig, X)
     assert px.shape == (ring_rig.num_cameras,) + batch + (2,)
-    per_cam = cameras.project_points_per_camera(ring_rig, jnp.broadcast_to(X, (ring_rig.num_cameras,) + X.shape))
+    per_cam = cameras.project_points_per_camera(
+        ring_rig, jnp.broadcast_to(X, (ring_rig.num_cameras,) + X.shape)
+    )
     np.testing.assert_allclose(per_cam, px, atol=1e-4)
 
 
@@ -166,8 +176,13 @@ def test_up_vector_inferred_from_cameras_matches_calibration(preset_rig):
     ],
 )
 def test_make_rig_rejects_bad_cameras(field, value, message):
-    good = dict(K=np.eye(3)[None], dist=np.zeros((1, 5)), R=np.eye(3)[None], t=np.zeros((1, 3)),
-                size=np.array([[1920.0, 1080.0]]))  # fmt: skip
+    good = dict(
+        K=np.eye(3)[None],
+        dist=np.zeros((1, 5)),
+        R=np.eye(3)[None],
+        t=np.zeros((1, 3)),
+        size=np.array([[1920.0, 1080.0]]),
+    )
     bad = {**good, field: value[None]}
     with pytest.raises(InputError, match=message) as e:
         cameras.make_rig(**bad, names=["cam0"], file="calib.json")

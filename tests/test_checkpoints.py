@@ -27,7 +27,9 @@ def _saved(tmp_path, widths=(8, 8)):
 
 
 def _abstract_params(widths=(8, 8)):
-    _, params, _ = nnx.split(PoseMLP(2, 4, MLPConfig(widths=widths), rngs=nnx.Rngs(0)), nnx.Param, ...)
+    _, params, _ = nnx.split(
+        PoseMLP(2, 4, MLPConfig(widths=widths), rngs=nnx.Rngs(0)), nnx.Param, ...
+    )
     return jax.eval_shape(lambda: params)
 
 
@@ -41,8 +43,12 @@ def test_params_alone_restore_without_an_optimiser(tmp_path):
         ck.close()
     assert config == {"run": "test"}
     assert jax.tree.structure(params) == jax.tree.structure(state.params)
-    for a, b, c in zip(jax.tree.leaves(params), jax.tree.leaves(state.params), jax.tree.leaves(whole.params),
-                       strict=True):  # fmt: skip
+    for a, b, c in zip(
+        jax.tree.leaves(params),
+        jax.tree.leaves(state.params),
+        jax.tree.leaves(whole.params),
+        strict=True,
+    ):
         assert isinstance(a, jax.Array)
         np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(a, c)

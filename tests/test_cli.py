@@ -40,7 +40,10 @@ def files(recording, tmp_path_factory):
 @pytest.mark.parametrize("fmt", ["native", "npz", "original", "openpose"])
 def test_infer_reads_every_format(files, recording, fmt, tmp_path, capsys):
     out = tmp_path / "poses"
-    assert main(["infer", "--rig", "panoptic5", "--detections", str(files[fmt]), "--out", str(out)]) == 0
+    assert (
+        main(["infer", "--rig", "panoptic5", "--detections", str(files[fmt]), "--out", str(out)])
+        == 0
+    )
     assert "frames" in capsys.readouterr().out
     res = load_poses(out / "poses.npz")
     doc = json.loads((out / "poses.json").read_text())
@@ -49,8 +52,12 @@ def test_infer_reads_every_format(files, recording, fmt, tmp_path, capsys):
     assert res.poses.xyz.shape[0] == F and res.poses.valid.any()
     # The JSON and the npz say the same.
     from_json = load_poses(out / "poses.json")
-    np.testing.assert_array_equal(from_json.poses.valid[:, : res.poses.valid.shape[1]], res.poses.valid)
-    np.testing.assert_allclose(from_json.poses.xyz[:, : res.poses.valid.shape[1]], res.poses.xyz, atol=1e-4)
+    np.testing.assert_array_equal(
+        from_json.poses.valid[:, : res.poses.valid.shape[1]], res.poses.valid
+    )
+    np.testing.assert_allclose(
+        from_json.poses.xyz[:, : res.poses.valid.shape[1]], res.poses.xyz, atol=1e-4
+    )
     assert sum(len(f["people"]) for f in doc["frames"]) == int(res.poses.valid.sum())
     person = next(p for f in doc["frames"] for p in f["people"])
     assert set(person["skeletons"]) <= set(recording.cameras) and len(person["keypoints"]) == 18
@@ -60,11 +67,39 @@ def test_infer_with_a_calibration_file_and_evaluate(files, recording, tmp_path, 
     calib = tmp_path / "rig.json"
     save_rig(load_rig("panoptic5"), calib)
     out = tmp_path / "poses"
-    assert main(["infer", "--rig", str(calib), "--detections", str(files["native"]), "--out", str(out),
-                 "--method", "centroid"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "infer",
+                "--rig",
+                str(calib),
+                "--detections",
+                str(files["native"]),
+                "--out",
+                str(out),
+                "--method",
+                "centroid",
+            ]
+        )
+        == 0
+    )
     metrics = tmp_path / "metrics.json"
-    assert main(["evaluate", "--rig", str(calib), "--detections", str(files["native"]), "--poses", str(out),
-                 "--out", str(metrics)]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "evaluate",
+                "--rig",
+                str(calib),
+                "--detections",
+                str(files["native"]),
+                "--poses",
+                str(out),
+                "--out",
+                str(metrics),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "MPJPE" in text and "ARI" in text and "trackera" in text
     m = json.loads(metrics.read_text())
@@ -81,24 +116,67 @@ def test_evaluate_without_ground_truth_gives_reprojection_only(files, recording,
     save_recording(dataclasses.replace(rec, ground_truth=None, identity=None, projected=None), bare)
     out = tmp_path / "poses"
     assert main(["infer", "--rig", "panoptic5", "--detections", str(bare), "--out", str(out)]) == 0
-    assert main(["evaluate", "--rig", "panoptic5", "--detections", str(bare), "--poses", str(out)]) == 0
+    assert (
+        main(["evaluate", "--rig", "panoptic5", "--detections", str(bare), "--poses", str(out)])
+        == 0
+    )
     text = capsys.readouterr().out
     assert "reprojection error" in text and "MPJPE" not in text
 
 
 def test_render_writes_images_video_and_3d_figures(files, tmp_path, capsys):
     out = tmp_path / "poses"
-    assert main(["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out", str(out)]) == 0
+    assert (
+        main(["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out", str(out)])
+        == 0
+    )
     pics = tmp_path / "render"
-    assert main(["render", "--rig", "panoptic5", "--detections", str(files["npz"]), "--poses", str(out),
-                 "--frames", "0", "2", "--figures-3d", "--out", str(pics)]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "render",
+                "--rig",
+                "panoptic5",
+                "--detections",
+                str(files["npz"]),
+                "--poses",
+                str(out),
+                "--frames",
+                "0",
+                "2",
+                "--figures-3d",
+                "--out",
+                str(pics),
+            ]
+        )
+        == 0
+    )
     names = sorted(p.name for p in pics.iterdir())
-    assert names == ["frame_000000.png", "frame_000000_3d.png", "frame_000002.png", "frame_000002_3d.png"]
+    assert names == [
+        "frame_000000.png",
+        "frame_000000_3d.png",
+        "frame_000002.png",
+        "frame_000002_3d.png",
+    ]
     img = cv2.imread(str(pics / "frame_000000.png"))
     assert img is not None and img.shape[0] > 100 and (img < 200).any(), "something was drawn"
     video = tmp_path / "poses.mp4"
-    assert main(["render", "--rig", "panoptic5", "--detections", str(files["npz"]), "--poses", str(out),
-                 "--out", str(video)]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "render",
+                "--rig",
+                "panoptic5",
+                "--detections",
+                str(files["npz"]),
+                "--poses",
+                str(out),
+                "--out",
+                str(video),
+            ]
+        )
+        == 0
+    )
     cap = cv2.VideoCapture(str(video))
     frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     cap.release()
@@ -107,17 +185,54 @@ def test_render_writes_images_video_and_3d_figures(files, tmp_path, capsys):
 
 def test_bad_input_is_one_clear_line(files, tmp_path, capsys):
     out = tmp_path / "poses"
-    assert main(["infer", "--rig", "panoptic5", "--detections", str(tmp_path / "missing.json"), "--out", str(out)]) == 2
+    assert (
+        main(
+            [
+                "infer",
+                "--rig",
+                "panoptic5",
+                "--detections",
+                str(tmp_path / "missing.json"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "missing.json" in err and "Traceback" not in err
     assert not out.exists()
-    assert main(["render", "--rig", "panoptic5", "--detections", str(files["npz"]), "--poses", str(tmp_path),
-                 "--out", str(tmp_path / "r")]) == 2  # fmt: skip
+    assert (
+        main(
+            [
+                "render",
+                "--rig",
+                "panoptic5",
+                "--detections",
+                str(files["npz"]),
+                "--poses",
+                str(tmp_path),
+                "--out",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 2
+    )
     assert "poses.npz" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
-    "name", ["infer", "evaluate", "render", "train-matcher", "train-estimator", "generate", "synthetic-figure", "rig"]
+    "name",
+    [
+        "infer",
+        "evaluate",
+        "render",
+        "train-matcher",
+        "train-estimator",
+        "generate",
+        "synthetic-figure",
+        "rig",
+    ],
 )
 def test_every_command_explains_every_option(name, capsys):
     with pytest.raises(SystemExit):

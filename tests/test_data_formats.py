@@ -113,7 +113,7 @@ def assert_recordings_equal(a: Recording, b: Recording) -> None:
             np.testing.assert_array_equal(x, y, err_msg=name)
     assert (a.ground_truth is None) == (b.ground_truth is None)
     if a.ground_truth is not None:
-        for x, y in zip(a.ground_truth, b.ground_truth):
+        for x, y in zip(a.ground_truth, b.ground_truth, strict=True):
             assert np.asarray(x).dtype == np.asarray(y).dtype
             np.testing.assert_array_equal(x, y)
 
@@ -156,10 +156,10 @@ def test_original_round_trip(tmp_path, seed):
     np.testing.assert_array_equal(back.image_names, rec.image_names)
     assert back.identity is None and back.projected is None  # the format has no place for them
     for people_a, people_b in zip(
-        compact_ground_truth(back.ground_truth), compact_ground_truth(rec.ground_truth)
+        compact_ground_truth(back.ground_truth), compact_ground_truth(rec.ground_truth), strict=True
     ):
         assert len(people_a) == len(people_b)
-        for (xa, ka), (xb, kb) in zip(people_a, people_b):
+        for (xa, ka), (xb, kb) in zip(people_a, people_b, strict=True):
             np.testing.assert_array_equal(ka, kb)
             np.testing.assert_array_equal(xa, xb)  # cm on disk, yet exact in float32 metres
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import pytest
-
 import json
+
+import pytest
 
 from experiments.run import main
 
@@ -24,7 +24,14 @@ def test_default_experiment_smoke(tmp_path, capsys):
         assert set(rows) == {"2", "3", "5"}
         for n, row in rows.items():
             for method in ("gat", "gat_chosen", "geometric"):
-                scores = {"ari", "homogeneity", "completeness", "v_measure", "pooled_ari", "pooled_v_measure"}
+                scores = {
+                    "ari",
+                    "homogeneity",
+                    "completeness",
+                    "v_measure",
+                    "pooled_ari",
+                    "pooled_v_measure",
+                }
                 assert scores | {"t_pp_ms"} <= set(row[method])
             # Both matchers' settings are the ones chosen on dev frames (never on the scenes).
             fit = res["training"][f"matcher-{n}"]
@@ -35,17 +42,32 @@ def test_default_experiment_smoke(tmp_path, capsys):
     for n in ("2", "3", "5"):
         fit = res["training"][f"matcher-{n}"]
         assert 0 < fit["threshold"] < 1
-        assert fit["dev_ari_by_threshold"][str(fit["threshold"])] == max(fit["dev_ari_by_threshold"].values())
-        assert fit["dev_ari_by_cutoff_px"][str(fit["geometric_cutoff_px"])] == max(fit["dev_ari_by_cutoff_px"].values())
+        assert fit["dev_ari_by_threshold"][str(fit["threshold"])] == max(
+            fit["dev_ari_by_threshold"].values()
+        )
+        assert fit["dev_ari_by_cutoff_px"][str(fit["geometric_cutoff_px"])] == max(
+            fit["dev_ari_by_cutoff_px"].values()
+        )
     # The geometric baseline needs no training: even here it groups nearly perfectly.
     assert res["matching"]["test"]["5"]["geometric"]["ari"] > 0.9
     for split in ("validation", "test"):
         assert set(res["pose"][split]) == {"detected", "projected", "average"}
         for rows in res["pose"][split].values():
-            assert set(rows) == {"pipeline", "true_groups", "geometric_proposals", "gat_proposals_at_half"}
+            assert set(rows) == {
+                "pipeline",
+                "true_groups",
+                "geometric_proposals",
+                "gat_proposals_at_half",
+            }
             assert {"ours", "centroid", "dlt", "ours_on_dlt_keypoints"} <= set(rows["true_groups"])
-            assert set(rows["true_groups"]["ours"]["pcp_by_limb"]) == {"head", "torso", "upper_arm", "lower_arm",
-                                                                       "upper_leg", "lower_leg"}  # fmt: skip
+            assert set(rows["true_groups"]["ours"]["pcp_by_limb"]) == {
+                "head",
+                "torso",
+                "upper_arm",
+                "lower_arm",
+                "upper_leg",
+                "lower_leg",
+            }
     text = (out / "tables.md").read_text()
     assert text.index("## Test scenes") < text.index("## Validation scenes")
     assert (out / "tables.md").read_text().startswith("# paper-panoptic")
@@ -55,7 +77,10 @@ def test_default_experiment_smoke(tmp_path, capsys):
 
 def test_synthetic_summary_smoke(tmp_path):
     out = tmp_path / "summary"
-    assert main(["--experiment", "synthetic-summary", "--smoke", "--out", str(out), "--no-progress"]) == 0
+    assert (
+        main(["--experiment", "synthetic-summary", "--smoke", "--out", str(out), "--no-progress"])
+        == 0
+    )
     m = json.loads((out / "metrics.json").read_text())
     assert set(m["runs"][0]["variants"]) == {"detected", "projected", "average"}
     assert (out / "recording.json").exists()

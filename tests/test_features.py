@@ -20,7 +20,9 @@ def _people(rig, n, seed=0):
 
 def test_keypoint_features_layout(ring_rig):
     _, xy, score = _people(ring_rig, 3)
-    f = np.asarray(features.keypoint_features(ring_rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)))
+    f = np.asarray(
+        features.keypoint_features(ring_rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0))
+    )
     f = np.moveaxis(f, 0, 1)  # (N, C, K, 10)
     seen = score > 0
     assert np.all(f[~seen] == 0)  # a missing keypoint is all zeros
@@ -30,7 +32,9 @@ def test_keypoint_features_layout(ring_rig):
     np.testing.assert_allclose(f[..., 3][seen], score[seen])
     centre, radius = cameras.rig_centre_and_radius(ring_rig)
     cams = (np.asarray(cameras.camera_centres(ring_rig)) - np.asarray(centre)) / float(radius)
-    np.testing.assert_allclose(f[..., 4:7], np.where(seen[..., None], cams[None, :, None], 0), atol=1e-6)
+    np.testing.assert_allclose(
+        f[..., 4:7], np.where(seen[..., None], cams[None, :, None], 0), atol=1e-6
+    )
     rays = np.moveaxis(np.asarray(cameras.pixel_rays(ring_rig, jnp.moveaxis(xy, 1, 0))), 0, 1)
     np.testing.assert_allclose(f[..., 7:10][seen], rays[seen], atol=1e-6)
 
@@ -68,7 +72,9 @@ def test_initial_estimate_uses_only_the_kept_views(ring_rig):
                 assert np.all(slot == 0)  # a slot with no view is all zeros
                 continue
             np.testing.assert_array_equal(slot[:, 10], np.asarray(ok))
-            np.testing.assert_allclose(slot[:, 11:14][np.asarray(ok)], ref[np.asarray(ok)], atol=1e-5)
+            np.testing.assert_allclose(
+                slot[:, 11:14][np.asarray(ok)], ref[np.asarray(ok)], atol=1e-5
+            )
     assert not f[3, :, :, 10].any()  # one view: no triangulation
 
 

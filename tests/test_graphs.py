@@ -103,9 +103,17 @@ def test_batch_equals_jraph_batch_and_pad():
     for f in range(4):
         s = build_graphs(feats[f : f + 1], valid[f : f + 1], budget=Budget(4096, 64, 20000, 2))
         n, e = s.graphs.n_node[0], s.graphs.n_edge[0]
-        singles.append(jraph.GraphsTuple(nodes=s.graphs.nodes[:n], edges=None, senders=s.graphs.senders[:e],
-                                         receivers=s.graphs.receivers[:e], n_node=s.graphs.n_node[:1],
-                                         n_edge=s.graphs.n_edge[:1], globals=None))  # fmt: skip
+        singles.append(
+            jraph.GraphsTuple(
+                nodes=s.graphs.nodes[:n],
+                edges=None,
+                senders=s.graphs.senders[:e],
+                receivers=s.graphs.receivers[:e],
+                n_node=s.graphs.n_node[:1],
+                n_edge=s.graphs.n_edge[:1],
+                globals=None,
+            )
+        )
     ref = jraph.pad_with_graphs(jraph.batch(singles), len(b.graphs.nodes), len(b.graphs.senders), 7)
     for field in ("nodes", "senders", "receivers", "n_node", "n_edge"):
         np.testing.assert_array_equal(np.asarray(getattr(ref, field)), getattr(b.graphs, field))
@@ -143,7 +151,9 @@ def test_pool_main_skeleton_is_the_fullest(pool_and_rig):
     pool, _, recs = pool_and_rig
     rec = recs[0]
     score = np.asarray(rec.detections.score)
-    n_kp = np.where(pool.valid[: rec.num_frames], (score > 0).sum(-1)[..., : pool.valid.shape[2]], -1)
+    n_kp = np.where(
+        pool.valid[: rec.num_frames], (score > 0).sum(-1)[..., : pool.valid.shape[2]], -1
+    )
     has = pool.valid[: rec.num_frames].any(-1)
     main = pool.main[: rec.num_frames]
     assert (main.sum(-1) == has).all()  # one main skeleton per non-empty view
@@ -164,8 +174,12 @@ def test_composed_samples_use_distinct_recordings_and_are_reproducible(pool_and_
             ids = identity[s, c][valid[s, c] & (identity[s, c] >= 0)]
             assert len(ids) == len(set(ids.tolist()))
     # View-subset augmentation keeps 2..C views (seen on a pool where every view has skeletons).
-    full = dataclasses.replace(pool, valid=np.ones_like(pool.valid), main=pool.main | ~pool.valid.any(-1, keepdims=True))
-    valid_all = compose_samples(full, np.random.default_rng(6), 200, max_people=3, subset_probability=1.0)[1]
+    full = dataclasses.replace(
+        pool, valid=np.ones_like(pool.valid), main=pool.main | ~pool.valid.any(-1, keepdims=True)
+    )
+    valid_all = compose_samples(
+        full, np.random.default_rng(6), 200, max_people=3, subset_probability=1.0
+    )[1]
     views = valid_all.any(-1).sum(-1)
     assert views.min() == 2 and views.max() == valid_all.shape[1]
 
@@ -173,7 +187,9 @@ def test_composed_samples_use_distinct_recordings_and_are_reproducible(pool_and_
 def test_keypoint_dropout_only_removes_whole_keypoints(pool_and_rig):
     pool, _, _ = pool_and_rig
     plain = compose_samples(pool, np.random.default_rng(7), 60, max_people=3)
-    dropped = compose_samples(pool, np.random.default_rng(7), 60, max_people=3, keypoint_dropout=0.6)
+    dropped = compose_samples(
+        pool, np.random.default_rng(7), 60, max_people=3, keypoint_dropout=0.6
+    )
     # Same frames, views and labels: the augmentation draws after the composition.
     np.testing.assert_array_equal(plain[1], dropped[1])
     np.testing.assert_array_equal(plain[2], dropped[2])

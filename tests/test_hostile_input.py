@@ -281,11 +281,53 @@ _RAW = [
     Raw('"' + "x" * 100000 + '"'),
 ]
 _SPECIAL = st.sampled_from(
-    [None, True, False, 0, -1, 1, 2, 3, 17, 18, 25, 54, 75, 1e308, -1e308, 5e-324, 3.5e38, 1e39,
-     10**30, -(10**30), 2**31, 2**63, 2**64, -(2**63) - 1, float("nan"), float("inf"),
-     float("-inf"), "", "0", "x", "NaN", "coco18", "body25", "trackera", "é\u2028", [], {},
-     [None], [[]], [1, 2], [1, 2, 3], [0, 0, 0], [[1, 2, 3]], {"": None}]
-)  # fmt: skip
+    [
+        None,
+        True,
+        False,
+        0,
+        -1,
+        1,
+        2,
+        3,
+        17,
+        18,
+        25,
+        54,
+        75,
+        1e308,
+        -1e308,
+        5e-324,
+        3.5e38,
+        1e39,
+        10**30,
+        -(10**30),
+        2**31,
+        2**63,
+        2**64,
+        -(2**63) - 1,
+        float("nan"),
+        float("inf"),
+        float("-inf"),
+        "",
+        "0",
+        "x",
+        "NaN",
+        "coco18",
+        "body25",
+        "trackera",
+        "é\u2028",
+        [],
+        {},
+        [None],
+        [[]],
+        [1, 2],
+        [1, 2, 3],
+        [0, 0, 0],
+        [[1, 2, 3]],
+        {"": None},
+    ]
+)
 json_leaves = st.one_of(
     _SPECIAL,
     st.integers(),
@@ -295,8 +337,9 @@ json_leaves = st.one_of(
 )
 hostile_json = st.recursive(
     json_leaves,
-    lambda children: st.lists(children, max_size=4)
-    | st.dictionaries(st.text(max_size=6), children, max_size=4),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=6), children, max_size=4)
+    ),
     max_leaves=12,
 )
 # replace: the node becomes the value; delete: the node leaves its parent; grow: a list repeats
@@ -409,8 +452,9 @@ toml_leaves = st.one_of(
 )
 hostile_toml = st.recursive(
     toml_leaves,
-    lambda children: st.lists(children, max_size=4)
-    | st.dictionaries(st.text(max_size=6), children, max_size=4),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=6), children, max_size=4)
+    ),
     max_leaves=12,
 )
 
@@ -493,9 +537,23 @@ member_edits = st.one_of(
 @HOSTILE
 @given(
     member=st.sampled_from(
-        ["version", "layout", "cameras", "xy", "score", "count", "identity", "gt_xyz", "gt_valid",
-         "gt_keypoint_valid", "timestamps", "image_names", "projected", "extra"]
-    ),  # fmt: skip
+        [
+            "version",
+            "layout",
+            "cameras",
+            "xy",
+            "score",
+            "count",
+            "identity",
+            "gt_xyz",
+            "gt_valid",
+            "gt_keypoint_valid",
+            "timestamps",
+            "image_names",
+            "projected",
+            "extra",
+        ]
+    ),
     action=member_edits,
     fill=fill_values,
 )
@@ -688,10 +746,18 @@ folder_edits = st.lists(
             st.just("rename"),
             st.integers(0, 10**6),
             st.sampled_from(
-                ["x.json", "frame.json", "000000000007_keypoints.json", "a_b_keypoints.json",
-                 "9" * 30 + "_keypoints.json", "000000000001_keypoints.json", ".hidden.json",
-                 "0_keypoints.JSON", "notes.txt"]
-            ),  # fmt: skip
+                [
+                    "x.json",
+                    "frame.json",
+                    "000000000007_keypoints.json",
+                    "a_b_keypoints.json",
+                    "9" * 30 + "_keypoints.json",
+                    "000000000001_keypoints.json",
+                    ".hidden.json",
+                    "0_keypoints.JSON",
+                    "notes.txt",
+                ]
+            ),
         ),
         st.tuples(
             st.just("stray"), st.integers(0, 10**6), st.sampled_from(["file", "dir", "root"])
@@ -854,9 +920,12 @@ def test_no_code_path_unpickles():
                 ):
                     problems.append(f"{where(node)} passes allow_pickle={ast.unparse(allow)}")
                 func = ast.unparse(node.func)
-                if func.split(".")[-1] == "load" and func.split(".")[0] in ("np", "numpy", "jnp"):
-                    if allow is None:
-                        problems.append(f"{where(node)} calls {func} without allow_pickle=False")
+                if (
+                    func.split(".")[-1] == "load"
+                    and func.split(".")[0] in ("np", "numpy", "jnp")
+                    and allow is None
+                ):
+                    problems.append(f"{where(node)} calls {func} without allow_pickle=False")
                 if func.split(".")[-1] in ("loads", "load") and func.split(".")[0] in unpicklers:
                     problems.append(f"{where(node)} calls {func}")
     assert not problems, "\n".join(problems)

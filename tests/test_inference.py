@@ -56,13 +56,24 @@ def models():
     """A matcher and an estimator trained for a few steps (the test is about plumbing, not skill)."""
     rig = load_rig("panoptic5")
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=20, seed=7)
-    train = dataclasses.replace(TrainConfig(), learning_rate=1e-3, batch_size=8, max_steps=4, eval_every=1)
-    matcher, _ = train_matcher(rig, recs[:3], recs[3:], MatcherConfig(gat=GATConfig.quick(), train=train,
-                               samples_per_epoch=16, num_dev_samples=8), progress=False)  # fmt: skip
+    train = dataclasses.replace(
+        TrainConfig(), learning_rate=1e-3, batch_size=8, max_steps=4, eval_every=1
+    )
+    matcher, _ = train_matcher(
+        rig,
+        recs[:3],
+        recs[3:],
+        MatcherConfig(gat=GATConfig.quick(), train=train, samples_per_epoch=16, num_dev_samples=8),
+        progress=False,
+    )
     xy, score = single_person_samples(recs)
-    config = EstimatorConfig(mlp=MLPConfig(widths=(32,), output="residual"),
-                             train=TrainConfig(batch_size=16, max_steps=4, learning_rate=1e-3))  # fmt: skip
-    estimator, _ = train_estimator(rig, xy[:60], score[:60], xy[60:], score[60:], config, progress=False)
+    config = EstimatorConfig(
+        mlp=MLPConfig(widths=(32,), output="residual"),
+        train=TrainConfig(batch_size=16, max_steps=4, learning_rate=1e-3),
+    )
+    estimator, _ = train_estimator(
+        rig, xy[:60], score[:60], xy[60:], score[60:], config, progress=False
+    )
     return matcher, estimator
 
 
@@ -93,7 +104,9 @@ def test_pipeline_with_trained_estimator_gives_one_pose_per_person(scene, models
     assert res.members.shape == (F, G, C) and res.identity.shape == (F, C, P)
     # One pose per true person seen in 2+ views, every keypoint produced, near the truth.
     ident = np.asarray(rec.identity)
-    seen_in = np.stack([(ident == g).any(-1).sum(-1) for g in range(rec.ground_truth.valid.shape[1])], -1)
+    seen_in = np.stack(
+        [(ident == g).any(-1).sum(-1) for g in range(rec.ground_truth.valid.shape[1])], -1
+    )
     np.testing.assert_array_equal(res.poses.valid.sum(-1), (seen_in >= 2).sum(-1))
     assert res.poses.keypoint_valid[res.poses.valid].all()
     assert np.isfinite(res.poses.xyz).all()
@@ -150,8 +163,11 @@ def test_keypoint_count_mismatch_is_a_clear_error(scene, models):
     rig, rec = scene
     _, estimator = models
     det = rec.detections
-    det25 = Detections(np.zeros(np.shape(det.xy)[:3] + (25, 2), np.float32), np.zeros(np.shape(det.score)[:3] + (25,)),
-                       det.count)  # fmt: skip
+    det25 = Detections(
+        np.zeros(np.shape(det.xy)[:3] + (25, 2), np.float32),
+        np.zeros(np.shape(det.score)[:3] + (25,)),
+        det.count,
+    )
     with pytest.raises(InputError, match="18 keypoints"):
         run_pipeline(rig, det25, estimator=estimator)
 
@@ -162,7 +178,9 @@ def test_estimator_cameras_must_be_proposal_cameras(scene, models):
     _, estimator = models
     sub = rig.select(list(rig.names[:3]))
     det = rec.detections
-    det3 = Detections(np.asarray(det.xy)[:, :3], np.asarray(det.score)[:, :3], np.asarray(det.count)[:, :3])
+    det3 = Detections(
+        np.asarray(det.xy)[:, :3], np.asarray(det.score)[:, :3], np.asarray(det.count)[:, :3]
+    )
     with pytest.raises(InputError, match="inference"):
         run_pipeline(sub, det3, estimator=estimator)
 
@@ -299,8 +317,9 @@ def test_geometric_baseline_groups_true_people(ring_rig):
     rec = generate_recording(ring_rig, num_people=3, num_frames=4, seed=3)
     rows, scores = geometric_match_table(ring_rig, rec.detections)
     ident = rec.identity
-    same = (ident[rows[:, 0], rows[:, 1], rows[:, 2]] == ident[rows[:, 0], rows[:, 3], rows[:, 4]]) & (
-        ident[rows[:, 0], rows[:, 1], rows[:, 2]] >= 0)  # fmt: skip
+    same = (
+        ident[rows[:, 0], rows[:, 1], rows[:, 2]] == ident[rows[:, 0], rows[:, 3], rows[:, 4]]
+    ) & (ident[rows[:, 0], rows[:, 1], rows[:, 2]] >= 0)
     assert scores[same].mean() > 0.5 > scores[~same].mean()
     p = propose_people(rows, scores, rec.detections.count, num_skeletons=ident.shape[2])
     assert matching_scores(ident, p.identity, np.asarray(rec.detections.count))["ari"] > 0.9
@@ -334,7 +353,9 @@ def test_composed_match_table_scores_the_composed_skeletons_with_their_identitie
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     config = MatcherConfig(gat=TINY, max_people=3, keypoint_dropout=0.3)
     matcher = Matcher(graphdef, rest, params, ring_rig, config)
-    rows, scores, identity, count = composed_match_table(matcher, recs, num_samples=40, seed=1, frames_per_call=16)
+    rows, scores, identity, count = composed_match_table(
+        matcher, recs, num_samples=40, seed=1, frames_per_call=16
+    )
     S, C, Q = identity.shape
     assert S == 40 and count.shape == (S, C)
     present = np.arange(Q)[None, None] < count[..., None]
@@ -343,7 +364,12 @@ def test_composed_match_table_scores_the_composed_skeletons_with_their_identitie
     f, ca, sa, cb, sb = rows.T
     assert (ca < cb).all() and (sa < count[f, ca]).all() and (sb < count[f, cb]).all()
     # Every cross-view pair of present skeletons is scored once, and the same seed gives the same table.
-    want = sum(int(count[s, a]) * int(count[s, b]) for s in range(S) for a in range(C) for b in range(a + 1, C))
+    want = sum(
+        int(count[s, a]) * int(count[s, b])
+        for s in range(S)
+        for a in range(C)
+        for b in range(a + 1, C)
+    )
     assert len(rows) == len(scores) == want
     again = composed_match_table(matcher, recs, num_samples=40, seed=1, frames_per_call=16)
     np.testing.assert_array_equal(again[0], rows)
@@ -356,10 +382,13 @@ def test_composed_frames_are_the_training_composition_as_detections(ring_rig):
     from mvpose_jax.synthetic import generate_single_person_recordings
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
-    det, identity = composed_frames(ring_rig, recs, num_samples=30, seed=3, max_people=3, keypoint_dropout=0.4)
+    det, identity = composed_frames(
+        ring_rig, recs, num_samples=30, seed=3, max_people=3, keypoint_dropout=0.4
+    )
     pool = make_pool(ring_rig, recs)
-    feats, valid, ident = compose_samples(pool, np.random.default_rng([3, 1 << 29]), 30, max_people=3,
-                                          keypoint_dropout=0.4)  # fmt: skip
+    feats, valid, ident = compose_samples(
+        pool, np.random.default_rng([3, 1 << 29]), 30, max_people=3, keypoint_dropout=0.4
+    )
     # The same draws: per frame and view, the detections' features are the training features of
     # the valid skeletons, in order, and the identities theirs.
     ours = np.asarray(detection_features(ring_rig, det.xy, det.score))

@@ -29,7 +29,9 @@ def test_missing_detections_contribute_nothing(ring_rig):
     score = np.ones(xy.shape[:-1], np.float32)
     xy[0, 1, :5] = np.nan  # junk where nothing was detected ...
     score[0, 1, :5] = 0.0  # ... masked out
-    e, g = jax.value_and_grad(lambda x: losses.reprojection_loss(ring_rig, x, jnp.asarray(xy), jnp.asarray(score)).sum())(jnp.asarray(X))
+    e, g = jax.value_and_grad(
+        lambda x: losses.reprojection_loss(ring_rig, x, jnp.asarray(xy), jnp.asarray(score)).sum()
+    )(jnp.asarray(X))
     assert np.isfinite(float(e)) and np.all(np.isfinite(np.asarray(g)))
     assert float(e) < 1.0
 
@@ -39,7 +41,10 @@ def test_gradient_matches_finite_differences(ring_rig):
     with jax.enable_x64(True):
         rig = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), ring_rig)
         X = scene_points(ring_rig, 2, (2, 18)).astype(np.float64)
-        xy = jnp.moveaxis(cameras.project_points(rig, jnp.asarray(X)), 0, 1) + rng.normal(size=(2, 4, 18, 2)) * 3
+        xy = (
+            jnp.moveaxis(cameras.project_points(rig, jnp.asarray(X)), 0, 1)
+            + rng.normal(size=(2, 4, 18, 2)) * 3
+        )
         score = jnp.asarray((rng.uniform(size=(2, 4, 18)) > 0.2).astype(np.float64))
         # Off the kinks of |.|: evaluate away from zero residuals (noise above keeps them away).
         f = lambda x: jnp.sum(losses.reprojection_loss(rig, x, xy, score))  # noqa: E731
@@ -55,4 +60,6 @@ def test_gradient_matches_finite_differences(ring_rig):
 
 def test_masked_mean_of_nothing_is_zero():
     assert float(losses.masked_mean(jnp.ones(3), jnp.zeros(3, bool))) == 0.0
-    assert float(losses.masked_mean(jnp.array([1.0, 3.0, 100.0]), jnp.array([1, 1, 0], bool))) == 2.0
+    assert (
+        float(losses.masked_mean(jnp.array([1.0, 3.0, 100.0]), jnp.array([1, 1, 0], bool))) == 2.0
+    )

@@ -76,12 +76,26 @@ def test_incomplete_predictions_score_mpjpe_on_what_they_have_but_fail_ap():
 def _standing(x=0.0, y=0.0):
     """A hand-placed coco18 person standing at (x, y) with z up: (18, 3) metres."""
     lay = get_layout("coco18")
-    at = {"nose": (0, 0.05, 1.60), "l_eye": (0.03, 0.06, 1.63), "r_eye": (-0.03, 0.06, 1.63),
-          "l_ear": (0.07, 0, 1.61), "r_ear": (-0.07, 0, 1.61), "l_shoulder": (0.2, 0, 1.45),
-          "r_shoulder": (-0.2, 0, 1.45), "l_elbow": (0.25, 0, 1.15), "r_elbow": (-0.25, 0, 1.15),
-          "l_wrist": (0.27, 0, 0.90), "r_wrist": (-0.27, 0, 0.90), "l_hip": (0.12, 0, 0.95),
-          "r_hip": (-0.12, 0, 0.95), "l_knee": (0.13, 0, 0.52), "r_knee": (-0.13, 0, 0.52),
-          "l_ankle": (0.13, 0, 0.10), "r_ankle": (-0.13, 0, 0.10), "neck": (0, 0, 1.45)}  # fmt: skip
+    at = {
+        "nose": (0, 0.05, 1.60),
+        "l_eye": (0.03, 0.06, 1.63),
+        "r_eye": (-0.03, 0.06, 1.63),
+        "l_ear": (0.07, 0, 1.61),
+        "r_ear": (-0.07, 0, 1.61),
+        "l_shoulder": (0.2, 0, 1.45),
+        "r_shoulder": (-0.2, 0, 1.45),
+        "l_elbow": (0.25, 0, 1.15),
+        "r_elbow": (-0.25, 0, 1.15),
+        "l_wrist": (0.27, 0, 0.90),
+        "r_wrist": (-0.27, 0, 0.90),
+        "l_hip": (0.12, 0, 0.95),
+        "r_hip": (-0.12, 0, 0.95),
+        "l_knee": (0.13, 0, 0.52),
+        "r_knee": (-0.13, 0, 0.52),
+        "l_ankle": (0.13, 0, 0.10),
+        "r_ankle": (-0.13, 0, 0.10),
+        "neck": (0, 0, 1.45),
+    }
     return np.array([at[k] for k in lay.keypoints]) + [x, y, 0.0]
 
 
@@ -98,7 +112,10 @@ def test_pcp_is_over_the_10_limbs_with_the_half_limb_rule():
     assert m_ok["pcp"] == pytest.approx(100.0) and m_ok["pcp_limbs"] == 10
     assert m_bad["pcp"] == pytest.approx(90.0)
     assert m_bad["pcp_by_limb"]["lower_arm"] == pytest.approx(50.0)
-    assert all(m_bad["pcp_by_limb"][c] == 100.0 for c in ("head", "torso", "upper_arm", "upper_leg", "lower_leg"))
+    assert all(
+        m_bad["pcp_by_limb"][c] == 100.0
+        for c in ("head", "torso", "upper_arm", "upper_leg", "lower_leg")
+    )
 
 
 @pytest.mark.parametrize("up", [[0, 0, 1], None])
@@ -109,8 +126,12 @@ def test_pcp_head_and_torso_ends_in_closed_form(up):
     person = _standing()
     ends, ok = metrics.limb_endpoints(person, np.ones(18, bool), "coco18", np.array([0.0, 0, 1]))
     names = [n for n, _, _ in metrics.PCP_LIMBS]
-    np.testing.assert_allclose(ends[names.index("head")], [[0, 0.025, 1.525], [0, 0.0375, 1.675]], atol=1e-12)
-    np.testing.assert_allclose(ends[names.index("torso")], [[0, 0, 0.95], [0, 0.025, 1.525]], atol=1e-12)
+    np.testing.assert_allclose(
+        ends[names.index("head")], [[0, 0.025, 1.525], [0, 0.0375, 1.675]], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        ends[names.index("torso")], [[0, 0, 0.95], [0, 0.025, 1.525]], atol=1e-12
+    )
     assert ok.all()
     # Moving the nose by dx across moves the head's ends by dx/2 and 0.75 dx: mean error
     # 0.625 dx, correct while 0.625 dx <= 0.1505 / 2, i.e. dx <= 0.1204.
@@ -155,7 +176,9 @@ def test_every_frame_counts_a_frame_with_nobody_predicted_is_a_miss():
     assert m["pcp"] == pytest.approx(50.0)
     assert m["mean_recall"] == pytest.approx(50.0)
     assert m["completeness"] == pytest.approx(50.0)
-    with pytest.raises(ValueError, match="every frame"):  # a dropped frame is never skipped silently
+    with pytest.raises(
+        ValueError, match="every frame"
+    ):  # a dropped frame is never skipped silently
         metrics.pose_metrics(_poses(gt.xyz[:1]), gt)
 
 
@@ -204,7 +227,9 @@ def test_clustering_scores_equal_sklearn():
         ours = clustering_scores(a, b)
         h, c, v = sk.homogeneity_completeness_v_measure(a, b)
         assert ours["ari"] == pytest.approx(sk.adjusted_rand_score(a, b), abs=1e-12)
-        assert (ours["homogeneity"], ours["completeness"], ours["v_measure"]) == pytest.approx((h, c, v), abs=1e-12)
+        assert (ours["homogeneity"], ours["completeness"], ours["v_measure"]) == pytest.approx(
+            (h, c, v), abs=1e-12
+        )
 
 
 def test_detection_clusters_make_singletons_and_frame_unique_labels():
@@ -239,9 +264,15 @@ def test_matching_scores_average_per_frame_and_pool_beside():
         return np.where(x >= 0, x, 100 + np.arange(len(x)))  # -1: a singleton each
 
     frames = [0, 1, 2]
-    want = np.mean([sk.adjusted_rand_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames])
-    want_v = np.mean([sk.v_measure_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames])
-    assert s["ari"] == pytest.approx(want, abs=1e-12) and s["v_measure"] == pytest.approx(want_v, abs=1e-12)
+    want = np.mean(
+        [sk.adjusted_rand_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames]
+    )
+    want_v = np.mean(
+        [sk.v_measure_score(frame_labels(true, f), frame_labels(pred, f)) for f in frames]
+    )
+    assert s["ari"] == pytest.approx(want, abs=1e-12) and s["v_measure"] == pytest.approx(
+        want_v, abs=1e-12
+    )
     assert s["frames"] == 3 and s["detections"] == 11
     pooled_t = np.concatenate([frame_labels(true, f) + 1000 * f for f in frames])
     pooled_p = np.concatenate([frame_labels(pred, f) + 1000 * f for f in frames])

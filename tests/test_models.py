@@ -29,15 +29,22 @@ def model():
 def test_factorised_first_layer_equals_dense_gat(model):
     b = build_graphs(*random_frames(np.random.default_rng(0), 4))
     fast = np.asarray(jax.jit(lambda m, x: m(x))(model, b))
-    dense = np.asarray(jax.jit(lambda m, x, g: m.dense_forward(x, g))(model, dense_node_features(b), b.graphs))
+    dense = np.asarray(
+        jax.jit(lambda m, x, g: m.dense_forward(x, g))(model, dense_node_features(b), b.graphs)
+    )
     np.testing.assert_allclose(fast[b.node_mask], dense[b.node_mask], atol=1e-5)
 
 
 def test_padding_never_changes_real_scores(model):
     feats, valid, identity = random_frames(np.random.default_rng(1), 3)
     small = build_graphs(feats, valid, identity)
-    big = build_graphs(feats, valid, identity, num_graphs=9,
-                       budget=Budget(small.graphs.nodes.shape[0] * 4, 128, small.graphs.nodes.shape[0] * 20, 10))  # fmt: skip
+    big = build_graphs(
+        feats,
+        valid,
+        identity,
+        num_graphs=9,
+        budget=Budget(small.graphs.nodes.shape[0] * 4, 128, small.graphs.nodes.shape[0] * 20, 10),
+    )
     f = jax.jit(lambda m, x: m(x))
     a, b = np.asarray(f(model, small)), np.asarray(f(model, big))
     n = int(small.node_mask.sum())
@@ -56,7 +63,9 @@ def test_tiny_model_overfits_tiny_dataset():
     # Identity is written into the features, so a perfect matcher exists.
     rng = np.random.default_rng(2)
     feats, valid, identity = random_frames(rng, 6)
-    feats[..., :3] = np.eye(3, dtype=np.float32)[np.maximum(identity, 0)] * (identity >= 0)[..., None]
+    feats[..., :3] = (
+        np.eye(3, dtype=np.float32)[np.maximum(identity, 0)] * (identity >= 0)[..., None]
+    )
     batch = jax.device_put(build_graphs(feats, valid, identity))
     # 3e-3: at 1e-2 Adam sometimes parks this tiny net on a plateau (seed-dependent); at 3e-3
     # every initialisation tried converges (loss / 1e4 within 300 steps).
@@ -71,7 +80,9 @@ def test_tiny_model_overfits_tiny_dataset():
 
 
 def test_mlp_accepts_any_leading_batch():
-    model = PoseMLP(3, 18, dataclasses.replace(MLPConfig.quick(), output="anchored"), rngs=nnx.Rngs(0))
+    model = PoseMLP(
+        3, 18, dataclasses.replace(MLPConfig.quick(), output="anchored"), rngs=nnx.Rngs(0)
+    )
     x = jnp.zeros((2, 5, 3, 18, 14))
     assert model(x).shape == (2, 5, 18, 3)
 
@@ -85,21 +96,29 @@ def test_mlp_is_the_plain_dense_stack():
         h = h @ np.asarray(layer.kernel[...]).T + np.asarray(layer.bias[...])
         h = np.where(h > 0, h, 0.1 * h)
     out = h @ np.asarray(model.out.kernel[...]).T + np.asarray(model.out.bias[...])
-    np.testing.assert_allclose(np.asarray(model(jnp.asarray(x))), out.reshape(3, 4, 3), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(model(jnp.asarray(x))), out.reshape(3, 4, 3), rtol=1e-4, atol=1e-5
+    )
     # lecun-normal fan-in: the first kernel's spread is 1/sqrt(inputs), not 1/sqrt(outputs).
     first = PoseMLP(5, 18, MLPConfig(widths=(64,)), rngs=nnx.Rngs(0)).hidden[0].kernel[...]
     assert first.shape == (64, 5 * 18 * 14)
     assert np.std(np.asarray(first)) == pytest.approx(1 / np.sqrt(5 * 18 * 14), rel=0.1)
 
 
-@pytest.mark.parametrize("widths, millions", [
-    ((3072, 3072, 2048, 2048, 1024, 1024, 1024), 28.06),  # the paper's widths
-    ((3072, 3072, 2048, 2048, 1024, 1024, 1024, 1024), 29.11),  # the original code's (DESIGN §5)
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "widths, millions",
+    [
+        ((3072, 3072, 2048, 2048, 1024, 1024, 1024), 28.06),  # the paper's widths
+        (
+            (3072, 3072, 2048, 2048, 1024, 1024, 1024, 1024),
+            29.11,
+        ),  # the original code's (DESIGN §5)
+    ],
+)
 def test_paper_size_mlp_parameter_count(widths, millions):
     model = nnx.eval_shape(lambda: PoseMLP(5, 18, MLPConfig(widths=widths), rngs=nnx.Rngs(0)))
     _, params = nnx.split(model, nnx.Param)
     sizes = (5 * 18 * 14,) + widths + (18 * 3,)
-    expected = sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:]))
+    expected = sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:], strict=True))
     assert count_params(params) == expected
     assert expected / 1e6 == pytest.approx(millions, abs=0.01)

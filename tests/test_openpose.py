@@ -165,7 +165,7 @@ def _assert_same_detections(a: Recording, b: Recording) -> None:
     assert a.cameras == b.cameras and a.layout == b.layout
     P = a.detections.score.shape[2]
     np.testing.assert_array_equal(a.detections.count, b.detections.count)
-    assert P == int(np.max(b.detections.count))  # readers pad to what the files hold
+    assert int(np.max(b.detections.count)) == P  # readers pad to what the files hold
     np.testing.assert_array_equal(a.detections.score, b.detections.score[:, :, :P])
     np.testing.assert_array_equal(a.detections.xy, b.detections.xy[:, :, :P])
     assert a.detections.xy.dtype == np.float32 and a.detections.score.dtype == np.float32
@@ -301,8 +301,11 @@ def test_bad_values_name_file_frame_camera_field(tmp_path):
         with pytest.raises(InputError) as e:
             load_recording(root)
         assert (e.value.file, e.value.frame, e.value.camera, e.value.field) == (
-            str(target), 1, "b", field
-        )  # fmt: skip
+            str(target),
+            1,
+            "b",
+            field,
+        )
 
 
 def _tiny_text(root: Path) -> str:

@@ -53,20 +53,28 @@ def _worker() -> None:
 
     # The estimator: 24 people, batch 24 = one step per epoch, so the history has each step.
     xy, score = single_person_samples(recs)
-    est_cfg = EstimatorConfig(mlp=MLPConfig(widths=(32,), output="residual"), num_augment=2,
-                              train=TrainConfig(learning_rate=1e-3, batch_size=24, max_steps=3, patience=100))  # fmt: skip
+    est_cfg = EstimatorConfig(
+        mlp=MLPConfig(widths=(32,), output="residual"),
+        num_augment=2,
+        train=TrainConfig(learning_rate=1e-3, batch_size=24, max_steps=3, patience=100),
+    )
     est = {}
     for n in (None, NUM_DEVICES):
         cfg = dataclasses.replace(est_cfg, train=dataclasses.replace(est_cfg.train, num_devices=n))
-        model, fit = train_estimator(rig, xy, score, xy, score, cfg, progress=False)  # dev = train: one shape
+        model, fit = train_estimator(
+            rig, xy, score, xy, score, cfg, progress=False
+        )  # dev = train: one shape
         est[n] = model
         report[f"estimator_{n}"] = dict(
-            train_loss=[h["train_loss"] for h in fit.history], val_loss=[h["val_loss"] for h in fit.history],
+            train_loss=[h["train_loss"] for h in fit.history],
+            val_loss=[h["val_loss"] for h in fit.history],
             params=[np.asarray(p).ravel()[:50].tolist() for p in jax.tree.leaves(model.params)],
             param_devices=len(jax.tree.leaves(model.params)[0].sharding.device_set),
-        )  # fmt: skip
-    for name, change in (("too_many_devices", dict(num_devices=5)),
-                         ("uneven_batch", dict(num_devices=NUM_DEVICES, batch_size=18))):  # fmt: skip
+        )
+    for name, change in (
+        ("too_many_devices", dict(num_devices=5)),
+        ("uneven_batch", dict(num_devices=NUM_DEVICES, batch_size=18)),
+    ):
         try:
             cfg = dataclasses.replace(est_cfg, train=dataclasses.replace(est_cfg.train, **change))
             train_estimator(rig, xy, score, xy, score, cfg, progress=False)
@@ -78,22 +86,35 @@ def _worker() -> None:
     # padding), one step per epoch, validation (split by graphs too) after each.
     base = MatcherConfig.quick()
     # (max_people 2: with this seed every training batch falls in one graph budget, one compile.)
-    cfg = dataclasses.replace(base, gat=TINY_GAT, samples_per_epoch=6, num_dev_samples=6, max_people=2,
-                              train=dataclasses.replace(base.train, batch_size=6, max_epochs=2, eval_every=1))  # fmt: skip
+    cfg = dataclasses.replace(
+        base,
+        gat=TINY_GAT,
+        samples_per_epoch=6,
+        num_dev_samples=6,
+        max_people=2,
+        train=dataclasses.replace(base.train, batch_size=6, max_epochs=2, eval_every=1),
+    )
     for n in (None, NUM_DEVICES):
         run = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, num_devices=n))
         matcher, fit = train_matcher(rig, recs[:3], recs[3:], run, progress=False)
         report[f"matcher_{n}"] = dict(
-            history=[[h["train_loss"], h["train_accuracy"], h["val_loss"], h["val_accuracy"]] for h in fit.history],
+            history=[
+                [h["train_loss"], h["train_accuracy"], h["val_loss"], h["val_accuracy"]]
+                for h in fit.history
+            ],
             params=[np.asarray(p).ravel().tolist() for p in jax.tree.leaves(matcher.params)],
             param_devices=len(jax.tree.leaves(matcher.params)[0].sharding.device_set),
-        )  # fmt: skip
+        )
 
     # Sharded inference equals unsharded: 21 people (padded to 32), 5 frames in 9 graph slots.
     mesh = make_data_mesh(NUM_DEVICES)
-    report["predict"] = [predict_people(est[None], xy[:21], score[:21]).tolist(),
-                         predict_people(est[None], xy[:21], score[:21], mesh=mesh).tolist()]  # fmt: skip
-    batch = build_graphs(*random_frames(np.random.default_rng(0), 5, K=recs[0].num_keypoints), num_graphs=9)
+    report["predict"] = [
+        predict_people(est[None], xy[:21], score[:21]).tolist(),
+        predict_people(est[None], xy[:21], score[:21], mesh=mesh).tolist(),
+    ]
+    batch = build_graphs(
+        *random_frames(np.random.default_rng(0), 5, K=recs[0].num_keypoints), num_graphs=9
+    )
     mask = np.asarray(batch.node_mask)
     one, many = (match_scores(matcher, batch), match_scores(matcher, batch, mesh=mesh))
     report["match_scores"] = [one[mask].tolist(), many[mask].tolist()]
@@ -102,10 +123,20 @@ def _worker() -> None:
 
 @pytest.fixture(scope="module")
 def report():
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={NUM_DEVICES}", JAX_PLATFORMS="cpu",
-               PYTHONPATH=str(ROOT))  # fmt: skip
-    out = subprocess.run([sys.executable, "-c", "from tests.test_parallel import _worker; _worker()"],
-                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    env = dict(
+        os.environ,
+        XLA_FLAGS=f"--xla_force_host_platform_device_count={NUM_DEVICES}",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=str(ROOT),
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", "from tests.test_parallel import _worker; _worker()"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     lines = [line for line in out.stdout.splitlines() if line.startswith("REPORT")]
     assert out.returncode == 0 and lines, out.stderr[-3000:]
     return json.loads(lines[-1][len("REPORT") :])
@@ -168,11 +199,18 @@ def test_matcher_stacked_on_one_device_is_todays_loss():
     @jax.jit
     def both(model, batch, stacked):
         key = jax.random.key(0)
-        (p1, m1, a1), (p2, m2, a2) = matcher_loss_fn(model, batch, key), stacked_loss_fn(matcher_loss_fn)(model, stacked, key)
+        (p1, m1, a1), (p2, m2, a2) = (
+            matcher_loss_fn(model, batch, key),
+            stacked_loss_fn(matcher_loss_fn)(model, stacked, key),
+        )
         return masked_mean(p1, m1), a1["accuracy"], masked_mean(p2, m2), a2["accuracy"]
 
     loss, acc, stacked_loss, stacked_acc = (float(x) for x in both(model, batch, stacked))
-    assert loss > 0 and stacked_loss == pytest.approx(loss, rel=1e-6) and stacked_acc == pytest.approx(acc, rel=1e-6)
+    assert (
+        loss > 0
+        and stacked_loss == pytest.approx(loss, rel=1e-6)
+        and stacked_acc == pytest.approx(acc, rel=1e-6)
+    )
 
 
 def test_split_graph_batch_keeps_every_real_node_score():
@@ -180,16 +218,25 @@ def test_split_graph_batch_keeps_every_real_node_score():
     batch = build_graphs(feats, valid, identity, num_graphs=10)
     model = MatchingGAT(3, 4, TINY_GAT, rngs=nnx.Rngs(0))
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
-    whole = np.asarray(stacked_match_scores(graphdef, rest, params, jax.tree.map(lambda a: np.asarray(a)[None], batch)))[0]
+    whole = np.asarray(
+        stacked_match_scores(
+            graphdef, rest, params, jax.tree.map(lambda a: np.asarray(a)[None], batch)
+        )
+    )[0]
     real = np.asarray(batch.node_mask)
     for shards in (1, 3, 8):  # 8 shards of 7 graphs: the last shard is all padding
         stacked, origin = split_graph_batch(batch, shards)
         assert stacked.graphs.nodes.shape[0] == shards and origin.shape == stacked.node_mask.shape
         assert np.array_equal(origin >= 0, stacked.node_mask)
-        assert sorted(origin[origin >= 0].tolist()) == np.nonzero(real)[0].tolist()  # each real node once
+        assert (
+            sorted(origin[origin >= 0].tolist()) == np.nonzero(real)[0].tolist()
+        )  # each real node once
         for s in range(shards):  # every shard is a valid padded batch: edges stay in the shard
             n_node = stacked.graphs.n_node[s]
-            assert n_node.sum() == stacked.node_mask.shape[1] and stacked.graphs.n_edge[s].sum() == stacked.graphs.senders.shape[1]
+            assert (
+                n_node.sum() == stacked.node_mask.shape[1]
+                and stacked.graphs.n_edge[s].sum() == stacked.graphs.senders.shape[1]
+            )
         scores = np.asarray(stacked_match_scores(graphdef, rest, params, stacked))
         np.testing.assert_allclose(scores[origin >= 0], whole[origin[origin >= 0]], atol=1e-6)
         # Labels and pairs follow their nodes.

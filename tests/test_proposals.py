@@ -32,10 +32,14 @@ def test_choose_proposal_threshold_takes_the_band_that_separates_true_from_false
     # Camera 0 sees people A and B, camera 1 sees A and a false detection X.
     identity = np.array([[[0, 1], [0, -1]]])
     count = np.array([[2, 2]])
-    rows = np.array([[0, 0, 0, 1, 0],   # A-A, true
-                     [0, 0, 1, 1, 1],   # B-X, false
-                     [0, 0, 0, 1, 1],   # A-X, false
-                     [0, 0, 1, 1, 0]])  # B-A, false  # fmt: skip
+    rows = np.array(
+        [
+            [0, 0, 0, 1, 0],  # A-A, true
+            [0, 0, 1, 1, 1],  # B-X, false
+            [0, 0, 0, 1, 1],  # A-X, false
+            [0, 0, 1, 1, 0],
+        ]
+    )  # B-A, false
     scores = np.array([0.3, 0.1, 0.05, 0.04])
     best, ari = choose_proposal_threshold(rows, scores, identity, count)
     # A pair is taken when its score is above the threshold: from 0.1 (B-X refused) to below 0.3
@@ -70,8 +74,9 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
     rig = load_rig("panoptic5")
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=3, seed=5)
     tiny = GATConfig(widths=(8, 1), heads=(2, 1))
-    graphdef, params, rest = nnx.split(MatchingGAT(rig.num_cameras, recs[0].num_keypoints, tiny, rngs=nnx.Rngs(0)),
-                                       nnx.Param, ...)  # fmt: skip
+    graphdef, params, rest = nnx.split(
+        MatchingGAT(rig.num_cameras, recs[0].num_keypoints, tiny, rngs=nnx.Rngs(0)), nnx.Param, ...
+    )
     matcher = Matcher(graphdef, rest, params, rig, MatcherConfig(gat=tiny, max_people=3))
     threshold, ari, composed = choose_matcher_threshold(matcher, recs, num_samples=24)
     write_proposal_threshold(tmp_path, threshold, ari, composed)
@@ -81,7 +86,9 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
     assert read_proposal_threshold(str(tmp_path), None) == threshold
     assert read_proposal_threshold(str(tmp_path), 0.7) == 0.7  # --threshold wins
     assert read_proposal_threshold(None, None) == 0.5  # geometric matcher: the paper's
-    assert read_proposal_threshold(str(tmp_path / "elsewhere"), None) == 0.5  # a folder without the file
+    assert (
+        read_proposal_threshold(str(tmp_path / "elsewhere"), None) == 0.5
+    )  # a folder without the file
     (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text("{")
     with pytest.raises(InputError, match=PROPOSAL_THRESHOLD_FILE):
         read_proposal_threshold(str(tmp_path), None)
@@ -89,13 +96,15 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
 
 def test_proposals_join_best_first_and_respect_cameras():
     count = np.array([[2, 2, 1]])  # one frame, 3 cameras
-    rows = np.array([
-        [0, 0, 0, 1, 0],  # a: 0.9
-        [0, 0, 0, 1, 1],  # would put two camera-1 skeletons in a's person: refused
-        [0, 0, 1, 1, 1],  # b: 0.8
-        [0, 1, 0, 2, 0],  # a gets camera 2
-        [0, 0, 1, 2, 0],  # refused: camera 2 taken
-    ])  # fmt: skip
+    rows = np.array(
+        [
+            [0, 0, 0, 1, 0],  # a: 0.9
+            [0, 0, 0, 1, 1],  # would put two camera-1 skeletons in a's person: refused
+            [0, 0, 1, 1, 1],  # b: 0.8
+            [0, 1, 0, 2, 0],  # a gets camera 2
+            [0, 0, 1, 2, 0],  # refused: camera 2 taken
+        ]
+    )
     scores = np.array([0.9, 0.85, 0.8, 0.7, 0.95])
     p = propose_people(rows, scores, count)
     # The best pair (0,1)-(2,0) goes first: b = {(0,1), (2,0)}, then (0,0)-(1,0), then (1,1) joins b.
@@ -121,11 +130,15 @@ def test_proposals_threshold_min_views_and_single_camera():
 def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, seed):
     rng = np.random.default_rng(seed)
     count = rng.integers(0, P + 1, (F, cams))
-    f, ca, pa, cb, pb = np.meshgrid(np.arange(F), np.arange(cams), np.arange(P), np.arange(cams), np.arange(P),
-                                    indexing="ij")  # fmt: skip
+    f, ca, pa, cb, pb = np.meshgrid(
+        np.arange(F), np.arange(cams), np.arange(P), np.arange(cams), np.arange(P), indexing="ij"
+    )
     rows = np.stack([a.ravel() for a in (f, ca, pa, cb, pb)], 1)
-    rows = rows[(rows[:, 1] < rows[:, 3]) & (rows[:, 2] < count[rows[:, 0], rows[:, 1]])
-                & (rows[:, 4] < count[rows[:, 0], rows[:, 3]])]  # fmt: skip
+    rows = rows[
+        (rows[:, 1] < rows[:, 3])
+        & (rows[:, 2] < count[rows[:, 0], rows[:, 1]])
+        & (rows[:, 4] < count[rows[:, 0], rows[:, 3]])
+    ]
     p = propose_people(rows, rng.random(len(rows)), count, num_skeletons=P, min_views=2)
     for fr in range(F):
         ident = p.identity[fr]

@@ -79,8 +79,11 @@ def test_tile_and_atomic_writers(tmp_path):
 def test_figures_are_written(tmp_path):
     rig = load_rig("panoptic5")
     xyz = _person(rig)[None]
-    fig = skeleton_figure({"a": (xyz, np.ones((1, 18), bool)), "empty": (xyz[:0], np.zeros((0, 18), bool))},
-                          "coco18", rig=rig)  # fmt: skip
+    fig = skeleton_figure(
+        {"a": (xyz, np.ones((1, 18), bool)), "empty": (xyz[:0], np.zeros((0, 18), bool))},
+        "coco18",
+        rig=rig,
+    )
     assert save_figure(fig, tmp_path / "f.png").stat().st_size > 1000
     hist = [{"step": s, "train_loss": 1.0 / s, "val_loss": 1.2 / s} for s in (1, 2, 3)]
     assert save_figure(curves_figure({"run": hist}), tmp_path / "c.png").stat().st_size > 1000
@@ -102,12 +105,21 @@ def _results(F=3, G=2, C=2, P=3, K=18, seed=0):
     kv = (rng.random((F, G, K)) > 0.2) & valid[..., None]
     xyz = np.where(kv[..., None], rng.normal(size=(F, G, K, 3)), 0).astype(np.float32)
     members = np.where(valid[..., None], rng.integers(0, P, (F, G, C)), -1).astype(np.int32)
-    members[:, 1] = np.where(members[:, 1] >= 0, (members[:, 0] + 1) % P, -1) if G > 1 else members[:, 1]
+    members[:, 1] = (
+        np.where(members[:, 1] >= 0, (members[:, 0] + 1) % P, -1) if G > 1 else members[:, 1]
+    )
     identity = np.full((F, C, P), -1, np.int32)
     f, g, c = np.nonzero(members >= 0)
     identity[f, c, members[f, g, c]] = g
-    return PoseResults(Poses3D(xyz, valid, kv), rng.random((F, G)).astype(np.float32), members, identity,
-                       ("a", "b"), "coco18", np.arange(F) / 25.0)  # fmt: skip
+    return PoseResults(
+        Poses3D(xyz, valid, kv),
+        rng.random((F, G)).astype(np.float32),
+        members,
+        identity,
+        ("a", "b"),
+        "coco18",
+        np.arange(F) / 25.0,
+    )
 
 
 def test_poses_round_trip_npz_and_json(tmp_path):
@@ -133,5 +145,11 @@ def test_poses_reader_rejects_other_files(tmp_path):
     with pytest.raises(InputError, match="format"):
         load_poses(tmp_path / "x.json")
     with pytest.raises(InputError, match="shape"):
-        PoseResults(Poses3D(np.zeros((2, 1, 18, 3)), np.zeros((2, 1), bool), np.zeros((2, 1, 18), bool)),
-                    np.zeros((2, 2)), np.zeros((2, 1, 2), np.int32), np.zeros((2, 2, 1), np.int32), ("a", "b"), "coco18")
+        PoseResults(
+            Poses3D(np.zeros((2, 1, 18, 3)), np.zeros((2, 1), bool), np.zeros((2, 1, 18), bool)),
+            np.zeros((2, 2)),
+            np.zeros((2, 1, 2), np.int32),
+            np.zeros((2, 2, 1), np.int32),
+            ("a", "b"),
+            "coco18",
+        )

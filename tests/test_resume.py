@@ -33,10 +33,19 @@ ROOT = Path(__file__).resolve().parents[1]
 # 64 people, 8 per step: 8 steps per epoch, validation every 2 epochs (steps 16, 32, 48, 60),
 # a periodic checkpoint every 3 steps (kept: the 2 newest).
 CONFIG = EstimatorConfig(
-    mlp=MLPConfig(widths=(32,), output="residual"), num_augment=2,
-    train=TrainConfig(learning_rate=1e-3, batch_size=8, max_steps=60, eval_every=2, patience=100,
-                      final_lr_fraction=0.1, checkpoint_every_steps=3, max_to_keep=2),
-)  # fmt: skip
+    mlp=MLPConfig(widths=(32,), output="residual"),
+    num_augment=2,
+    train=TrainConfig(
+        learning_rate=1e-3,
+        batch_size=8,
+        max_steps=60,
+        eval_every=2,
+        patience=100,
+        final_lr_fraction=0.1,
+        checkpoint_every_steps=3,
+        max_to_keep=2,
+    ),
+)
 KILL_AT = 18  # a checkpoint at or after this step: after the first validation (16), mid-epoch
 
 
@@ -52,8 +61,17 @@ def _samples():
 
 def _train(folder, config=CONFIG, resume=False, data=None):
     rig, xy, score = data or _samples()
-    return train_estimator(rig, xy, score, xy[:8], score[:8], config, checkpoint_dir=folder, progress=False,
-                           resume=resume)  # fmt: skip
+    return train_estimator(
+        rig,
+        xy,
+        score,
+        xy[:8],
+        score[:8],
+        config,
+        checkpoint_dir=folder,
+        progress=False,
+        resume=resume,
+    )
 
 
 def _train_main(folder: str) -> None:
@@ -64,7 +82,9 @@ def _train_main(folder: str) -> None:
 def _latest_steps(folder: Path) -> list[int]:
     latest = folder / "latest"
     # Finished checkpoints only: orbax writes into a temporary folder and renames it to the step.
-    return sorted(int(p.name) for p in latest.iterdir() if p.name.isdigit()) if latest.exists() else []
+    return (
+        sorted(int(p.name) for p in latest.iterdir() if p.name.isdigit()) if latest.exists() else []
+    )
 
 
 def _leaves(tree):
@@ -81,15 +101,26 @@ def reference(data, tmp_path_factory):
     """The uninterrupted run (its folder and result). It saves at validations only: how often a
     run checkpoints changes nothing it computes (and saves time here)."""
     folder = tmp_path_factory.mktemp("reference")
-    quiet = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, checkpoint_every_steps=0))
+    quiet = dataclasses.replace(
+        CONFIG, train=dataclasses.replace(CONFIG.train, checkpoint_every_steps=0)
+    )
     return folder, _train(folder, config=quiet, data=data)
 
 
 def test_killed_run_resumes_exactly(data, reference, tmp_path):
     folder = tmp_path / "killed"
     env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
-    proc = subprocess.Popen([sys.executable, "-c", f"from tests.test_resume import _train_main; _train_main({str(folder)!r})"],
-                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"from tests.test_resume import _train_main; _train_main({str(folder)!r})",
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     try:
         deadline = time.monotonic() + 240
         while not any(s >= KILL_AT for s in _latest_steps(folder)):
@@ -158,7 +189,9 @@ def _damage_data(step_dir: Path) -> None:
 
 
 def _truncate_fit(step_dir: Path) -> None:
-    files = [p for p in (step_dir / "fit").iterdir() if p.is_file() and p.name != "commit_success.txt"]
+    files = [
+        p for p in (step_dir / "fit").iterdir() if p.is_file() and p.name != "commit_success.txt"
+    ]
     assert files
     for f in files:
         os.truncate(f, max(0, f.stat().st_size // 2))
@@ -173,7 +206,9 @@ def _garble_config(step_dir: Path) -> None:
 # A failed read leaves orbax's other pending array reads to the garbage collector, which reports
 # them as unraisable exceptions (harmless; collected in the test, under this filter).
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
-@pytest.mark.parametrize("damage", [_damage_data, _truncate_fit, _garble_config], ids=lambda f: f.__name__[1:])
+@pytest.mark.parametrize(
+    "damage", [_damage_data, _truncate_fit, _garble_config], ids=lambda f: f.__name__[1:]
+)
 def test_damaged_checkpoint_is_refused(data, reference, tmp_path, damage):
     folder = tmp_path / "damaged"
     shutil.copytree(reference[0], folder)
@@ -194,7 +229,10 @@ def test_checkpoint_of_another_model_is_refused(data, reference, tmp_path):
     # Below the config check too: restoring into another width names the shape mismatch.
     ck = Checkpoints(folder)
     try:
-        with pytest.raises(InputError, match=r"another model \(params\.hidden\.0\.bias\.value: checkpoint \(32,\), model \(64,\)"):
+        with pytest.raises(
+            InputError,
+            match=r"another model \(params\.hidden\.0\.bias\.value: checkpoint \(32,\), model \(64,\)",
+        ):
             _restore_latest(ck, wider)
     finally:
         ck.close()
@@ -203,8 +241,12 @@ def test_checkpoint_of_another_model_is_refused(data, reference, tmp_path):
 def test_changing_only_length_or_execution_is_accepted(data, reference, tmp_path):
     folder = tmp_path / "longer"
     shutil.copytree(reference[0], folder)
-    longer = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, max_steps=64, checkpoint_every_steps=0,
-                                                                   max_to_keep=1))  # fmt: skip
+    longer = dataclasses.replace(
+        CONFIG,
+        train=dataclasses.replace(
+            CONFIG.train, max_steps=64, checkpoint_every_steps=0, max_to_keep=1
+        ),
+    )
     _, fit = _train(folder, config=longer, resume=True, data=data)
     assert fit.steps == 64 and len(fit.history) == len(reference[1][1].history) + 1
     other_seed = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, seed=1))

@@ -34,7 +34,11 @@ def test_layouts(name, num):
 
 def test_coco18_matches_the_design():
     lay = skeletons.get_layout("coco18")
-    assert lay.keypoints[0] == "nose" and lay.keypoints[17] == "neck" and lay.keypoints[10] == "r_wrist"
+    assert (
+        lay.keypoints[0] == "nose"
+        and lay.keypoints[17] == "neck"
+        and lay.keypoints[10] == "r_wrist"
+    )
     assert len(skeletons.evaluation_keypoints("coco18")) == 14  # all but eyes and ears
 
 

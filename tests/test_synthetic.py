@@ -40,10 +40,15 @@ def scene(panoptic):
 def measured(panoptic):
     """A long two-person recording with high, measurable effect rates."""
     config = SyntheticConfig().with_detector(
-        miss_rate=0.2, false_positive_rate=0.5, occluded_drop_rate=0.5, keypoint_drop_rate=0.05,
+        miss_rate=0.2,
+        false_positive_rate=0.5,
+        occluded_drop_rate=0.5,
+        keypoint_drop_rate=0.05,
         swap_rate=0.1,
-    )  # fmt: skip
-    return simulate(panoptic, num_people=2, num_frames=600, config=config, seed=3)[0], config.detector
+    )
+    return simulate(panoptic, num_people=2, num_frames=600, config=config, seed=3)[
+        0
+    ], config.detector
 
 
 def _per_person(rec, values, fill=0.0):
@@ -87,7 +92,9 @@ def test_user_calibration_without_up_is_found(panoptic):
 def test_bone_lengths_constant_and_heights_realistic(scene):
     xyz = scene.recording.ground_truth.xyz.astype(np.float64)
     # Every layout bone but the torso diagonals (neck-hip), which flex with the spine.
-    rigid = [b for b in COCO18.bones if bm.NECK not in b or (bm.L_HIP not in b and bm.R_HIP not in b)]
+    rigid = [
+        b for b in COCO18.bones if bm.NECK not in b or (bm.L_HIP not in b and bm.R_HIP not in b)
+    ]
     a, b = np.array(rigid).T
     length = np.linalg.norm(xyz[:, :, a] - xyz[:, :, b], axis=-1)  # (F, G, bones)
     assert np.abs(length - length[0]).max() < 1e-4
@@ -97,7 +104,9 @@ def test_bone_lengths_constant_and_heights_realistic(scene):
     geo = scene.geometry
     up = (scene.points - geo.origin) @ geo.up
     ankle = up[..., [bm.L_ANKLE, bm.R_ANKLE]].min(-1)
-    np.testing.assert_allclose(ankle, np.broadcast_to(scene.bodies.ankle_height, ankle.shape), atol=1e-6)
+    np.testing.assert_allclose(
+        ankle, np.broadcast_to(scene.bodies.ankle_height, ankle.shape), atol=1e-6
+    )
 
 
 def test_people_never_interpenetrate(scene):
@@ -120,7 +129,9 @@ def test_reported_keypoints_inside_image(scene, panoptic):
 
 def test_projected_is_projection_of_ground_truth(scene, panoptic):
     rec = scene.recording
-    proj = np.asarray(project_points(panoptic, jnp.asarray(rec.ground_truth.xyz)))  # (C, F, G, K, 2)
+    proj = np.asarray(
+        project_points(panoptic, jnp.asarray(rec.ground_truth.xyz))
+    )  # (C, F, G, K, 2)
     expected = _per_person(rec, rec.projected)  # (F, C, G, K, 2)
     has = _per_person(rec, np.ones(rec.identity.shape, bool), False)
     proj = np.moveaxis(proj, 0, 1)
@@ -132,14 +143,18 @@ def test_projected_is_projection_of_ground_truth(scene, panoptic):
     p = np.moveaxis(scene.geometry.cameras.to_camera(rec.ground_truth.xyz.astype(np.float64)), 0, 1)
     r2 = (p[..., :2] ** 2).sum(-1) / np.maximum(p[..., 2], 1e-3) ** 2
     fov = (p[..., 2] > 0.1) & (r2 < scene.geometry.cameras.max_radius2[None, :, None, None])
-    np.testing.assert_allclose(proj[has[..., None] & fov], expected[has[..., None] & fov], rtol=1e-5, atol=0.05)
+    np.testing.assert_allclose(
+        proj[has[..., None] & fov], expected[has[..., None] & fov], rtol=1e-5, atol=0.05
+    )
 
 
 def test_detections_belong_to_their_identity(scene):
     rec = scene.recording
     check_recording(rec)  # counts, padding, identities in range and present
     real = (rec.identity >= 0)[..., None] & (rec.detections.score > 0)
-    err = np.linalg.norm(rec.detections.xy - rec.projected, axis=-1)[real & ~_swapped_rows(scene)[..., None]]
+    err = np.linalg.norm(rec.detections.xy - rec.projected, axis=-1)[
+        real & ~_swapped_rows(scene)[..., None]
+    ]
     # Detector error, relative to the person's size, is a few pixels to tens of pixels.
     assert 2.0 < np.median(err) < 20.0
     assert np.percentile(err, 99) < 120.0
@@ -187,8 +202,12 @@ def test_seed_makes_runs_reproducible(panoptic):
     a = generate_recording(panoptic, num_people=2, num_frames=40, seed=11)
     b = generate_recording(panoptic, num_people=2, num_frames=40, seed=11)
     c = generate_recording(panoptic, num_people=2, num_frames=40, seed=12)
-    for x, y in ((a.detections.xy, b.detections.xy), (a.identity, b.identity),
-                 (a.ground_truth.xyz, b.ground_truth.xyz), (a.projected, b.projected)):  # fmt: skip
+    for x, y in (
+        (a.detections.xy, b.detections.xy),
+        (a.identity, b.identity),
+        (a.ground_truth.xyz, b.ground_truth.xyz),
+        (a.projected, b.projected),
+    ):
         np.testing.assert_array_equal(x, y)
     assert not np.array_equal(a.ground_truth.xyz, c.ground_truth.xyz)
 
@@ -211,7 +230,9 @@ def test_detection_variants(scene):
     v = detection_variants(rec)
     assert v["detected"] is rec
     present = rec.detections.score > 0
-    np.testing.assert_allclose(v["projected"].detections.xy[present], rec.projected[present], atol=1e-4)
+    np.testing.assert_allclose(
+        v["projected"].detections.xy[present], rec.projected[present], atol=1e-4
+    )
     mean = 0.5 * (rec.detections.xy + rec.projected)
     np.testing.assert_allclose(v["average"].detections.xy[present], mean[present], atol=1e-4)
     for name in ("projected", "average"):
@@ -226,29 +247,70 @@ def test_clean_detector_reports_exact_projections(panoptic):
     cfg = SyntheticConfig().replace(detector=SyntheticConfig().detector.clean())
     rec = generate_recording(panoptic, num_people=2, num_frames=30, config=cfg, seed=4)
     present = rec.detections.score > 0
-    assert (rec.identity >= 0)[rows := np.arange(rec.identity.shape[2]) < rec.detections.count[..., None]].all()
+    assert (rec.identity >= 0)[
+        rows := np.arange(rec.identity.shape[2]) < rec.detections.count[..., None]
+    ].all()
     assert rows.any()
     np.testing.assert_allclose(rec.detections.xy[present], rec.projected[present], atol=1e-3)
 
 
 def test_generate_command(tmp_path):
     out = tmp_path / "scene.json"
-    argv = ["generate", "--rig", "panoptic5", "--people", "2", "--frames", "12", "--seed", "1",
-            "--out", str(out), "--false-positive-rate", "0"]  # fmt: skip
+    argv = [
+        "generate",
+        "--rig",
+        "panoptic5",
+        "--people",
+        "2",
+        "--frames",
+        "12",
+        "--seed",
+        "1",
+        "--out",
+        str(out),
+        "--false-positive-rate",
+        "0",
+    ]
     assert cli.main(argv) == 0
     rec = load_recording(out)
     assert rec.detections.score.shape[:2] == (12, 5)
     assert rec.ground_truth.xyz.shape == (12, 2, 18, 3)
-    assert np.all(rec.identity[np.arange(rec.identity.shape[2]) < rec.detections.count[..., None]] >= 0)
-    argv = ["generate", "--rig", "panoptic5", "--single-person-recordings", "2", "--frames", "8",
-            "--out", str(tmp_path / "train"), "--format", "npz"]  # fmt: skip
+    assert np.all(
+        rec.identity[np.arange(rec.identity.shape[2]) < rec.detections.count[..., None]] >= 0
+    )
+    argv = [
+        "generate",
+        "--rig",
+        "panoptic5",
+        "--single-person-recordings",
+        "2",
+        "--frames",
+        "8",
+        "--out",
+        str(tmp_path / "train"),
+        "--format",
+        "npz",
+    ]
     assert cli.main(argv) == 0
-    assert sorted(p.name for p in (tmp_path / "train").iterdir()) == ["person_0.npz", "person_1.npz"]
+    assert sorted(p.name for p in (tmp_path / "train").iterdir()) == [
+        "person_0.npz",
+        "person_1.npz",
+    ]
 
 
 def test_synthetic_figure_command(tmp_path, capsys):
     out = tmp_path / "frame.png"
-    argv = ["synthetic-figure", "--rig", "panoptic5", "--people", "2", "--frames", "3", "--out", str(out)]
+    argv = [
+        "synthetic-figure",
+        "--rig",
+        "panoptic5",
+        "--people",
+        "2",
+        "--frames",
+        "3",
+        "--out",
+        str(out),
+    ]
     assert cli.main(argv) == 0
     assert capsys.readouterr().out.strip() == str(out)
     assert out.read_bytes()[:4] == b"\x89PNG"

@@ -14,7 +14,9 @@ from mvpose_jax import cameras, triangulate
 from tests.helpers import random_rig, scene_points
 
 
-@pytest.mark.parametrize("fn", [triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid])
+@pytest.mark.parametrize(
+    "fn", [triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid]
+)
 def test_noise_free_points_are_recovered_exactly(preset_rig, fn):
     X = scene_points(preset_rig, 0, (4, 18))
     with jax.enable_x64(True):
@@ -48,7 +50,9 @@ def test_two_views_agree_with_opencv_under_noise(preset_rig):
     for i, j in [(0, 1), (1, 2)]:
         w = np.zeros(px.shape[:-1], np.float32)
         w[[i, j]] = 1.0
-        ours, ok = triangulate.triangulate_points(preset_rig, jnp.asarray(px, jnp.float32), jnp.asarray(w))
+        ours, ok = triangulate.triangulate_points(
+            preset_rig, jnp.asarray(px, jnp.float32), jnp.asarray(w)
+        )
         ref = _cv_two_view(preset_rig, i, j, px[i], px[j])
         assert bool(ok.all())
         # Both minimise an algebraic error, in different frames: they agree to a millimetre.
@@ -61,7 +65,9 @@ def test_pairwise_centroid_is_the_mean_of_opencv_pairs(ring_rig):
     px = px + np.random.default_rng(4).normal(scale=1.5, size=px.shape)
     vis = np.ones(px.shape[:-1], bool)
     vis[0, :10] = False  # camera 0 misses the first 10 points
-    ours, ok = triangulate.triangulate_pairwise_centroid(ring_rig, jnp.asarray(px, jnp.float32), jnp.asarray(vis))
+    ours, ok = triangulate.triangulate_pairwise_centroid(
+        ring_rig, jnp.asarray(px, jnp.float32), jnp.asarray(vis)
+    )
     ref = np.zeros_like(X, dtype=np.float64)
     n = np.zeros(len(X))
     for i, j in itertools.combinations(range(ring_rig.num_cameras), 2):
@@ -110,11 +116,13 @@ def test_degenerate_inputs_are_invalid_never_nan():
     # Two cameras at the same centre (rays through one point are parallel) plus one far away.
     rig = random_rig(seed=3, num_cameras=3)
     same = cameras.make_rig(
-        np.asarray(rig.K), np.asarray(rig.dist),
+        np.asarray(rig.K),
+        np.asarray(rig.dist),
         np.stack([np.asarray(rig.R[0]), np.asarray(rig.R[0]), np.asarray(rig.R[2])]),
         np.stack([np.asarray(rig.t[0]), np.asarray(rig.t[0]), np.asarray(rig.t[2])]),
-        np.asarray(rig.size), ["a", "b", "c"],
-    )  # fmt: skip
+        np.asarray(rig.size),
+        ["a", "b", "c"],
+    )
     X = scene_points(same, 8, (6,))
     px = cameras.project_points(same, jnp.asarray(X))
     for fn in (triangulate.triangulate_points, triangulate.triangulate_pairwise_centroid):
@@ -133,8 +141,9 @@ def test_degenerate_inputs_are_invalid_never_nan():
 def test_vmaps_over_frames_and_people(ring_rig):
     X = scene_points(ring_rig, 9, (5, 3, 18))  # (F, P, K, 3)
     px = cameras.project_points(ring_rig, jnp.asarray(X))  # (C, F, P, K, 2)
-    per_frame = jax.vmap(lambda p: triangulate.triangulate_points(ring_rig, p, jnp.ones(p.shape[:-1]))[0],
-                         in_axes=1)(px)  # fmt: skip
+    per_frame = jax.vmap(
+        lambda p: triangulate.triangulate_points(ring_rig, p, jnp.ones(p.shape[:-1]))[0], in_axes=1
+    )(px)
     np.testing.assert_allclose(per_frame, X, atol=1e-4)
 
 

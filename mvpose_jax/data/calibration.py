@@ -116,7 +116,12 @@ def rig_from_dict(data: Any, *, file: object = None) -> Rig:
         dist.append(_vector(get("dist"), (4, 5), file, name, "dist"))
         R.append(_matrix(get("R"), (3, 3), file, name, "R"))
         t.append(_vector(get("t"), (3,), file, name, "t"))
-        size.append([_number(get("width"), file, name, "width"), _number(get("height"), file, name, "height")])
+        size.append(
+            [
+                _number(get("width"), file, name, "width"),
+                _number(get("height"), file, name, "height"),
+            ]
+        )
     up = data.get("up")
     return _make_rig(K, dist, R, t, size, names, None if up is None else _up(up, file), file)
 
@@ -138,8 +143,9 @@ def rig_from_panoptic(
         if name not in by_name:
             raise InputError(
                 f"unknown camera; the file has {sorted(by_name)[:12]}{' …' if len(by_name) > 12 else ''}",
-                file=file, camera=name,
-            )  # fmt: skip
+                file=file,
+                camera=name,
+            )
         cam = by_name[name]
         get = lambda key: _field(cam, key, file, name)  # noqa: E731
         names.append(name)
@@ -163,17 +169,24 @@ def rig_from_toml(data: Any, *, file: object = None, translation_scale: float = 
         name = cam.get("name", key)
         if not isinstance(name, str) or not name:
             raise InputError(
-                f"expected a non-empty string, got {name!r}"[:200], file=file, camera=key, field="name"
+                f"expected a non-empty string, got {name!r}"[:200],
+                file=file,
+                camera=key,
+                field="name",
             )
         get = lambda field: _field(cam, field, file, name)  # noqa: E731
         fisheye = cam.get("fisheye", False)
         if not isinstance(fisheye, bool):
             raise InputError(
                 f"expected true or false, got {fisheye!r}"[:200],
-                file=file, camera=name, field="fisheye",
-            )  # fmt: skip
+                file=file,
+                camera=name,
+                field="fisheye",
+            )
         if fisheye:
-            raise InputError("fisheye calibrations are not supported", file=file, camera=name, field="fisheye")
+            raise InputError(
+                "fisheye calibrations are not supported", file=file, camera=name, field="fisheye"
+            )
         names.append(name)
         size.append(_vector(get("size"), (2,), file, name, "size"))
         K.append(_matrix(get("matrix"), (3, 3), file, name, "matrix"))
@@ -199,7 +212,12 @@ def rodrigues(rvec: np.ndarray) -> np.ndarray:
 
 def _is_panoptic(data: Any) -> bool:
     cams = data.get("cameras") if isinstance(data, dict) else None
-    return bool(cams) and isinstance(cams, list) and isinstance(cams[0], dict) and "distCoef" in cams[0]
+    return (
+        bool(cams)
+        and isinstance(cams, list)
+        and isinstance(cams[0], dict)
+        and "distCoef" in cams[0]
+    )
 
 
 def _camera_list(data: Any, file: object) -> list:
@@ -229,7 +247,7 @@ def _field(cam: dict, key: str, file: object, name: str) -> Any:
 def _make_rig(K, dist, R, t, size, names, up, file: object) -> Rig:
     """`make_rig`, once every number is known to be finite in float32 (the rig's precision)."""
     for field, values in (("K", K), ("dist", dist), ("R", R), ("t", t), ("size", size)):
-        for name, v in zip(names, values):
+        for name, v in zip(names, values, strict=False):
             with np.errstate(over="ignore"):
                 finite = np.isfinite(np.asarray(v, np.float32)).all()
             if not finite:
@@ -261,7 +279,12 @@ def _array(value: Any, file: object, name: str | None, field: str) -> np.ndarray
 def _matrix(value: Any, shape: tuple[int, int], file: object, name: str, field: str) -> np.ndarray:
     arr = _array(value, file, name, field)
     if arr.shape != shape:
-        raise InputError(f"expected a {shape[0]}x{shape[1]} matrix, got shape {arr.shape}", file=file, camera=name, field=field)
+        raise InputError(
+            f"expected a {shape[0]}x{shape[1]} matrix, got shape {arr.shape}",
+            file=file,
+            camera=name,
+            field=field,
+        )
     return arr
 
 
@@ -274,8 +297,10 @@ def _vector(
     if arr.ndim != 1 or arr.shape[0] not in sizes:
         raise InputError(
             f"expected {' or '.join(map(str, sizes))} numbers, got shape {arr.shape}",
-            file=file, camera=name, field=field,
-        )  # fmt: skip
+            file=file,
+            camera=name,
+            field=field,
+        )
     return arr
 
 

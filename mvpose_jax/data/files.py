@@ -85,7 +85,9 @@ def read_json(path: str | os.PathLike) -> Any:
         # NaN/Infinity are not JSON; refuse them here rather than let them reach the arrays.
         return json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as e:
-        raise InputError(f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}", file=path) from None
+        raise InputError(
+            f"malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}", file=path
+        ) from None
     except _NonFinite as e:
         raise InputError(f"non-finite number {e.args[0]} in JSON", file=path) from None
     except RecursionError:

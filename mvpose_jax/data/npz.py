@@ -232,7 +232,7 @@ def load_npz_members(
     # (BadZipFile, zlib.error, EOFError, ValueError, struct.error ...); all of them mean "bad file".
     try:
         archive = zipfile.ZipFile(p)
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         with open(p, "rb") as f:
             magic = f.read(6)
         if magic == b"\x93NUMPY":
@@ -257,7 +257,7 @@ def load_npz_members(
                     out[name] = np.lib.format.read_array(f, allow_pickle=False)
             except InputError as e:
                 raise e.at(file=path, field=name) from None
-            except Exception as e:  # noqa: BLE001 - see above
+            except Exception as e:
                 raise InputError(
                     f"cannot read member ({type(e).__name__}: {e})", file=path, field=name
                 ) from None

@@ -74,9 +74,14 @@ LAYOUT_OF_COUNT = {25: "body25", 18: "openpose_coco18", 17: "coco17"}
 _WRITE_LAYOUT = {"coco18": "openpose_coco18"}
 # The keys OpenPose (1.3 and later) writes for each person, all but the pose left empty.
 _OTHER_KEYS = (
-    "face_keypoints_2d", "hand_left_keypoints_2d", "hand_right_keypoints_2d", "pose_keypoints_3d",
-    "face_keypoints_3d", "hand_left_keypoints_3d", "hand_right_keypoints_3d",
-)  # fmt: skip
+    "face_keypoints_2d",
+    "hand_left_keypoints_2d",
+    "hand_right_keypoints_2d",
+    "pose_keypoints_3d",
+    "face_keypoints_3d",
+    "hand_left_keypoints_3d",
+    "hand_right_keypoints_3d",
+)
 
 
 def read_openpose(
@@ -221,11 +226,7 @@ def save_openpose(
     out_layout = layout or _WRITE_LAYOUT.get(recording.layout, recording.layout)
     get_layout(out_layout)
     for name in recording.cameras:
-        if (
-            name in ("", ".", "..")
-            or name.startswith(".")
-            or any(ch in name for ch in "/\\\0")
-        ):
+        if name in ("", ".", "..") or name.startswith(".") or any(ch in name for ch in "/\\\0"):
             raise InputError(
                 "camera name cannot be a folder name (empty, hidden, or with a path separator)",
                 file=root,

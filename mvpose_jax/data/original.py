@@ -241,9 +241,7 @@ def original_from_json(
     )
     # The format's rule: a keypoint flagged not visible is missing, whatever its score says.
     score = np.where(values[..., 2] != 0, raw_score, 0.0).astype(np.float32)
-    det = pack_detections(
-        xy, score, (f_idx, c_idx, p_idx), num_frames=F, num_cameras=C, file=file
-    )
+    det = pack_detections(xy, score, (f_idx, c_idx, p_idx), num_frames=F, num_cameras=C, file=file)
 
     ground_truth = None
     if any(g is not None for g in gt_frames):
@@ -348,7 +346,7 @@ def _gt3d(
         present = np.zeros(K, bool)
         keys = [key for key in person if key not in _SKIPPED_GT_KEYS]
         idx = _indices(keys, K, lambda reason, key, g=g: err(reason, f"gt3d[{g}].keypoints[{key}]"))
-        for k, row in zip(idx.tolist(), (person[key] for key in keys)):
+        for k, row in zip(idx.tolist(), (person[key] for key in keys), strict=True):
             if not isinstance(row, list) or len(row) != 3 or not all(is_number(v) for v in row):
                 raise err(f"expected [x, y, z], got {row!r}"[:200], f"gt3d[{g}].keypoints[{k}]")
             xyz[k] = [to_float(v) / CM_PER_M for v in row]

@@ -62,7 +62,9 @@ class PoseResults:
             if got != want:
                 raise InputError(f"shape {got}, expected {want}", field=field)
         if np.ndim(self.identity) != 3 or np.shape(self.identity)[:2] != (F, C):
-            raise InputError(f"shape {np.shape(self.identity)}, expected ({F}, {C}, P)", field="identity")
+            raise InputError(
+                f"shape {np.shape(self.identity)}, expected ({F}, {C}, P)", field="identity"
+            )
         if get_layout(self.layout).num_keypoints != K:
             raise InputError(f"layout {self.layout!r} does not have {K} keypoints", field="layout")
 
@@ -99,20 +101,33 @@ def poses_to_json(results: PoseResults) -> dict:
     for f in range(len(xyz)):
         people = []
         for g in np.nonzero(np.asarray(results.poses.valid[f]))[0]:
-            people.append({
-                "person": int(g),
-                "confidence": round(float(results.confidence[f, g]), 4),
-                "keypoints": [xyz[f, g, k].tolist() if kv[f, g, k] else None for k in range(xyz.shape[2])],
-                "skeletons": {cam: int(s) for cam, s in zip(results.cameras, results.members[f, g], strict=True)
-                              if s >= 0},
-            })  # fmt: skip
+            people.append(
+                {
+                    "person": int(g),
+                    "confidence": round(float(results.confidence[f, g]), 4),
+                    "keypoints": [
+                        xyz[f, g, k].tolist() if kv[f, g, k] else None for k in range(xyz.shape[2])
+                    ],
+                    "skeletons": {
+                        cam: int(s)
+                        for cam, s in zip(results.cameras, results.members[f, g], strict=True)
+                        if s >= 0
+                    },
+                }
+            )
         frame = {"frame": f, "people": people}
         if results.timestamps is not None:
             frame["timestamp"] = float(results.timestamps[f])
         frames.append(frame)
-    return {"format": FORMAT, "version": 1, "units": "metres", "layout": results.layout,
-            "keypoints": list(get_layout(results.layout).keypoints), "cameras": list(results.cameras),
-            "frames": frames}  # fmt: skip
+    return {
+        "format": FORMAT,
+        "version": 1,
+        "units": "metres",
+        "layout": results.layout,
+        "keypoints": list(get_layout(results.layout).keypoints),
+        "cameras": list(results.cameras),
+        "frames": frames,
+    }
 
 
 def load_poses(path: str | os.PathLike) -> PoseResults:
@@ -129,7 +144,16 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
     # Untrusted bytes: the checked member reader refuses a header that does not describe its
     # member's bytes (so a declared huge array allocates nothing) and object (pickled) arrays.
     data = load_npz_members(path)
-    needed = ("xyz", "valid", "keypoint_valid", "confidence", "members", "identity", "cameras", "layout")
+    needed = (
+        "xyz",
+        "valid",
+        "keypoint_valid",
+        "confidence",
+        "members",
+        "identity",
+        "cameras",
+        "layout",
+    )
     missing = [k for k in needed if k not in data]
     if missing:
         raise InputError(f"not a poses file: missing {missing}", file=path, field=missing[0])
@@ -146,10 +170,18 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
             raise InputError(f"expected booleans, got {data[field].dtype}", file=path, field=field)
     try:
         return PoseResults(
-            Poses3D(data["xyz"].astype(np.float32), data["valid"].astype(bool), data["keypoint_valid"].astype(bool)),
-            data["confidence"].astype(np.float32), data["members"].astype(np.int32), data["identity"].astype(np.int32),
-            tuple(str(c) for c in np.atleast_1d(data["cameras"])), str(data["layout"]), data.get("timestamps"),
-        )  # fmt: skip
+            Poses3D(
+                data["xyz"].astype(np.float32),
+                data["valid"].astype(bool),
+                data["keypoint_valid"].astype(bool),
+            ),
+            data["confidence"].astype(np.float32),
+            data["members"].astype(np.int32),
+            data["identity"].astype(np.int32),
+            tuple(str(c) for c in np.atleast_1d(data["cameras"])),
+            str(data["layout"]),
+            data.get("timestamps"),
+        )
     except InputError as e:
         raise e.at(file=path) from None
     except (ValueError, TypeError, KeyError) as e:

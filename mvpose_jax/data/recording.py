@@ -50,15 +50,20 @@ class Recording:
         if get_layout(self.layout).num_keypoints != K:
             raise InputError(
                 f"layout {self.layout!r} has {get_layout(self.layout).num_keypoints} keypoints, "
-                f"detections have {K}", field="layout",
-            )  # fmt: skip
+                f"detections have {K}",
+                field="layout",
+            )
         if self.identity is not None and np.shape(self.identity) != (F, C, P):
-            raise InputError(f"identity must be {(F, C, P)}, got {np.shape(self.identity)}", field="identity")
+            raise InputError(
+                f"identity must be {(F, C, P)}, got {np.shape(self.identity)}", field="identity"
+            )
         if self.ground_truth is not None:
             gt = self.ground_truth
             G = np.shape(gt.valid)[1] if np.ndim(gt.valid) == 2 else -1
             if np.shape(gt.xyz) != (F, G, K, 3) or np.shape(gt.keypoint_valid) != (F, G, K):
-                raise InputError("ground truth shapes do not match the detections", field="ground_truth")
+                raise InputError(
+                    "ground truth shapes do not match the detections", field="ground_truth"
+                )
         if self.projected is not None and np.shape(self.projected) != (F, C, P, K, 2):
             raise InputError("projected must have the shape of detections.xy", field="projected")
 

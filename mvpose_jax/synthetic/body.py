@@ -46,13 +46,19 @@ _HEAD_RADIUS = 0.056  # H
 # Body volumes: capsules (point a, point b, radius in H). A keypoint is never occluded by a
 # capsule it is an end of; face keypoints use a facing test against the head instead.
 CAPSULES: tuple[tuple[int, int, float], ...] = (
-    (L_SHOULDER, L_ELBOW, 0.025), (L_ELBOW, L_WRIST, 0.020),
-    (R_SHOULDER, R_ELBOW, 0.025), (R_ELBOW, R_WRIST, 0.020),
-    (L_HIP, L_KNEE, 0.040), (L_KNEE, L_ANKLE, 0.028),
-    (R_HIP, R_KNEE, 0.040), (R_KNEE, R_ANKLE, 0.028),
-    (L_SHOULDER, L_HIP, 0.050), (R_SHOULDER, R_HIP, 0.050), (NECK, PELVIS, 0.060),
+    (L_SHOULDER, L_ELBOW, 0.025),
+    (L_ELBOW, L_WRIST, 0.020),
+    (R_SHOULDER, R_ELBOW, 0.025),
+    (R_ELBOW, R_WRIST, 0.020),
+    (L_HIP, L_KNEE, 0.040),
+    (L_KNEE, L_ANKLE, 0.028),
+    (R_HIP, R_KNEE, 0.040),
+    (R_KNEE, R_ANKLE, 0.028),
+    (L_SHOULDER, L_HIP, 0.050),
+    (R_SHOULDER, R_HIP, 0.050),
+    (NECK, PELVIS, 0.060),
     (HEAD, HEAD, _HEAD_RADIUS),
-)  # fmt: skip
+)
 NUM_CAPSULES = len(CAPSULES)
 TORSO_CAPSULES = (8, 9, 10, 11)  # torso and head: the volumes people must never share
 FACE_KEYPOINTS = (NOSE, L_EYE, R_EYE, L_EAR, R_EAR)
@@ -96,7 +102,9 @@ class Bodies:
         return Bodies(**{f.name: getattr(self, f.name)[idx] for f in dataclasses.fields(self)})
 
 
-def sample_bodies(rng: np.random.Generator, num_people: int, config: BodyConfig = BodyConfig()) -> Bodies:
+def sample_bodies(
+    rng: np.random.Generator, num_people: int, config: BodyConfig = BodyConfig()
+) -> Bodies:
     """Draws ``num_people`` bodies from the population of ``config``."""
     n = num_people
     male = rng.random(n) < config.male_fraction
@@ -132,11 +140,20 @@ def sample_bodies(rng: np.random.Generator, num_people: int, config: BodyConfig 
     radii = np.array([r for _, _, r in CAPSULES])[None, :] * height[:, None] * girth[:, None]
     radii[:, -1] = _HEAD_RADIUS * head * height  # the head grows with head size, not girth
     return Bodies(
-        height=height, male=male, ankle_height=ankle * scale, shin=shin * scale,
-        thigh=thigh * scale, trunk=trunk * scale, upper_arm=0.186 * arm / np.sqrt(arm_ratio) * height,
-        forearm=0.146 * arm * np.sqrt(arm_ratio) * height, shoulder_half=shoulder,
-        shoulder_drop=0.012 * height, hip_half=hip, head=head * scale, radii=radii,
-    )  # fmt: skip
+        height=height,
+        male=male,
+        ankle_height=ankle * scale,
+        shin=shin * scale,
+        thigh=thigh * scale,
+        trunk=trunk * scale,
+        upper_arm=0.186 * arm / np.sqrt(arm_ratio) * height,
+        forearm=0.146 * arm * np.sqrt(arm_ratio) * height,
+        shoulder_half=shoulder,
+        shoulder_drop=0.012 * height,
+        hip_half=hip,
+        head=head * scale,
+        radii=radii,
+    )
 
 
 class PoseAngles(NamedTuple):
@@ -188,7 +205,9 @@ def forward_kinematics(bodies: Bodies, pose: PoseAngles) -> tuple[np.ndarray, np
     # Local points in the heading frame (f, l, u), pelvis centre at the origin for now.
     pts = np.zeros((F, G, NUM_POINTS, 3), dt)
     # Pelvis and hips.
-    left_p = np.stack([-np.sin(pose.pelvis_yaw), np.cos(pose.pelvis_yaw), np.zeros_like(pose.pelvis_yaw)], -1)
+    left_p = np.stack(
+        [-np.sin(pose.pelvis_yaw), np.cos(pose.pelvis_yaw), np.zeros_like(pose.pelvis_yaw)], -1
+    )
     hips = side[:, None] * left_p[:, :, None, :] * bodies.hip_half[None, :, None, None]  # (F,G,2,3)
     thigh_dir = limb_direction(pose.hip_flex, pose.hip_abd, side)  # (F, G, 2, 3)
     shin_dir = limb_direction(pose.hip_flex - pose.knee, pose.hip_abd, side)
@@ -200,7 +219,9 @@ def forward_kinematics(bodies: Bodies, pose: PoseAngles) -> tuple[np.ndarray, np
     up_t = np.stack([sb * cl, sl, cb * cl], -1)
     left0 = np.array([0.0, 1.0, 0.0]) - up_t[..., 1:2] * up_t
     left0 /= np.linalg.norm(left0, axis=-1, keepdims=True)
-    left_t = np.cos(pose.trunk_yaw)[..., None] * left0 + np.sin(pose.trunk_yaw)[..., None] * np.cross(up_t, left0)
+    left_t = np.cos(pose.trunk_yaw)[..., None] * left0 + np.sin(pose.trunk_yaw)[
+        ..., None
+    ] * np.cross(up_t, left0)
     fwd_t = np.cross(left_t, up_t)
     neck = up_t * col(bodies.trunk)
     shoulders = (
@@ -208,8 +229,14 @@ def forward_kinematics(bodies: Bodies, pose: PoseAngles) -> tuple[np.ndarray, np
         + side[:, None] * left_t[:, :, None] * bodies.shoulder_half[None, :, None, None]
         - up_t[:, :, None] * bodies.shoulder_drop[None, :, None, None]
     )  # (F, G, 2, 3)
-    elbows = shoulders + limb_direction(pose.arm_flex, pose.arm_abd, side) * bodies.upper_arm[None, :, None, None]
-    wrists = elbows + limb_direction(pose.fore_flex, pose.fore_abd, side) * bodies.forearm[None, :, None, None]
+    elbows = (
+        shoulders
+        + limb_direction(pose.arm_flex, pose.arm_abd, side) * bodies.upper_arm[None, :, None, None]
+    )
+    wrists = (
+        elbows
+        + limb_direction(pose.fore_flex, pose.fore_abd, side) * bodies.forearm[None, :, None, None]
+    )
     # Head: pitched forward from the trunk; bending the trunk extends the neck (eyes stay ahead).
     pitch = pose.head_pitch - 0.45 * pose.trunk_flex
     cp, sp = np.cos(pitch)[..., None], np.sin(pitch)[..., None]
@@ -221,7 +248,10 @@ def forward_kinematics(bodies: Bodies, pose: PoseAngles) -> tuple[np.ndarray, np
     head_axes = np.stack([fwd_h, left_h, up_h], axis=-2)  # (F, G, 3, 3)
     face_idx = list(_FACE)
     face_local = np.array([_FACE[k] for k in face_idx]) * 1.0  # (6, 3) in H-units of head
-    face = neck[:, :, None] + np.einsum("pj,fgjk->fgpk", face_local, head_axes) * bodies.head[None, :, None, None]
+    face = (
+        neck[:, :, None]
+        + np.einsum("pj,fgjk->fgpk", face_local, head_axes) * bodies.head[None, :, None, None]
+    )
 
     pts[:, :, [L_HIP, R_HIP]] = hips
     pts[:, :, [L_KNEE, R_KNEE]] = knees
@@ -252,7 +282,9 @@ def forward_kinematics(bodies: Bodies, pose: PoseAngles) -> tuple[np.ndarray, np
     return out, frames
 
 
-def clearance(points: np.ndarray, radii: np.ndarray, capsules: tuple[int, ...] | None = None) -> np.ndarray:
+def clearance(
+    points: np.ndarray, radii: np.ndarray, capsules: tuple[int, ...] | None = None
+) -> np.ndarray:
     """Smallest gap between the body volumes of every two people, per frame.
 
     Args:
@@ -271,7 +303,10 @@ def clearance(points: np.ndarray, radii: np.ndarray, capsules: tuple[int, ...] |
     r = radii[:, idx]
     # All capsule pairs of all people pairs: (F, G, G, S, S).
     d = _segment_distance(
-        a[:, :, None, :, None], b[:, :, None, :, None], a[:, None, :, None, :], b[:, None, :, None, :]
+        a[:, :, None, :, None],
+        b[:, :, None, :, None],
+        a[:, None, :, None, :],
+        b[:, None, :, None, :],
     )
     gap = d - r[:, None, :, None] - r[None, :, None, :]
     out = gap.min(axis=(-1, -2))
@@ -293,7 +328,11 @@ def _segment_distance(p1, q1, p2, q2):
     s = np.where(denom > eps, np.clip((b * f - c * e) / np.maximum(denom, eps), 0, 1), 0.0)
     t = (b * s + f) / np.maximum(e, eps)
     # Clamp t to [0, 1] and recompute s for the clamped t.
-    s = np.where(t < 0, np.clip(-c / np.maximum(a, eps), 0, 1), np.where(t > 1, np.clip((b - c) / np.maximum(a, eps), 0, 1), s))
+    s = np.where(
+        t < 0,
+        np.clip(-c / np.maximum(a, eps), 0, 1),
+        np.where(t > 1, np.clip((b - c) / np.maximum(a, eps), 0, 1), s),
+    )
     t = np.clip(t, 0, 1)
     s = np.where(a <= eps, 0.0, s)
     t = np.where(e <= eps, 0.0, np.where(a <= eps, np.clip(f / np.maximum(e, eps), 0, 1), t))

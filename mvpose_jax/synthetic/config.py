@@ -60,7 +60,14 @@ class MotionConfig:
     fps: float = 30.0
     speed_range: tuple[float, float] = (0.5, 1.8)
     walk_probability: float = 0.55
-    activity_weights: tuple[float, float, float, float, float, float] = (3.0, 1.5, 1.5, 1.0, 1.0, 1.0)
+    activity_weights: tuple[float, float, float, float, float, float] = (
+        3.0,
+        1.5,
+        1.5,
+        1.0,
+        1.0,
+        1.0,
+    )
     activity_duration: tuple[float, float] = (1.5, 5.0)
     personal_distance: float = 0.15
     face_others_probability: float = 0.5
@@ -121,10 +128,18 @@ class DetectorConfig:
     def clean(self) -> DetectorConfig:
         """A detector with every effect off: exact projections, all in-image keypoints."""
         return dataclasses.replace(
-            self, noise_relative=0.0, noise_floor_px=0.0, offset_scale=0.0, occluded_drop_rate=0.0,
-            keypoint_drop_rate=0.0, score_noise=0.0, miss_rate=0.0, false_positive_rate=0.0,
-            swap_rate=0.0, min_keypoints=1,
-        )  # fmt: skip
+            self,
+            noise_relative=0.0,
+            noise_floor_px=0.0,
+            offset_scale=0.0,
+            occluded_drop_rate=0.0,
+            keypoint_drop_rate=0.0,
+            score_noise=0.0,
+            miss_rate=0.0,
+            false_positive_rate=0.0,
+            swap_rate=0.0,
+            min_keypoints=1,
+        )
 
 
 @dataclasses.dataclass(frozen=True)

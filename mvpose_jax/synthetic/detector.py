@@ -39,24 +39,53 @@ K = bm.NUM_KEYPOINTS
 # the body's midline; mirrored for the right side), up. Typical of COCO-trained detectors against
 # joint-centre ground truth (e.g. CMU Panoptic): hips placed high and wide at the trochanters,
 # shoulders on the acromion, knees on the kneecap; 0.6-3.2 cm, 1.3 cm on average.
-SYSTEMATIC_OFFSETS = np.array([
-    [0.008, 0.000, 0.000],  # nose
-    [0.004, 0.000, 0.004], [0.004, 0.000, 0.004],  # eyes
-    [0.008, -0.008, 0.000], [0.008, -0.008, 0.000],  # ears
-    [0.000, 0.008, 0.015], [0.000, 0.008, 0.015],  # shoulders
-    [0.000, 0.008, 0.000], [0.000, 0.008, 0.000],  # elbows
-    [0.008, 0.000, 0.000], [0.008, 0.000, 0.000],  # wrists
-    [0.000, 0.020, 0.025], [0.000, 0.020, 0.025],  # hips
-    [0.015, 0.000, 0.000], [0.015, 0.000, 0.000],  # knees
-    [0.000, 0.000, 0.010], [0.000, 0.000, 0.010],  # ankles
-    [0.008, 0.000, 0.015],  # neck
-])  # fmt: skip
+SYSTEMATIC_OFFSETS = np.array(
+    [
+        [0.008, 0.000, 0.000],  # nose
+        [0.004, 0.000, 0.004],
+        [0.004, 0.000, 0.004],  # eyes
+        [0.008, -0.008, 0.000],
+        [0.008, -0.008, 0.000],  # ears
+        [0.000, 0.008, 0.015],
+        [0.000, 0.008, 0.015],  # shoulders
+        [0.000, 0.008, 0.000],
+        [0.000, 0.008, 0.000],  # elbows
+        [0.008, 0.000, 0.000],
+        [0.008, 0.000, 0.000],  # wrists
+        [0.000, 0.020, 0.025],
+        [0.000, 0.020, 0.025],  # hips
+        [0.015, 0.000, 0.000],
+        [0.015, 0.000, 0.000],  # knees
+        [0.000, 0.000, 0.010],
+        [0.000, 0.000, 0.010],  # ankles
+        [0.008, 0.000, 0.015],  # neck
+    ]
+)
 _SIDE = np.array([0, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 0], np.float64)
 
 # Score of a clearly visible keypoint of a large person: faces and the neck are easy, wrists,
 # hips and ankles hard.
 BASE_SCORES = np.array(
-    [0.90, 0.88, 0.88, 0.80, 0.80, 0.85, 0.85, 0.80, 0.80, 0.72, 0.72, 0.72, 0.72, 0.78, 0.78, 0.72, 0.72, 0.90]
+    [
+        0.90,
+        0.88,
+        0.88,
+        0.80,
+        0.80,
+        0.85,
+        0.85,
+        0.80,
+        0.80,
+        0.72,
+        0.72,
+        0.72,
+        0.72,
+        0.78,
+        0.78,
+        0.72,
+        0.72,
+        0.90,
+    ]
 )
 # Facing test of face keypoints: visible when cos(normal, direction to the camera) exceeds this.
 _FACE_COS = np.array([-0.1, -0.1, -0.1, -0.35, -0.35])
@@ -131,22 +160,37 @@ def detect_people(
     # Person-level systematic offsets in the body frame, scaled by height, mirrored by side.
     table = SYSTEMATIC_OFFSETS * np.stack([np.ones(K), _SIDE, np.ones(K)], -1)
     person_off = (
-        table[None] * (1 + config.offset_person_std * rng.standard_normal((G, K, 3)))
-        * (heights / 1.75)[:, None, None] * config.offset_scale
+        table[None]
+        * (1 + config.offset_person_std * rng.standard_normal((G, K, 3)))
+        * (heights / 1.75)[:, None, None]
+        * config.offset_scale
     )  # (G, K, 3)
     offsets = np.einsum("gkj,fgjd->fgkd", person_off, axes)  # (F, G, K, 3) world
     exempt = bm.capsule_exempt()
     # Bound temporaries to about 4 M entries per (C, frames, G, K, S) array.
     chunk = max(1, int(4e6 // (C * G * K * bm.NUM_CAPSULES)))
     parts = [
-        _detect_chunk(cams, points[s : s + chunk], offsets[s : s + chunk], heights, radii, group,
-                      exempt, config, rng)
+        _detect_chunk(
+            cams,
+            points[s : s + chunk],
+            offsets[s : s + chunk],
+            heights,
+            radii,
+            group,
+            exempt,
+            config,
+            rng,
+        )
         for s in range(0, F, chunk)
-    ]  # fmt: skip
-    return DetectorOutput(*(np.concatenate(a, axis=0) for a in zip(*(_fields(p) for p in parts))))
+    ]
+    return DetectorOutput(
+        *(np.concatenate(a, axis=0) for a in zip(*(_fields(p) for p in parts), strict=True))
+    )
 
 
-def _detect_chunk(cams, points, offsets, heights, radii, group, exempt, config: DetectorConfig, rng):
+def _detect_chunk(
+    cams, points, offsets, heights, radii, group, exempt, config: DetectorConfig, rng
+):
     F, G = points.shape[:2]
     C = cams.num_cameras
     pc = cams.to_camera(points)  # (C, F, G, NP, 3)
@@ -158,7 +202,9 @@ def _detect_chunk(cams, points, offsets, heights, radii, group, exempt, config: 
     # Person height in the image from the pelvis depth: robust to truncation.
     z_pelvis = pc[..., bm.PELVIS, 2]
     fy = cams.K[:, 1, 1].reshape(C, 1, 1)
-    height_px = np.where(z_pelvis > MIN_DEPTH, fy * heights[None, None] / np.maximum(z_pelvis, MIN_DEPTH), 0.0)
+    height_px = np.where(
+        z_pelvis > MIN_DEPTH, fy * heights[None, None] / np.maximum(z_pelvis, MIN_DEPTH), 0.0
+    )
     img_h = cams.size[:, 1].reshape(C, 1, 1)
     diag = np.hypot(cams.size[:, 0], cams.size[:, 1]).reshape(C, 1, 1)
 
@@ -172,7 +218,12 @@ def _detect_chunk(cams, points, offsets, heights, radii, group, exempt, config: 
     # Scores: fall with size (half at size_half_score of the image height) and with occlusion.
     size_factor = 1.0 / (1.0 + (config.size_half_score * img_h / np.maximum(height_px, 1e-6)) ** 2)
     quality = rng.uniform(0.85, 1.0, (C, F, G, 1))
-    score = BASE_SCORES * size_factor[..., None] * quality * np.where(occluded, config.occluded_score_factor, 1.0)
+    score = (
+        BASE_SCORES
+        * size_factor[..., None]
+        * quality
+        * np.where(occluded, config.occluded_score_factor, 1.0)
+    )
     score = np.clip(score + config.score_noise * rng.standard_normal(score.shape), 0.05, 1.0)
 
     u = rng.random(score.shape)
@@ -186,7 +237,9 @@ def _detect_chunk(cams, points, offsets, heights, radii, group, exempt, config: 
 
     # Left/right swaps of reported detections.
     swap = np.where(
-        reported & (rng.random((C, F, G)) < config.swap_rate), rng.choice([1, 2, 3], (C, F, G), p=[0.4, 0.4, 0.2]), 0
+        reported & (rng.random((C, F, G)) < config.swap_rate),
+        rng.choice([1, 2, 3], (C, F, G), p=[0.4, 0.4, 0.2]),
+        0,
     )
     sw = np.nonzero(swap)
     if sw[0].size:
@@ -201,9 +254,18 @@ def _detect_chunk(cams, points, offsets, heights, radii, group, exempt, config: 
 
     tr = lambda a: np.swapaxes(a, 0, 1)  # noqa: E731  (C, F, ...) -> (F, C, ...)
     return DetectorOutput(
-        tr(xy).astype(np.float32), tr(score).astype(np.float32), tr(reported), tr(px_true),
-        tr(in_img), tr(occluded), tr(by_others), tr(in_view), tr(missed), tr(swap), tr(height_px),
-    )  # fmt: skip
+        tr(xy).astype(np.float32),
+        tr(score).astype(np.float32),
+        tr(reported),
+        tr(px_true),
+        tr(in_img),
+        tr(occluded),
+        tr(by_others),
+        tr(in_view),
+        tr(missed),
+        tr(swap),
+        tr(height_px),
+    )
 
 
 def _occlusion(pc: np.ndarray, radii: np.ndarray, group: np.ndarray, exempt: np.ndarray):
@@ -229,9 +291,17 @@ def _occlusion(pc: np.ndarray, radii: np.ndarray, group: np.ndarray, exempt: np.
     # Own body: only the (keypoint, capsule) pairs that can occlude, (C, F, G, pairs).
     kk, ss = np.nonzero(~exempt)
     hit = _covers(
-        x[..., kk], y[..., kk], z[..., kk], x[..., ia[ss]], y[..., ia[ss]], z[..., ia[ss]],
-        x[..., ib[ss]], y[..., ib[ss]], z[..., ib[ss]], r[:, ss],
-    )  # fmt: skip
+        x[..., kk],
+        y[..., kk],
+        z[..., kk],
+        x[..., ia[ss]],
+        y[..., ia[ss]],
+        z[..., ia[ss]],
+        x[..., ib[ss]],
+        y[..., ib[ss]],
+        z[..., ib[ss]],
+        r[:, ss],
+    )
     # Any hit of each keypoint over its capsules (pairs are sorted by keypoint, none is empty).
     bounds = np.searchsorted(kk, np.arange(K))
     occluded = np.add.reduceat(hit.astype(np.int8), bounds, axis=-1) > 0
@@ -250,7 +320,7 @@ def _occlusion(pc: np.ndarray, radii: np.ndarray, group: np.ndarray, exempt: np.
     same = (group[:, None] == group[None, :]) & ~np.eye(G, dtype=bool)
     if same.any():
         zc = z[..., : bm.NUM_POINTS]
-        rad = (r[None, None] / np.minimum(zc[..., ia], zc[..., ib]))  # (C, F, G, S)
+        rad = r[None, None] / np.minimum(zc[..., ia], zc[..., ib])  # (C, F, G, S)
         xs = np.concatenate([x[..., ia], x[..., ib]], -1)
         ys = np.concatenate([y[..., ia], y[..., ib]], -1)
         rr = np.concatenate([rad, rad], -1)
@@ -259,18 +329,29 @@ def _occlusion(pc: np.ndarray, radii: np.ndarray, group: np.ndarray, exempt: np.
         near = np.minimum(zc[..., ia], zc[..., ib]).min(-1)
         far = z[..., :K].max(-1)
         overlap = (
-            (x_lo[..., None, :] < x_hi[..., :, None]) & (x_hi[..., None, :] > x_lo[..., :, None])
-            & (y_lo[..., None, :] < y_hi[..., :, None]) & (y_hi[..., None, :] > y_lo[..., :, None])
-            & (near[..., None, :] < far[..., :, None]) & same
-        )  # (C, F, G[target], G[occluder])  # fmt: skip
+            (x_lo[..., None, :] < x_hi[..., :, None])
+            & (x_hi[..., None, :] > x_lo[..., :, None])
+            & (y_lo[..., None, :] < y_hi[..., :, None])
+            & (y_hi[..., None, :] > y_lo[..., :, None])
+            & (near[..., None, :] < far[..., :, None])
+            & same
+        )  # (C, F, G[target], G[occluder])
         c, f, g, o = np.nonzero(overlap)
         if c.size:
             q = lambda a: a[c, f, g][:, :K, None]  # noqa: E731  (n, K, 1)
             s_ = lambda a, idx: a[c, f, o][:, None, idx]  # noqa: E731  (n, 1, S)
             hit = _covers(
-                q(x), q(y), q(z), s_(x, ia), s_(y, ia), s_(z, ia), s_(x, ib), s_(y, ib), s_(z, ib),
+                q(x),
+                q(y),
+                q(z),
+                s_(x, ia),
+                s_(y, ia),
+                s_(z, ia),
+                s_(x, ib),
+                s_(y, ib),
+                s_(z, ib),
                 r[o][:, None, :],
-            ).any(-1)  # fmt: skip
+            ).any(-1)
             counts = np.zeros((C * F * G, K), np.int32)
             np.add.at(counts, np.ravel_multi_index((c, f, g), (C, F, G)), hit)
             by_others = counts.reshape(C, F, G, K) > 0
@@ -353,7 +434,9 @@ def false_positives(
     xy = shape2d * (size / np.maximum(span, 1e-6))[:, None, None]
     part = rng.integers(0, len(_PARTS) + 1, N)
     mask = np.where(
-        (part < len(_PARTS))[:, None], _PARTS[np.minimum(part, len(_PARTS) - 1)], rng.random((N, K)) < 0.4
+        (part < len(_PARTS))[:, None],
+        _PARTS[np.minimum(part, len(_PARTS) - 1)],
+        rng.random((N, K)) < 0.4,
     )
     mask[mask.sum(-1) < 2] = _PARTS[4]
     # Centre the shown keypoints' box on the chosen spot, kept inside the image.

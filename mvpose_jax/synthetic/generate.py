@@ -81,7 +81,12 @@ def generate_recording(
       keep their own pixels), timestamps (F,) seconds.
     """
     return simulate(
-        rig, num_people=num_people, num_frames=num_frames, config=config, seed=seed, progress=progress
+        rig,
+        num_people=num_people,
+        num_frames=num_frames,
+        config=config,
+        seed=seed,
+        progress=progress,
     )[0].recording
 
 
@@ -108,9 +113,14 @@ def generate_single_person_recordings(
     return [
         s.recording
         for s in simulate(
-            rig, num_people=1, num_frames=num_frames, num_scenes=num_recordings, config=config,
-            seed=seed, progress=progress,
-        )  # fmt: skip
+            rig,
+            num_people=1,
+            num_frames=num_frames,
+            num_scenes=num_recordings,
+            config=config,
+            seed=seed,
+            progress=progress,
+        )
     ]
 
 
@@ -134,8 +144,9 @@ def simulate(
     if num_people < 1 or num_frames < 1 or num_scenes < 1:
         raise InputError(
             f"num_people, num_frames and num_scenes must be positive, got {num_people}, "
-            f"{num_frames}, {num_scenes}", field="num_people",
-        )  # fmt: skip
+            f"{num_frames}, {num_scenes}",
+            field="num_people",
+        )
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     geometry = scene_geometry(rig, config.scene)
     per_batch = max(1, _BATCH_FRAMES // (num_frames * num_people))
@@ -178,16 +189,25 @@ def detection_variants(recording: Recording) -> dict[str, Recording]:
         new = np.where(present, new, 0.0).astype(xy.dtype)
         return dataclasses.replace(recording, detections=Detections(new, det.score, det.count))
 
-    return {"detected": recording, "projected": with_xy(proj), "average": with_xy(0.5 * (xy + proj))}
+    return {
+        "detected": recording,
+        "projected": with_xy(proj),
+        "average": with_xy(0.5 * (xy + proj)),
+    }
 
 
 # --------------------------------------------------------------------------- internals
 
 
 def _simulate_batch(
-    rig: Rig, geometry: SceneGeometry, B: int, Gp: int, F: int, config: SyntheticConfig,
+    rig: Rig,
+    geometry: SceneGeometry,
+    B: int,
+    Gp: int,
+    F: int,
+    config: SyntheticConfig,
     rng: np.random.Generator,
-) -> list[SyntheticScene]:  # fmt: skip
+) -> list[SyntheticScene]:
     G = B * Gp
     cams = geometry.cameras
     C = cams.num_cameras
@@ -207,7 +227,13 @@ def _simulate_batch(
     body_frame = np.einsum("nkd,njd->nkj", rel, frames[fi, gi])  # (n, K, 3) forward, left, up
     split = lambda a: a.reshape(a.shape[:2] + (B, Gp) + a.shape[3:])  # noqa: E731
     fp_xy, fp_score, fp_valid = false_positives(
-        cams, body_frame, split(det.reported), split(det.xy), split(det.height_px), config.detector, rng
+        cams,
+        body_frame,
+        split(det.reported),
+        split(det.xy),
+        split(det.height_px),
+        config.detector,
+        rng,
     )
     M = fp_valid.shape[-1]
     K = bm.NUM_KEYPOINTS
@@ -233,7 +259,12 @@ def _simulate_batch(
         out[dest] = a[idx]
         return out
 
-    xy, score, ident, proj = place(xy, 0), place(score, 0), place(ident.astype(np.int32), -1), place(proj, 0)
+    xy, score, ident, proj = (
+        place(xy, 0),
+        place(score, 0),
+        place(ident.astype(np.int32), -1),
+        place(proj, 0),
+    )
     timestamps = np.arange(F, dtype=np.float64) / config.motion.fps
 
     scenes = []
@@ -244,21 +275,33 @@ def _simulate_batch(
         gt = Poses3D(xyz, np.ones((F, Gp), bool), np.ones((F, Gp, K), bool))
         rec = Recording(
             detections=Detections(
-                np.ascontiguousarray(xy[:, :, b, :P]), np.ascontiguousarray(score[:, :, b, :P]),
+                np.ascontiguousarray(xy[:, :, b, :P]),
+                np.ascontiguousarray(score[:, :, b, :P]),
                 np.ascontiguousarray(count[:, :, b]),
             ),
-            cameras=tuple(rig.names), layout="coco18", ground_truth=gt,
-            identity=np.ascontiguousarray(ident[:, :, b, :P]), timestamps=timestamps,
+            cameras=tuple(rig.names),
+            layout="coco18",
+            ground_truth=gt,
+            identity=np.ascontiguousarray(ident[:, :, b, :P]),
+            timestamps=timestamps,
             projected=np.ascontiguousarray(proj[:, :, b, :P]),
-        )  # fmt: skip
+        )
         truth = DetectorOutput(*(a[:, :, sl] for a in _fields(det)))
         path_b = Paths(
-            paths.root[:, sl], paths.heading[:, sl], paths.speed[:, sl],
+            paths.root[:, sl],
+            paths.heading[:, sl],
+            paths.speed[:, sl],
             *_segments_of(paths, b * Gp, (b + 1) * Gp),
-        )  # fmt: skip
+        )
         scenes.append(
             SyntheticScene(
-                rec, truth, fp_valid[:, :, b].sum(-1), world[:, sl], bodies.take(sl), path_b, geometry
+                rec,
+                truth,
+                fp_valid[:, :, b].sum(-1),
+                world[:, sl],
+                bodies.take(sl),
+                path_b,
+                geometry,
             )
         )
     return scenes
@@ -266,5 +309,9 @@ def _simulate_batch(
 
 def _segments_of(paths: Paths, lo: int, hi: int):
     keep = (paths.seg_person >= lo) & (paths.seg_person < hi)
-    return paths.seg_person[keep] - lo, paths.seg_kind[keep], paths.seg_start[keep], paths.seg_end[keep]
-
+    return (
+        paths.seg_person[keep] - lo,
+        paths.seg_kind[keep],
+        paths.seg_start[keep],
+        paths.seg_end[keep],
+    )

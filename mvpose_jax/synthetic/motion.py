@@ -103,7 +103,11 @@ def plan_paths(
         for _ in range(200):
             if others.size == 0:
                 break
-            gap = np.linalg.norm(pos[others] - pos[g], axis=-1) - (height[others] + height[g]) * 0.3 - pd
+            gap = (
+                np.linalg.norm(pos[others] - pos[g], axis=-1)
+                - (height[others] + height[g]) * 0.3
+                - pd
+            )
             if gap.min() > 0:
                 break
             pos[g] = sample_cells(1)[0]
@@ -120,7 +124,12 @@ def plan_paths(
     t_end = rng.uniform(0.3, config.activity_duration[1], G)
     t_begin = np.full(G, times[0])
     for g in range(G):
-        seg_person.append(g), seg_kind.append(kind[g]), seg_start.append(times[0]), seg_end.append(t_end[g])
+        (
+            seg_person.append(g),
+            seg_kind.append(kind[g]),
+            seg_start.append(times[0]),
+            seg_end.append(t_end[g]),
+        )
 
     out_pos = np.empty((num_steps, G, 2))
     out_head = np.empty((num_steps, G))
@@ -158,7 +167,11 @@ def plan_paths(
                 d = np.linalg.norm(pos[idx, None] - pos[None], axis=-1)
                 d = np.where(same[idx], d, np.inf)
                 nearest = d.argmin(-1)
-                face = turn & np.isfinite(d.min(-1)) & (rng.random(idx.size) < config.face_others_probability)
+                face = (
+                    turn
+                    & np.isfinite(d.min(-1))
+                    & (rng.random(idx.size) < config.face_others_probability)
+                )
                 to = pos[nearest] - pos[idx]
                 new_target = np.where(face, np.arctan2(to[:, 1], to[:, 0]), new_target)
             target_heading[idx] = new_target
@@ -169,13 +182,17 @@ def plan_paths(
 
         # --- footprints: grow with the activity's envelope, walking people need stride room
         env = envelope(t, t_begin, t_end)
-        radius = height * np.where(walking, _FOOTPRINT_WALK, _FOOTPRINT[0] + env * (_FOOTPRINT[kind] - _FOOTPRINT[0]))
+        radius = height * np.where(
+            walking, _FOOTPRINT_WALK, _FOOTPRINT[0] + env * (_FOOTPRINT[kind] - _FOOTPRINT[0])
+        )
 
         # --- desired velocity: towards the goal, slowing down in the last half metre
         to_goal = goal - pos
         dist = np.linalg.norm(to_goal, axis=-1, keepdims=True)
         v_des = np.where(
-            walking[:, None], to_goal / np.maximum(dist, 1e-9) * speed_pref[:, None] * np.minimum(1, dist / 0.5), 0
+            walking[:, None],
+            to_goal / np.maximum(dist, 1e-9) * speed_pref[:, None] * np.minimum(1, dist / 0.5),
+            0,
         )
         if interacting:
             diff = pos[:, None] - pos[None]  # (G, G, 2) from others to me
@@ -219,10 +236,14 @@ def plan_paths(
     head = _catmull_rom(np.unwrap(out_head, axis=0), times, frame_t)
     vel_f = np.gradient(root, axis=0) * config.fps if num_frames > 1 else np.zeros_like(root)
     return Paths(
-        root, head, np.linalg.norm(vel_f, axis=-1),
-        np.asarray(seg_person, np.int64), np.asarray(seg_kind, np.int64),
-        np.asarray(seg_start, np.float64), np.asarray(seg_end, np.float64),
-    )  # fmt: skip
+        root,
+        head,
+        np.linalg.norm(vel_f, axis=-1),
+        np.asarray(seg_person, np.int64),
+        np.asarray(seg_kind, np.int64),
+        np.asarray(seg_start, np.float64),
+        np.asarray(seg_end, np.float64),
+    )
 
 
 def pose_angles(
@@ -320,11 +341,23 @@ def pose_angles(
         fore_abd = apply(fore_abd, deg(10), is_bend | is_crouch)
 
     return PoseAngles(
-        root=paths.root, heading=paths.heading, anchor=1.0 - walk, pelvis_yaw=pelvis_yaw,
-        trunk_flex=trunk_flex, trunk_lean=trunk_lean, trunk_yaw=trunk_yaw, head_yaw=head_yaw,
-        head_pitch=head_pitch, hip_flex=hip_flex, hip_abd=hip_abd, knee=knee, arm_flex=arm_flex,
-        arm_abd=arm_abd, fore_flex=fore_flex, fore_abd=fore_abd,
-    )  # fmt: skip
+        root=paths.root,
+        heading=paths.heading,
+        anchor=1.0 - walk,
+        pelvis_yaw=pelvis_yaw,
+        trunk_flex=trunk_flex,
+        trunk_lean=trunk_lean,
+        trunk_yaw=trunk_yaw,
+        head_yaw=head_yaw,
+        head_pitch=head_pitch,
+        hip_flex=hip_flex,
+        hip_abd=hip_abd,
+        knee=knee,
+        arm_flex=arm_flex,
+        arm_abd=arm_abd,
+        fore_flex=fore_flex,
+        fore_abd=fore_abd,
+    )
 
 
 # --------------------------------------------------------------------------- helpers
@@ -338,7 +371,11 @@ def _active_segment(paths: Paths, t: np.ndarray, G: int) -> np.ndarray:
     query = np.arange(G)[None, :] * span + t[:, None]  # (F, G)
     pos = np.searchsorted(key[order], query, side="right") - 1
     cand = order[np.clip(pos, 0, None)]
-    ok = (pos >= 0) & (paths.seg_person[cand] == np.arange(G)[None]) & (t[:, None] < paths.seg_end[cand])
+    ok = (
+        (pos >= 0)
+        & (paths.seg_person[cand] == np.arange(G)[None])
+        & (t[:, None] < paths.seg_end[cand])
+    )
     return np.where(ok, cand, -1)
 
 
@@ -350,7 +387,9 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def _drift(rng: np.random.Generator, F: int, G: int, fps: float, scale: float, n: int = 1) -> np.ndarray:
+def _drift(
+    rng: np.random.Generator, F: int, G: int, fps: float, scale: float, n: int = 1
+) -> np.ndarray:
     """Slow random drift: a sum of 3 sinusoids of 0.05-0.5 Hz with random phases.
 
     Returns (F, G) or, for n = 2, (F, G, 2); standard deviation about ``scale``.
@@ -361,7 +400,9 @@ def _drift(rng: np.random.Generator, F: int, G: int, fps: float, scale: float, n
     amp = rng.uniform(0.5, 1.0, shape)
     amp *= scale * np.sqrt(2.0) / np.sqrt((amp**2).sum(-1, keepdims=True))
     t = np.arange(F) / fps
-    out = np.einsum("fgnk->fgn", amp[None] * np.sin(2 * np.pi * freq[None] * t[:, None, None, None] + ph[None]))
+    out = np.einsum(
+        "fgnk->fgn", amp[None] * np.sin(2 * np.pi * freq[None] * t[:, None, None, None] + ph[None])
+    )
     return out[..., 0] if n == 1 else out
 
 
@@ -373,5 +414,8 @@ def _catmull_rom(values: np.ndarray, times: np.ndarray, query: np.ndarray) -> np
     u = (s - i).reshape((-1,) + (1,) * (values.ndim - 1))
     p0, p1, p2, p3 = values[i - 1], values[i], values[i + 1], values[i + 2]
     return 0.5 * (
-        2 * p1 + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u**2 + (-p0 + 3 * p1 - 3 * p2 + p3) * u**3
+        2 * p1
+        + (-p0 + p2) * u
+        + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u**2
+        + (-p0 + 3 * p1 - 3 * p2 + p3) * u**3
     )

@@ -106,14 +106,22 @@ class CameraModel:
         xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         K = self.K
-        u = K[:, 0, 0].reshape(shape) * xd + K[:, 0, 1].reshape(shape) * yd + K[:, 0, 2].reshape(shape)
+        u = (
+            K[:, 0, 0].reshape(shape) * xd
+            + K[:, 0, 1].reshape(shape) * yd
+            + K[:, 0, 2].reshape(shape)
+        )
         v = K[:, 1, 1].reshape(shape) * yd + K[:, 1, 2].reshape(shape)
         px = np.stack([u, v], axis=-1)
         w, h = self.size[:, 0].reshape(shape), self.size[:, 1].reshape(shape)
         inside = (
-            (z > MIN_DEPTH) & (r2 < self.max_radius2.reshape(shape))
-            & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        )  # fmt: skip
+            (z > MIN_DEPTH)
+            & (r2 < self.max_radius2.reshape(shape))
+            & (u >= 0)
+            & (u < w)
+            & (v >= 0)
+            & (v < h)
+        )
         return px, z, inside
 
 
@@ -244,9 +252,16 @@ def _floor_axes(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _visible_views(
-    cams: CameraModel, origin, up, e1, e2, cell: float, min_height: float, extent: float,
+    cams: CameraModel,
+    origin,
+    up,
+    e1,
+    e2,
+    cell: float,
+    min_height: float,
+    extent: float,
     return_grid: bool = False,
-):  # fmt: skip
+):
     """Number of cameras that see a standing person whole on each cell of a floor grid.
 
     The grid spans ``[-extent, extent]^2`` floor coordinates around ``origin`` (on the floor).
@@ -256,7 +271,9 @@ def _visible_views(
     a, b = np.meshgrid(g, g, indexing="ij")
     ab = np.stack([a.ravel(), b.ravel()], -1)  # (N, 2)
     hs = np.asarray(_PROBE_HEIGHTS)
-    pts = origin + ab[:, None, 0:1] * e1 + ab[:, None, 1:2] * e2 + hs[None, :, None] * up  # (N, 2, 3)
+    pts = (
+        origin + ab[:, None, 0:1] * e1 + ab[:, None, 1:2] * e2 + hs[None, :, None] * up
+    )  # (N, 2, 3)
     px, _, inside = cams.project(pts)  # (C, N, 2, 2), (C, N, 2)
     tall = np.linalg.norm(px[:, :, 1] - px[:, :, 0], axis=-1) >= min_height * cams.size[:, 1:2]
     views = (inside.all(-1) & tall).sum(0)
@@ -276,14 +293,23 @@ def _build_geometry(rig: Rig, config: SceneConfig) -> SceneGeometry:
     else:
         up = up_vector(rig)
     e1, e2 = _floor_axes(up)
-    floor_h = config.floor_height if config.floor_height is not None else estimate_floor_height(rig, up)
+    floor_h = (
+        config.floor_height if config.floor_height is not None else estimate_floor_height(rig, up)
+    )
     origin = _floor_origin(cams, up, floor_h)
     cam_ab = np.stack([(cams.centres - origin) @ e1, (cams.centres - origin) @ e2], -1)
     extent = float(np.abs(cam_ab).max()) + 6.0
     views, ab = _visible_views(
-        cams, origin, up, e1, e2, config.cell_size, config.min_person_height, extent,
+        cams,
+        origin,
+        up,
+        e1,
+        e2,
+        config.cell_size,
+        config.min_person_height,
+        extent,
         return_grid=True,
-    )  # fmt: skip
+    )
     keep = views >= min(config.min_views, cams.num_cameras)
     keep &= (np.linalg.norm(ab[:, None] - cam_ab[None], axis=-1) >= config.camera_clearance).all(-1)
     inside_hull = _inside_hull(cam_ab, ab, config.hull_margin)
@@ -292,9 +318,12 @@ def _build_geometry(rig: Rig, config: SceneConfig) -> SceneGeometry:
     if not keep.any():
         raise InputError(
             f"no floor cell is seen whole by {config.min_views} cameras; lower min_views or give "
-            "floor_height", field="floor_height",
-        )  # fmt: skip
-    return SceneGeometry(up, e1, e2, origin, float(floor_h), ab[keep], views[keep], config.cell_size, cams)
+            "floor_height",
+            field="floor_height",
+        )
+    return SceneGeometry(
+        up, e1, e2, origin, float(floor_h), ab[keep], views[keep], config.cell_size, cams
+    )
 
 
 def _inside_hull(points: np.ndarray, query: np.ndarray, margin: float) -> np.ndarray | None:
