@@ -500,6 +500,7 @@ def test_non_finite_coordinates(tmp_path, token):
     arrays = dict(np.load(tmp_path / "r.npz"))
     f, c = np.argwhere(rec.detections.count > 0)[-1]
     arrays["xy"][f, c, 0, 3, 1] = float(token)
+    arrays["score"][f, c, 0, 3] = 0.5  # a keypoint the detector claims to have seen
     np.savez(tmp_path / "bad.npz", **arrays)
     _expect(
         partial(read_npz, tmp_path / "bad.npz"),
@@ -508,6 +509,32 @@ def test_non_finite_coordinates(tmp_path, token):
         camera=rec.cameras[c],
         field="xy",
     )
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity"])
+def test_non_finite_coordinates_of_a_missing_keypoint_read_as_missing(tmp_path, token):
+    # How several detectors mark a keypoint they did not find: NaN (or inf) with score 0.
+    text = json.dumps(_native_doc()).replace("[4.0, 0.0, 0.5]", f"[{token}, {token}, 0.0]")
+    rec = read_native(_write(tmp_path / "n.json", text))
+    xy, score = np.asarray(rec.detections.xy), np.asarray(rec.detections.score)
+    assert np.isfinite(xy).all() and score[1, 1, 1, 0] == 0 and (xy[1, 1, 1, 0] == 0).all()
+    orig = _write(
+        tmp_path / "o.json",
+        _original_doc(f'[{{"3": [3, 5.0, 6.0, 1, 0.5]}}, {{"4": [4, {token}, {token}, 1, 0]}}]'),
+    )
+    rec = read_original(orig)
+    assert np.isfinite(np.asarray(rec.detections.xy)).all()
+    assert np.asarray(rec.detections.score)[1, 1, 1, 4] == 0
+    src = random_recording(2, cameras=("a", "b"))
+    write_npz(src, tmp_path / "r.npz")
+    arrays = dict(np.load(tmp_path / "r.npz"))
+    f, c = np.argwhere(src.detections.count > 0)[-1]
+    arrays["xy"][f, c, 0, 3] = float(token)
+    arrays["score"][f, c, 0, 3] = 0.0
+    np.savez(tmp_path / "missing.npz", **arrays)
+    rec = read_npz(tmp_path / "missing.npz")
+    assert np.isfinite(np.asarray(rec.detections.xy)).all()
+    assert (np.asarray(rec.detections.xy)[f, c, 0, 3] == 0).all()
 
 
 def test_non_finite_ground_truth(tmp_path):
@@ -526,8 +553,8 @@ def test_non_finite_ground_truth(tmp_path):
     )
 
 
-@pytest.mark.parametrize("bad_score", [-0.5, 1.5])
-def test_scores_outside_unit_interval(tmp_path, bad_score):
+@pytest.mark.parametrize("bad_score", [-0.5, 1.51, 3.0])
+def test_scores_outside_the_accepted_range(tmp_path, bad_score):
     text = json.dumps(_native_doc()).replace("[4.0, 0.0, 0.5]", f"[4.0, 0.0, {bad_score}]")
     path = _write(tmp_path / "n.json", text)
     _expect(
@@ -558,6 +585,28 @@ def test_scores_outside_unit_interval(tmp_path, bad_score):
         camera=rec.cameras[c],
         field="score",
     )
+
+
+def test_scores_up_to_1_5_are_clipped_in_every_format(tmp_path):
+    from mvpose_jax.data.checks import ScoreClippedWarning
+
+    text = json.dumps(_native_doc()).replace("[4.0, 0.0, 0.5]", "[4.0, 0.0, 1.2]")
+    with pytest.warns(ScoreClippedWarning, match="1 keypoint scores above 1 \\(largest 1.2\\)"):
+        rec = read_native(_write(tmp_path / "n.json", text))
+    assert np.asarray(rec.detections.score)[1, 1, 1, 0] == 1.0
+    orig = _write(tmp_path / "o.json", _original_doc('[{"3": [3, 5.0, 6.0, 1, 1.5]}]'))
+    with pytest.warns(ScoreClippedWarning, match="largest 1.5"):
+        rec = read_original(orig)
+    assert np.asarray(rec.detections.score)[1, 1, 0, 3] == 1.0
+    src = random_recording(4, cameras=("a", "b"))
+    write_npz(src, tmp_path / "r.npz")
+    arrays = dict(np.load(tmp_path / "r.npz"))
+    f, c = np.argwhere(src.detections.count > 0)[0]
+    arrays["score"][f, c, 0, 2] = 1.04
+    np.savez(tmp_path / "high.npz", **arrays)
+    with pytest.warns(ScoreClippedWarning, match=str(tmp_path / "high.npz")):
+        rec = read_npz(tmp_path / "high.npz")
+    assert np.asarray(rec.detections.score).max() <= 1.0 and rec.detections.score[f, c, 0, 2] == 1.0
 
 
 def test_native_structure_errors(tmp_path):

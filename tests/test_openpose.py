@@ -276,9 +276,9 @@ def test_bad_values_name_file_frame_camera_field(tmp_path):
     root = _tiny_folder(tmp_path / "op", 18, COCO_PERSON)
     target = root / "b" / "clipB_000000000001_keypoints.json"
     doc = json.loads(target.read_text())
-    doc["people"][0]["pose_keypoints_2d"][3 * 4 + 2] = 1.5  # keypoint 4's confidence
+    doc["people"][0]["pose_keypoints_2d"][3 * 4 + 2] = 1.51  # keypoint 4's confidence
     target.write_text(json.dumps(doc))
-    with pytest.raises(InputError, match=r"outside \[0, 1\]") as e:
+    with pytest.raises(InputError, match=r"score 1.51 is outside \[0, 1.5\]") as e:
         load_recording(root)
     err = e.value
     assert (err.file, err.frame, err.camera) == (str(target), 1, "b")
@@ -332,3 +332,46 @@ def test_folder_mistakes(tmp_path):
     with pytest.raises(InputError, match="folder name") as e:
         save_openpose(bad, tmp_path / "out")
     assert e.value.camera == "a/b" and not (tmp_path / "out").exists()
+
+
+def test_scores_slightly_above_1_are_clipped_with_one_warning(tmp_path):
+    from mvpose_jax.data.checks import ScoreClippedWarning
+
+    # OpenPose heatmap peaks exceed 1: a real recording had five such keypoints (1.008-1.037).
+    person = {**COCO_PERSON, 0: (10.0, 20.0, 1.037), 1: (30.0, 40.0, 1.008)}
+    root = _tiny_folder(tmp_path / "op", 18, person)
+    with pytest.warns(ScoreClippedWarning) as caught:
+        rec = load_recording(root)
+    assert len(caught) == 1  # one summary for the recording, not one per keypoint
+    message = str(caught[0].message)
+    assert "6 keypoint scores above 1" in message and "largest 1.037" in message
+    assert str(root) in message
+    score = np.asarray(rec.detections.score)
+    assert score.max() == 1.0
+    assert score[0, 0, 0, 0] == 1.0 and score[0, 0, 0, 17] == 1.0  # nose and neck, clipped
+
+
+def test_scores_far_above_1_are_an_error_with_a_plain_number(tmp_path):
+    root = _tiny_folder(tmp_path / "op", 18, {**COCO_PERSON, 2: (50.0, 60.0, 1.6)})
+    with pytest.raises(InputError) as e:
+        load_recording(root)
+    assert "score 1.6 is outside [0, 1.5]" in str(e.value)
+    assert "np.float" not in str(e.value)
+    assert e.value.camera == "a" and e.value.frame == 0
+    assert e.value.field == "people[0].pose_keypoints_2d[keypoint 2].c"
+
+
+def test_nan_coordinates_with_score_0_are_missing_keypoints(tmp_path):
+    nan = float("nan")
+    root = _tiny_folder(tmp_path / "op", 18, {**COCO_PERSON, 3: (nan, nan, 0.0), 4: (nan, 7.0, 0.0)})
+    rec = load_recording(root)
+    xy, score = np.asarray(rec.detections.xy), np.asarray(rec.detections.score)
+    assert np.isfinite(xy).all()
+    for op_index in (3, 4):  # OpenPose's r_elbow and r_wrist: missing, at 0 as every missing one
+        ours = COCO18.index(("r_elbow", "r_wrist")[op_index - 3])
+        assert score[0, 0, 0, ours] == 0 and (xy[0, 0, 0, ours] == 0).all()
+    # A NaN on a keypoint the detector claims to have seen is still an error, named.
+    bad = _tiny_folder(tmp_path / "bad", 18, {**COCO_PERSON, 3: (nan, nan, 0.4)})
+    with pytest.raises(InputError, match="not finite") as e:
+        load_recording(bad)
+    assert e.value.camera == "a" and e.value.field == "people[0].pose_keypoints_2d[keypoint 3]"

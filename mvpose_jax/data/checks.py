@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -25,6 +26,15 @@ from mvpose_jax.data.files import _read_text
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections
+
+# Scores above 1 up to this are accepted and clipped (detector heatmap peaks exceed 1 a little);
+# beyond it a score is an error (another scale, or garbage).
+MAX_SCORE = 1.5
+
+
+class ScoreClippedWarning(UserWarning):
+    """Keypoint scores slightly above 1 were clipped to 1 while reading."""
+
 
 # Where a row of a flat batch of skeletons comes from: row index -> (frame, camera, person).
 Locate = Callable[[int], tuple[Any, Any, Any]]
@@ -50,12 +60,18 @@ def check_keypoints(
     field: str = "skeleton[{p}].keypoints[{k}]",
     score_field: str = "skeleton[{p}].keypoints[{k}].score",
     count_field: str = "skeleton[{p}].keypoints",
+    reading: bool = False,
+    source: object = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """THE keypoint check of every reader and writer: count, finite coordinates, score range.
 
     Args:
       coords: (N, K', D) coordinates of N skeletons (pixels or metres), any real dtype.
-      score: optional (N, K') scores; each must lie in [0, 1].
+      score: optional (N, K') scores in [0, 1]; scores in (1, `MAX_SCORE`] are clipped to 1 with
+        one `ScoreClippedWarning` for the call.
+      reading: the values come from a file: a non-finite coordinate with score 0 is then a
+        missing keypoint (set to 0), as several detectors write one; a writer refuses it.
+      source: what the clipping warning names (default ``file``; a folder of files, say).
       num_keypoints: K, the number of keypoints the layout has; K' must equal it.
       locate: maps a row index to its (frame, camera, person), called only to report an error.
       file: the file the values came from.
@@ -81,20 +97,48 @@ def check_keypoints(
     # Check after the cast: a finite float64 beyond float32's range becomes inf in the arrays.
     with np.errstate(over="ignore", invalid="ignore"):
         coords32 = coords.astype(np.float32)
+        score32 = None if score is None else np.asarray(score).astype(np.float32)
     bad = ~np.isfinite(coords32).all(axis=-1)
+    if score32 is not None and reading:
+        # Several detectors mark a keypoint they did not find as NaN (or inf) with score 0: that
+        # is a missing keypoint, whose coordinates are 0 by the `Detections` convention.
+        missing = bad & (score32 == 0)
+        coords32[missing] = 0.0
+        bad &= ~missing
     if bad.any():
         i, k = np.argwhere(bad)[0]
         fail(i, k, field, f"coordinates {coords[i, k].tolist()} are not finite numbers")
-    if score is None:
+    if score32 is None:
         return coords32, None
-    score = np.asarray(score)
-    with np.errstate(over="ignore", invalid="ignore"):
-        score32 = score.astype(np.float32)
-    bad = ~(np.isfinite(score32) & (score32 >= 0) & (score32 <= 1))
+    bad = ~(np.isfinite(score32) & (score32 >= 0) & (score32 <= MAX_SCORE))
     if bad.any():
         i, k = np.argwhere(bad)[0]
-        fail(i, k, score_field, f"score {score[i, k]!r} is outside [0, 1]")
+        fail(
+            i,
+            k,
+            score_field,
+            f"score {_number(np.asarray(score)[i, k])} is outside [0, {MAX_SCORE}]",
+        )
+    above = score32 > 1
+    if above.any():
+        # Heatmap peaks exceed 1 (OpenPose writes up to about 1.04): clipped, said once per call.
+        where = next((w for w in (source, file) if w is not None), "detections")
+        warnings.warn(
+            f"{where}: {int(above.sum())} keypoint scores above 1 (largest {float(score32.max()):.4g}) "
+            "were clipped to 1",
+            ScoreClippedWarning,
+            stacklevel=2,
+        )
+        score32 = np.minimum(score32, 1.0)
     return coords32, score32
+
+
+def _number(v) -> str:
+    """A value as a user reads it (no numpy repr such as ``np.float64(1.02)``)."""
+    try:
+        return repr(float(v))
+    except (TypeError, ValueError):
+        return repr(v)
 
 
 def check_recording(rec: Recording, *, file: object = None) -> None:

@@ -293,7 +293,7 @@ def native_from_json(data: Any, *, file: object = None) -> Recording:
     )
     values[~present] = 0.0
     xy, score = check_keypoints(
-        values[..., :2], values[..., 2], num_keypoints=K, locate=locate, file=file
+        values[..., :2], values[..., 2], num_keypoints=K, locate=locate, file=file, reading=True
     )
     det = pack_detections(xy, score, index, num_frames=F, num_cameras=C, file=file)
     P = det.score.shape[2]

@@ -86,7 +86,8 @@ def read_npz(path: str | os.PathLike) -> Recording:
     Raises:
       InputError naming the file and member (and frame and camera for bad values): a missing,
       empty, truncated or non-zip file, object (pickled) arrays, wrong dtypes or shapes, unknown
-      members, non-finite values, scores outside [0, 1], inconsistent counts or identities.
+      members, non-finite values, scores outside [0, 1.5] (above 1: clipped, with a warning),
+      inconsistent counts or identities.
     """
     arrays = _load_members(path)
     err = lambda reason, field: InputError(reason, file=path, field=field)  # noqa: E731
@@ -154,10 +155,9 @@ def read_npz(path: str | os.PathLike) -> Recording:
     score = arrays["score"]
     with np.errstate(over="ignore", invalid="ignore"):
         det = Detections(
-            # Coordinates of missing keypoints are meaningless: zero them as every reader does.
-            np.where(score[..., None] > 0, xy, 0.0).astype(np.float32)
-            if np.isfinite(xy).all()
-            else xy,
+            # Coordinates of missing keypoints are meaningless (NaN, say): zero them as every
+            # reader does; a seen keypoint's NaN stays, for the check to report where it is.
+            np.where(score[..., None] > 0, xy, 0.0),
             score,
             count.astype(np.int32),
         )
@@ -188,7 +188,8 @@ def read_npz(path: str | os.PathLike) -> Recording:
     check_recording(rec, file=path)
     f32 = lambda a: None if a is None else np.asarray(a, np.float32)  # noqa: E731
     return Recording(
-        detections=Detections(f32(det.xy), f32(det.score), det.count),
+        # Scores in (1, MAX_SCORE] passed the check with a warning; clipped like every reader.
+        detections=Detections(f32(det.xy), np.minimum(f32(det.score), 1.0), det.count),
         cameras=cameras,
         layout=layout,
         ground_truth=None if gt is None else Poses3D(f32(gt.xyz), gt.valid, gt.keypoint_valid),

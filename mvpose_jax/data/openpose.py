@@ -191,6 +191,8 @@ def read_openpose(
             field="people[{p}].pose_keypoints_2d[keypoint {k}]",
             score_field="people[{p}].pose_keypoints_2d[keypoint {k}].c",
             count_field="people[{p}].pose_keypoints_2d",
+            reading=True,
+            source=root,
         )
     except InputError as e:
         raise e.at(file=origin[failed[-1]][0]) from None

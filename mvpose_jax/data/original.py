@@ -237,7 +237,7 @@ def original_from_json(
     locate = lambda i: (int(f_idx[i]), names[c_idx[i]], int(p_idx[i]))  # noqa: E731
     values = np.concatenate(blocks) if blocks else np.zeros((0, K, 4))
     xy, raw_score = check_keypoints(
-        values[..., :2], values[..., 3], num_keypoints=K, locate=locate, file=file
+        values[..., :2], values[..., 3], num_keypoints=K, locate=locate, file=file, reading=True
     )
     # The format's rule: a keypoint flagged not visible is missing, whatever its score says.
     score = np.where(values[..., 2] != 0, raw_score, 0.0).astype(np.float32)
