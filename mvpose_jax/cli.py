@@ -293,7 +293,9 @@ def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None =
     )
     p.add_argument("--out", required=True, help="folder for the best and latest checkpoints")
     p.add_argument("--layout", default=None, help="keypoint layout to convert the recordings to")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed", type=int, default=0, help="seeds initialisation, sample order and augmentation"
+    )
     p.add_argument(
         "--devices",
         type=devices,
@@ -440,7 +442,7 @@ def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
         "--augment", type=int, default=4, help="view-subset samples per seed sample (paper: 4)"
     )
     p.add_argument("--steps", type=int, default=4000, help="training steps")
-    p.add_argument("--batch-size", type=int, default=256)
+    p.add_argument("--batch-size", type=int, default=256, help="people per training step")
     p.add_argument("--learning-rate", type=float, default=1e-3, help="Adam's initial step size")
     p.add_argument("--constant-lr", action="store_true", help="no cosine decay (the paper's)")
     p.add_argument(
@@ -756,7 +758,12 @@ def _render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scale", type=float, default=0.5, help="size of each camera view (default 0.5)"
     )
-    p.add_argument("--fps", type=float, default=25.0, help="frame rate of an .mp4")
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="frame rate of an .mp4 (default: the recording's, from its timestamps; else 30)",
+    )
     p.add_argument(
         "--figures-3d",
         action="store_true",
@@ -844,7 +851,7 @@ def _render(args: argparse.Namespace) -> int:
 
     written = 0
     if video:
-        with VideoWriter(out, args.fps) as writer:
+        with VideoWriter(out, args.fps or _recording_fps(rec.timestamps)) as writer:
             for f in tqdm(frames, desc="render", unit="frame"):
                 writer.write(picture(f))
                 written += 1
@@ -873,11 +880,50 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recording_fps(timestamps) -> float:
+    """Frames per second from a recording's timestamps (their median step); 30 without them."""
+    import numpy as np
+
+    if timestamps is None or len(timestamps) < 2:
+        return 30.0
+    step = float(np.median(np.diff(np.asarray(timestamps, np.float64))))
+    return 1.0 / step if step > 0 else 30.0
+
+
+class _DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless the help already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        shown = action.default not in (None, argparse.SUPPRESS, False) and action.nargs != 0
+        if shown and "default" not in text and "%(default)" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
+def version() -> str:
+    """The installed package's version (read without importing jax)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as package_version
+
+    try:
+        return package_version("mvpose-jax")
+    except PackageNotFoundError:  # a source checkout that was never installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mvpose-jax", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="mvpose-jax",
+        description=__doc__.splitlines()[0],
+        formatter_class=_DefaultsHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"mvpose-jax {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (help_, add, _) in _COMMANDS.items():
-        p = sub.add_parser(name, help=help_, description=help_)
+        p = sub.add_parser(
+            name, help=help_, description=help_, formatter_class=_DefaultsHelpFormatter
+        )
         add(p)
     return parser
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import re
 
 import cv2
 import numpy as np
@@ -244,3 +246,37 @@ def test_every_command_explains_every_option(name, capsys):
     for opt in options - {"--help"}:
         # every option is followed by some help text somewhere after its first mention
         assert re.search(re.escape(opt) + r"[^\n]*\n?\s+\S", text), opt
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert re.fullmatch(r"mvpose-jax \S+\n", capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("name", ["infer", "evaluate", "render", "train-matcher", "train-estimator",
+                                  "generate", "synthetic-figure", "rig"])  # fmt: skip
+def test_every_option_with_a_default_shows_it(name):
+    from mvpose_jax.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[
+        name
+    ]
+    text = sub.format_help().split("options:", 1)[1]
+    for action in sub._actions:
+        if action.default in (None, False, argparse.SUPPRESS) or action.nargs == 0:
+            continue
+        opt = action.option_strings[-1]
+        after = text.split(opt + " ", 1)[1]
+        block = re.split(r"\n  -", after, maxsplit=1)[0]  # this option's help, up to the next
+        assert "default" in block, (name, opt, block)
+
+
+def test_render_fps_comes_from_the_recording():
+    from mvpose_jax.cli import _recording_fps
+
+    assert _recording_fps(np.arange(10) / 30.0) == pytest.approx(30.0)
+    assert _recording_fps(np.arange(10) / 12.5) == pytest.approx(12.5)
+    assert _recording_fps(None) == 30.0
