@@ -9,10 +9,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
-from mvpose_jax.errors import InputError, MvposeError
+from mvpose_jax.errors import InputError, MvposeError, MvposeWarning
 
 if TYPE_CHECKING:
     from mvpose_jax.synthetic import SyntheticConfig
@@ -48,6 +49,12 @@ def add_rig_argument(p: argparse.ArgumentParser, default: str | None = "panoptic
         default=1.0,
         help="TOML calibrations only: metres per translation unit (0.001 for millimetres)",
     )
+    p.add_argument(
+        "--orthonormalise",
+        action="store_true",
+        help="replace each camera's R by the nearest rotation (calibrations written with few "
+        "decimals); the largest change is reported",
+    )
 
 
 @command(
@@ -61,7 +68,9 @@ def _rig(args: argparse.Namespace) -> int:
     from mvpose_jax.cameras import camera_centres, rig_centre_and_radius, up_vector
     from mvpose_jax.data.calibration import load_rig
 
-    rig = load_rig(args.rig, translation_scale=args.translation_scale)
+    rig = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
     centres = np.asarray(camera_centres(rig), np.float64)
     centre, radius = rig_centre_and_radius(rig)
     print(
@@ -176,7 +185,11 @@ def _generate(args: argparse.Namespace) -> int:
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
 
-    rig = load_rig(args.rig, translation_scale=getattr(args, "translation_scale", 1.0))
+    rig = load_rig(
+        args.rig,
+        translation_scale=getattr(args, "translation_scale", 1.0),
+        orthonormalise=getattr(args, "orthonormalise", False),
+    )
     config = synthetic_config_from_args(args)
     out = Path(args.out)
     if args.single_person_recordings > 0:
@@ -237,7 +250,9 @@ def _synthetic_figure(args: argparse.Namespace) -> int:
     from mvpose_jax.render import render_frame_figure
     from mvpose_jax.synthetic import generate_recording
 
-    rig = load_rig(args.rig, translation_scale=args.translation_scale)
+    rig = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
     rec = generate_recording(rig, num_people=args.people, num_frames=args.frames, seed=args.seed)
     frame = args.frame % rec.num_frames
     out = render_frame_figure(
@@ -362,7 +377,9 @@ def _train_matcher(args: argparse.Namespace) -> int:
 
     # Before anything touches a device: a multi-host run must join its coordinator first.
     initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
-    rig = load_rig(args.rig, translation_scale=args.translation_scale)
+    rig = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
     config = MatcherConfig.quick() if args.quick else MatcherConfig()
     train = dataclasses.replace(
         config.train,
@@ -466,7 +483,9 @@ def _train_estimator(args: argparse.Namespace) -> int:
 
     # Before anything touches a device: a multi-host run must join its coordinator first.
     initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
-    rig = load_rig(args.rig, translation_scale=args.translation_scale)
+    rig = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
     train_cams = tuple(args.train_cameras or rig.names)
     infer_cams = tuple(args.infer_cameras or train_cams)
     for c in train_cams:
@@ -605,7 +624,9 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.proposals import read_proposal_threshold
     from mvpose_jax.trained import load_estimator, load_matcher
 
-    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
+    rig_all = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
     rec, rig = _load_detections(args, rig_all)
     matcher = load_matcher(args.matcher, rig) if args.matcher else None
     estimator = load_estimator(args.estimator, rig) if args.estimator else None
@@ -652,7 +673,9 @@ def _poses_and_detections(args: argparse.Namespace):
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.data.poses import load_poses
 
-    rig_all = load_rig(args.rig, translation_scale=args.translation_scale)
+    rig_all = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
     poses = load_poses(args.poses)
     args.cameras = list(poses.cameras)
     rec, rig = _load_detections(args, rig_all)
@@ -928,10 +951,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """The package's warnings as one plain line (no source location); others as Python shows them."""
+    if issubclass(category, MvposeWarning):
+        print(f"mvpose-jax: warning: {message}", file=sys.stderr)
+    else:
+        _python_show_warning(message, category, filename, lineno, file, line)
+
+
+_python_show_warning = warnings.showwarning
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return _COMMANDS[args.command][2](args) or 0
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return _COMMANDS[args.command][2](args) or 0
     except MvposeError as e:
         print(f"mvpose-jax {args.command}: error: {e}", file=sys.stderr)
         return 2

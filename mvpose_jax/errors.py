@@ -51,3 +51,8 @@ class InputError(MvposeError, ValueError):
             if merged.get(k) is None:
                 merged[k] = v
         return InputError(self.reason, **merged)
+
+
+class MvposeWarning(UserWarning):
+    """Base class of the warnings this package gives about input it accepted but changed or
+    doubts (the command line prints them as one line each)."""

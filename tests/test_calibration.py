@@ -152,3 +152,57 @@ def test_unknown_preset_and_missing_file(tmp_path):
         calibration.load_rig("panoptic6")  # not a preset: treated as a path
     with pytest.raises(InputError, match="unknown rig preset"):
         calibration.load_preset("panoptic6")
+
+
+def test_millimetre_translations_without_a_scale_are_flagged(tmp_path):
+    arp = calibration.load_rig("arplab6")
+    path = tmp_path / "Calib.toml"
+    path.write_text(toml_text(arp, scale=1e-3))  # translations in mm, read as metres
+    with pytest.warns(calibration.CalibrationWarning, match="--translation-scale 0.001") as w:
+        calibration.load_rig(path)
+    assert "millimetres" in str(w[0].message) and str(path) in str(w[0].message)
+    path.write_text(toml_text(arp, scale=1e3))  # in km: cameras millimetres apart
+    with pytest.warns(calibration.CalibrationWarning, match="m from their centre"):
+        calibration.load_rig(path)
+
+
+@pytest.mark.parametrize("scale", [0.0, -1e-3, float("nan"), float("inf")])
+def test_a_translation_scale_must_be_positive(tmp_path, scale):
+    path = tmp_path / "Calib.toml"
+    path.write_text(toml_text(calibration.load_rig("arplab6")))
+    with pytest.raises(InputError, match="positive number") as e:
+        calibration.load_rig(path, translation_scale=scale)
+    assert e.value.field == "translation_scale"
+
+
+def test_orthonormalise_repairs_rotations_written_with_four_decimals(tmp_path):
+    pan = calibration.load_rig("panoptic5")
+    doc = calibration.rig_to_dict(pan)
+    for cam in doc["cameras"]:
+        cam["R"] = np.round(np.asarray(cam["R"]), 4).tolist()
+    path = tmp_path / "rounded.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="not orthonormal"):
+        calibration.load_rig(path)
+    with pytest.warns(calibration.CalibrationWarning, match="nearest rotations") as w:
+        rig = calibration.load_rig(path, orthonormalise=True)
+    change = float(str(w[0].message).split("largest change ")[1].split(",")[0])
+    assert 1e-6 < change < 2e-4  # 4 decimals: each entry within 5e-5 of the truth
+    R = np.asarray(rig.R, np.float64)
+    np.testing.assert_allclose(
+        R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-6
+    )
+    np.testing.assert_allclose(R, np.asarray(pan.R), atol=1e-4)
+    # The nearest rotation (closed form for a scaled rotation: the rotation itself).
+    np.testing.assert_allclose(calibration.nearest_rotation(1.3 * np.asarray(pan.R[0], np.float64)),
+                               np.asarray(pan.R[0]), atol=1e-6)  # fmt: skip
+
+
+def test_orthonormalise_does_not_hide_a_wrong_matrix(tmp_path):
+    doc = calibration.rig_to_dict(calibration.load_rig("panoptic5"))
+    doc["cameras"][2]["R"] = (1.1 * np.asarray(doc["cameras"][2]["R"])).tolist()
+    path = tmp_path / "scaled.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="far from a rotation") as e:
+        calibration.load_rig(path, orthonormalise=True)
+    assert e.value.camera == doc["cameras"][2]["name"] and e.value.field == "R"

@@ -280,3 +280,18 @@ def test_render_fps_comes_from_the_recording():
     assert _recording_fps(np.arange(10) / 30.0) == pytest.approx(30.0)
     assert _recording_fps(np.arange(10) / 12.5) == pytest.approx(12.5)
     assert _recording_fps(None) == 30.0
+
+
+def test_rig_warnings_and_unit_errors_are_one_plain_line(tmp_path, capsys):
+    from tests.helpers import toml_text
+
+    path = tmp_path / "Calib.toml"
+    path.write_text(toml_text(load_rig("arplab6"), scale=1e-3))  # millimetres
+    assert main(["rig", "--rig", str(path)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("mvpose-jax: warning: ")
+    assert "--translation-scale 0.001" in err[0]
+    assert main(["rig", "--rig", str(path), "--translation-scale", "0.001"]) == 0
+    assert capsys.readouterr().err == ""
+    assert main(["rig", "--rig", str(path), "--translation-scale", "0"]) == 2
+    assert "translation scale must be a positive number" in capsys.readouterr().err

@@ -363,7 +363,9 @@ def test_scores_far_above_1_are_an_error_with_a_plain_number(tmp_path):
 
 def test_nan_coordinates_with_score_0_are_missing_keypoints(tmp_path):
     nan = float("nan")
-    root = _tiny_folder(tmp_path / "op", 18, {**COCO_PERSON, 3: (nan, nan, 0.0), 4: (nan, 7.0, 0.0)})
+    root = _tiny_folder(
+        tmp_path / "op", 18, {**COCO_PERSON, 3: (nan, nan, 0.0), 4: (nan, 7.0, 0.0)}
+    )
     rec = load_recording(root)
     xy, score = np.asarray(rec.detections.xy), np.asarray(rec.detections.score)
     assert np.isfinite(xy).all()

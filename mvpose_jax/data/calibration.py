@@ -15,16 +15,18 @@ from __future__ import annotations
 
 import importlib.resources
 import json
+import math
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mvpose_jax.cameras import Rig, make_rig
+from mvpose_jax.cameras import Rig, make_rig, rig_centre_and_radius
 from mvpose_jax.data.files import atomic_write_text, read_json, read_toml
-from mvpose_jax.errors import InputError
+from mvpose_jax.errors import InputError, MvposeWarning
 
 PRESETS = ("panoptic5", "arplab6")
 
@@ -44,16 +46,28 @@ def load_rig(
     cameras: Sequence[str] | None = None,
     *,
     translation_scale: float = 1.0,
+    orthonormalise: bool = False,
 ) -> Rig:
     """Loads a rig from a preset name or a calibration file in any supported format.
 
     Args:
       source: a preset name, a path (``.json`` native or Panoptic, ``.toml``), or a Rig.
       cameras: optional camera names to keep, in this order.
-      translation_scale: TOML only: metres per unit of its translations (0.001 for millimetres).
+      translation_scale: TOML only: metres per unit of its translations (0.001 for millimetres);
+        must be a positive number.
+      orthonormalise: replace each R by its nearest rotation (calibrations written with few
+        decimals), with a `CalibrationWarning` giving the largest change.
     Raises:
       InputError naming the file, camera and field on any problem.
+    Warns:
+      `CalibrationWarning` when the cameras are over 100 m or under 0.1 m from their centre
+      (translations in another unit than metres).
     """
+    if not (math.isfinite(translation_scale) and translation_scale > 0):
+        raise InputError(
+            f"the translation scale must be a positive number, not {translation_scale!r}",
+            field="translation_scale",
+        )
     if isinstance(source, Rig):
         rig = source
     elif isinstance(source, str) and source in PRESETS:
@@ -61,19 +75,54 @@ def load_rig(
     else:
         path = Path(source)
         if path.suffix.lower() == ".toml":
-            rig = rig_from_toml(read_toml(path), file=path, translation_scale=translation_scale)
+            rig = rig_from_toml(
+                read_toml(path),
+                file=path,
+                translation_scale=translation_scale,
+                orthonormalise=orthonormalise,
+            )
         else:
             data = read_json(path)
             if _is_panoptic(data):
-                rig = rig_from_panoptic(data, file=path, cameras=cameras)
+                rig = rig_from_panoptic(
+                    data, file=path, cameras=cameras, orthonormalise=orthonormalise
+                )
             else:
-                rig = rig_from_dict(data, file=path)
+                rig = rig_from_dict(data, file=path, orthonormalise=orthonormalise)
+        _warn_about_units(rig, path)
     if cameras is not None:
         try:
             rig = rig.select(cameras)
         except InputError as e:
             raise e.at(file=None if isinstance(source, Rig) else source) from None
     return rig
+
+
+# Orthonormalising repairs rotations written with few decimals (4 decimals: about 1e-4 off);
+# a larger change means a wrong matrix, which it must not hide.
+MAX_ORTHONORMALISE_CHANGE = 1e-2
+
+
+class CalibrationWarning(MvposeWarning):
+    """A calibration that loads but is probably not what its author meant (or was changed)."""
+
+
+def _warn_about_units(rig: Rig, path: Path) -> None:
+    if rig.num_cameras < 2:
+        return
+    _, radius = rig_centre_and_radius(rig)
+    radius = float(radius)
+    if radius > 100:
+        hint = "are the translations in millimetres? pass --translation-scale 0.001"
+    elif radius < 0.1:
+        hint = "are the translations in metres? check the file's unit"
+    else:
+        return
+    warnings.warn(
+        f"{path}: the cameras are {radius:.3g} m from their centre; {hint}",
+        CalibrationWarning,
+        stacklevel=3,
+    )
 
 
 def save_rig(rig: Rig, path: str | os.PathLike, description: str | None = None) -> None:
@@ -104,7 +153,7 @@ def rig_to_dict(rig: Rig, description: str | None = None) -> dict[str, Any]:
     return out
 
 
-def rig_from_dict(data: Any, *, file: object = None) -> Rig:
+def rig_from_dict(data: Any, *, file: object = None, orthonormalise: bool = False) -> Rig:
     """Builds a rig from a native calibration dict (see module docstring)."""
     cams = _camera_list(data, file)
     names, K, dist, R, t, size = [], [], [], [], [], []
@@ -123,11 +172,16 @@ def rig_from_dict(data: Any, *, file: object = None) -> Rig:
             ]
         )
     up = data.get("up")
-    return _make_rig(K, dist, R, t, size, names, None if up is None else _up(up, file), file)
+    up = None if up is None else _up(up, file)
+    return _make_rig(K, dist, R, t, size, names, up, file, orthonormalise)
 
 
 def rig_from_panoptic(
-    data: Any, *, file: object = None, cameras: Sequence[str] | None = None
+    data: Any,
+    *,
+    file: object = None,
+    cameras: Sequence[str] | None = None,
+    orthonormalise: bool = False,
 ) -> Rig:
     """Builds a rig from a CMU Panoptic calibration dict (``t`` in centimetres).
 
@@ -154,10 +208,12 @@ def rig_from_panoptic(
         R.append(_matrix(get("R"), (3, 3), file, name, "R"))
         t.append(_vector(get("t"), (3,), file, name, "t") / 100.0)
         size.append(_vector(get("resolution"), (2,), file, name, "resolution"))
-    return _make_rig(K, dist, R, t, size, names, (0.0, -1.0, 0.0), file)
+    return _make_rig(K, dist, R, t, size, names, (0.0, -1.0, 0.0), file, orthonormalise)
 
 
-def rig_from_toml(data: Any, *, file: object = None, translation_scale: float = 1.0) -> Rig:
+def rig_from_toml(
+    data: Any, *, file: object = None, translation_scale: float = 1.0, orthonormalise: bool = False
+) -> Rig:
     """Builds a rig from an anipose / Pose2Sim calibration dict (parsed TOML)."""
     if not isinstance(data, dict):
         raise InputError("expected TOML tables", file=file)
@@ -193,7 +249,7 @@ def rig_from_toml(data: Any, *, file: object = None, translation_scale: float = 
         dist.append(_vector(get("distortions"), (4, 5), file, name, "distortions"))
         R.append(rodrigues(_vector(get("rotation"), (3,), file, name, "rotation")))
         t.append(_vector(get("translation"), (3,), file, name, "translation") * translation_scale)
-    return _make_rig(K, dist, R, t, size, names, None, file)
+    return _make_rig(K, dist, R, t, size, names, None, file, orthonormalise)
 
 
 def rodrigues(rvec: np.ndarray) -> np.ndarray:
@@ -244,8 +300,10 @@ def _field(cam: dict, key: str, file: object, name: str) -> Any:
     return cam[key]
 
 
-def _make_rig(K, dist, R, t, size, names, up, file: object) -> Rig:
-    """`make_rig`, once every number is known to be finite in float32 (the rig's precision)."""
+def _make_rig(K, dist, R, t, size, names, up, file: object, orthonormalise: bool = False) -> Rig:
+    """`make_rig`, once every number is known to be finite in float32 (the rig's precision);
+    with ``orthonormalise``, each R replaced first by its nearest rotation (`nearest_rotation`)."""
+    R_in = R
     for field, values in (("K", K), ("dist", dist), ("R", R), ("t", t), ("size", size)):
         for name, v in zip(names, values, strict=False):
             with np.errstate(over="ignore"):
@@ -254,7 +312,35 @@ def _make_rig(K, dist, R, t, size, names, up, file: object) -> Rig:
                 raise InputError(
                     "a number is beyond float32 range", file=file, camera=name, field=field
                 )
+    if orthonormalise:
+        R = [nearest_rotation(np.asarray(r, np.float64)) for r in R]
+        changes = [
+            float(np.abs(new - np.asarray(old, np.float64)).max())
+            for new, old in zip(R, R_in, strict=True)
+        ]
+        worst = int(np.argmax(changes))
+        if changes[worst] > MAX_ORTHONORMALISE_CHANGE:
+            raise InputError(
+                f"R is far from a rotation (its nearest rotation differs by {changes[worst]:.2g}); "
+                "orthonormalising fixes rounding, not a wrong matrix",
+                file=file,
+                camera=names[worst],
+                field="R",
+            )
+        warnings.warn(
+            f"{file or 'calibration'}: R of {len(R)} cameras replaced by the nearest rotations "
+            f"(largest change {changes[worst]:.2g}, camera {names[worst]})",
+            CalibrationWarning,
+            stacklevel=3,
+        )
     return make_rig(K, _pad5(dist), R, t, size, names, up, file=file)
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a 3x3 matrix in the Frobenius norm (SVD: U V^T), for R written
+    with few decimals. A reflection stays a reflection (det -1), for `make_rig` to refuse."""
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt
 
 
 def _up(value: Any, file: object) -> tuple[float, float, float]:

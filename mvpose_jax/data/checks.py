@@ -24,7 +24,7 @@ import numpy as np
 
 from mvpose_jax.data.files import _read_text
 from mvpose_jax.data.recording import Recording
-from mvpose_jax.errors import InputError
+from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.skeletons import Detections
 
 # Scores above 1 up to this are accepted and clipped (detector heatmap peaks exceed 1 a little);
@@ -32,7 +32,7 @@ from mvpose_jax.skeletons import Detections
 MAX_SCORE = 1.5
 
 
-class ScoreClippedWarning(UserWarning):
+class ScoreClippedWarning(MvposeWarning):
     """Keypoint scores slightly above 1 were clipped to 1 while reading."""
 
 
