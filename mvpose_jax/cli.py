@@ -34,6 +34,13 @@ def command(name: str, help: str, arguments: Callable[[argparse.ArgumentParser],
     return register
 
 
+def check_writable(path: str, *, folder: bool) -> object:
+    """`data.files.check_writable` of an output option (imported when used: `--help` stays fast)."""
+    from mvpose_jax.data.files import check_writable as check
+
+    return check(path, folder=folder)
+
+
 def add_rig_argument(p: argparse.ArgumentParser, default: str | None = "panoptic5") -> None:
     """The ``--rig`` option every subcommand that needs cameras shares."""
     p.add_argument(
@@ -179,7 +186,6 @@ def synthetic_config_from_args(args: argparse.Namespace) -> SyntheticConfig:
     _generate_arguments,
 )
 def _generate(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
     from mvpose_jax.data import save_recording
     from mvpose_jax.data.calibration import load_rig
@@ -191,7 +197,7 @@ def _generate(args: argparse.Namespace) -> int:
         orthonormalise=getattr(args, "orthonormalise", False),
     )
     config = synthetic_config_from_args(args)
-    out = Path(args.out)
+    out = check_writable(args.out, folder=args.single_person_recordings > 0)
     if args.single_person_recordings > 0:
         recordings = generate_single_person_recordings(
             rig,
@@ -253,6 +259,7 @@ def _synthetic_figure(args: argparse.Namespace) -> int:
     rig = load_rig(
         args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
     )
+    check_writable(args.out, folder=False)
     rec = generate_recording(rig, num_people=args.people, num_frames=args.frames, seed=args.seed)
     frame = args.frame % rec.num_frames
     out = render_frame_figure(
@@ -375,6 +382,7 @@ def _train_matcher(args: argparse.Namespace) -> int:
     from mvpose_jax.train import train_matcher
     from mvpose_jax.trained import MatcherConfig
 
+    check_writable(args.out, folder=True)
     # Before anything touches a device: a multi-host run must join its coordinator first.
     initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
     rig = load_rig(
@@ -481,6 +489,7 @@ def _train_estimator(args: argparse.Namespace) -> int:
     from mvpose_jax.train import train_estimator
     from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
+    check_writable(args.out, folder=True)
     # Before anything touches a device: a multi-host run must join its coordinator first.
     initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
     rig = load_rig(
@@ -624,6 +633,7 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.proposals import read_proposal_threshold
     from mvpose_jax.trained import load_estimator, load_matcher
 
+    check_writable(args.out, folder=True)
     rig_all = load_rig(
         args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
     )
@@ -632,13 +642,14 @@ def _infer(args: argparse.Namespace) -> int:
     estimator = load_estimator(args.estimator, rig) if args.estimator else None
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
+    threshold = read_proposal_threshold(args.matcher, args.threshold)
     res = run_pipeline(
         rig,
         rec.detections,
         matcher=matcher,
         estimator=estimator,
         method=args.method,
-        threshold=read_proposal_threshold(args.matcher, args.threshold),
+        threshold=threshold,
         min_views=args.min_views,
         half_score_px=args.half_score_px,
         chunk_frames=args.chunk_frames,
@@ -656,12 +667,41 @@ def _infer(args: argparse.Namespace) -> int:
     npz_path, json_path = save_poses(out, args.out)
     F = len(res.confidence)
     people = int(np.asarray(res.poses.valid).sum())
+    if people == 0 and F > 0:
+        warnings.warn(_why_nobody(rec, res.cameras, args, threshold), MvposeWarning, stacklevel=1)
     print(
         f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame); proposals "
         f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
         f"ms/frame; wrote {json_path} and {npz_path}"
     )
     return 0
+
+
+def _why_nobody(rec, cameras, args: argparse.Namespace, threshold: float) -> str:
+    """Which setting left a whole recording without a single person."""
+    import numpy as np
+
+    idx = [rec.cameras.index(c) for c in cameras]
+    views = int((np.asarray(rec.detections.count)[:, idx] > 0).sum(axis=1).max(initial=0))
+    head = "no person in any frame: "
+    if views == 0:
+        return head + "the recording has no skeleton in the proposal cameras " + ", ".join(cameras)
+    if args.min_views > views:
+        return head + (
+            f"--min-views {args.min_views}, but no frame has skeletons in more than {views} of "
+            f"the {len(cameras)} proposal cameras"
+        )
+    if threshold >= 1:
+        return head + f"--threshold {threshold:g}: match scores lie in [0, 1], so no pair can join"
+    how = (
+        f"the matcher in {args.matcher}"
+        if args.matcher
+        else f"--half-score-px {args.half_score_px:g}"
+    )
+    return head + (
+        f"no pair of skeletons in different cameras scored above --threshold {threshold:g} "
+        f"({how}); check the calibration (units, camera names) or lower --threshold"
+    )
 
 
 def _poses_and_detections(args: argparse.Namespace):
@@ -718,6 +758,9 @@ def _evaluate(args: argparse.Namespace) -> int:
     from mvpose_jax.data.files import atomic_write_text
     from mvpose_jax.inference import group_people
     from mvpose_jax.metrics import matching_scores, pose_metrics, reprojection_errors
+
+    if args.out:
+        check_writable(args.out, folder=False)
 
     poses, rec, rig = _poses_and_detections(args)
     F = rec.num_frames
@@ -816,6 +859,7 @@ def _render(args: argparse.Namespace) -> int:
         write_image,
     )
 
+    check_writable(args.out, folder=Path(args.out).suffix.lower() != ".mp4")
     poses, rec, rig = _poses_and_detections(args)
     F = rec.num_frames
     if args.every < 1 or args.scale <= 0:

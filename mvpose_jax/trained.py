@@ -126,7 +126,7 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
       directory: the ``checkpoint_dir`` of training.
       rig: a rig holding the estimator's inference cameras (by name).
     """
-    checkpoints = Checkpoints(directory)
+    checkpoints = Checkpoints(_trained_folder(directory, which, "train-estimator"))
     try:
         saved = checkpoints.read_config(which)
         config = estimator_config_from_dict(saved)
@@ -249,6 +249,7 @@ def load_matcher(
     ``config`` and ``num_keypoints`` default to those saved with the checkpoint (checkpoints of
     older runs lack the keypoint count and need it passed).
     """
+    _trained_folder(directory, which, "train-matcher")
     if config is None or num_keypoints is None:
         checkpoints = Checkpoints(directory)
         try:
@@ -271,3 +272,15 @@ def load_matcher(
     finally:
         checkpoints.close()
     return Matcher(graphdef, rest, params, rig_infer, config)
+
+
+def _trained_folder(directory: str | Path, which: str, command: str) -> Path:
+    """The folder of a training run, refused before anything opens it (orbax would create the
+    checkpoint folders of a mistyped path, leaving empty ``best/`` and ``latest/`` behind)."""
+    path = Path(directory)
+    if not (path / which).is_dir():
+        what = "no such folder" if not path.exists() else f"no {which}/ checkpoint folder in it"
+        raise InputError(
+            f"not a trained model ({what}; `mvpose-jax {command} --out` writes one)", file=path
+        )
+    return path

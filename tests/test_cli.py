@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 
 import cv2
@@ -295,3 +296,54 @@ def test_rig_warnings_and_unit_errors_are_one_plain_line(tmp_path, capsys):
     assert capsys.readouterr().err == ""
     assert main(["rig", "--rig", str(path), "--translation-scale", "0"]) == 2
     assert "translation scale must be a positive number" in capsys.readouterr().err
+
+
+def test_outputs_are_checked_before_any_work(files, tmp_path, capsys):
+    a_file = tmp_path / "taken"
+    a_file.write_text("x")
+    args = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out"]
+    assert main([*args, str(a_file)]) == 2
+    err = capsys.readouterr().err
+    assert "is a file, but an output folder must go here" in err and str(a_file) in err
+    assert main([*args, str(a_file / "below")]) == 2
+    assert "is a file, so nothing can be written below it" in capsys.readouterr().err
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        if not os.access(locked, os.W_OK):  # root may write anywhere: then only the above holds
+            assert main([*args, str(locked / "poses")]) == 2
+            assert "permission denied" in capsys.readouterr().err
+    finally:
+        locked.chmod(0o700)
+    out = tmp_path / "scene.json"
+    assert main(["generate", "--rig", "panoptic5", "--frames", "2", "--out", str(tmp_path)]) == 2
+    assert "is a folder, but an output file must go here" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_mistyped_model_folder_is_an_error_and_creates_nothing(files, tmp_path, capsys):
+    missing = tmp_path / "estimatr"
+    args = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out"]
+    assert main([*args, str(tmp_path / "p"), "--estimator", str(missing)]) == 2
+    assert "not a trained model (no such folder" in capsys.readouterr().err
+    assert not missing.exists()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main([*args, str(tmp_path / "p"), "--matcher", str(empty)]) == 2
+    assert "no best/ checkpoint folder" in capsys.readouterr().err
+    assert list(empty.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "extra, reason",
+    [
+        (["--min-views", "9"], "--min-views 9, but no frame has skeletons in more than 5"),
+        (["--threshold", "1.5"], "--threshold 1.5: match scores lie in [0, 1]"),
+    ],
+)
+def test_a_recording_without_people_says_which_setting(files, tmp_path, capsys, extra, reason):
+    args = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out"]
+    assert main([*args, str(tmp_path / "p"), *extra]) == 0
+    err = capsys.readouterr().err
+    assert "mvpose-jax: warning: no person in any frame: " in err and reason in err

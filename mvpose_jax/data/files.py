@@ -133,3 +133,31 @@ def to_jsonable(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
     return value
+
+
+def check_writable(path: str | os.PathLike, *, folder: bool, field: str = "--out") -> Path:
+    """Refuses, before any work, an output that could not be written: a file where a folder
+    must go (or a folder where a file must go), or a place whose nearest existing folder is not
+    writable. Creates nothing.
+
+    Raises:
+      InputError naming the path and the option.
+    """
+    path = Path(path)
+    if path.exists():
+        if folder and not path.is_dir():
+            raise InputError("is a file, but an output folder must go here", file=path, field=field)
+        if not folder and path.is_dir():
+            raise InputError("is a folder, but an output file must go here", file=path, field=field)
+    parent = path if (folder and path.is_dir()) else path.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(
+            f"{parent} is a file, so nothing can be written below it", file=path, field=field
+        )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write in {parent} (permission denied)", file=path, field=field)
+    if path.exists() and not os.access(path, os.W_OK):
+        raise InputError("cannot be overwritten (permission denied)", file=path, field=field)
+    return path
