@@ -277,22 +277,31 @@ def _synthetic_figure(args: argparse.Namespace) -> int:
 
 
 def _recordings_in(path: str, layout: str | None) -> list:
-    """Every recording in a file or (recursively) a folder (.npz and .json, any readable format)."""
+    """Every recording in a file or (recursively) a folder, in any readable format: .npz and
+    .json files, and OpenPose folders (one subfolder per camera), each one recording."""
     from pathlib import Path
 
     from mvpose_jax.data import load_recording
-    from mvpose_jax.errors import InputError
+    from mvpose_jax.data.openpose import is_openpose_folder
 
     root = Path(path)
-    if root.is_dir():
-        files = sorted(p for p in root.rglob("*") if p.suffix.lower() in (".npz", ".json"))
-    elif root.exists():
-        files = [root]
-    else:
+    if not root.exists():
         raise InputError("no such file or folder", file=root)
-    if not files:
-        raise InputError("no recordings (.npz or .json) here", file=root)
-    return [load_recording(f, layout=layout) for f in files]
+
+    def found(folder: Path):
+        if is_openpose_folder(folder):
+            yield folder
+            return
+        for p in sorted(folder.iterdir()):
+            if p.is_dir():
+                yield from found(p)
+            elif p.suffix.lower() in (".npz", ".json"):
+                yield p
+
+    sources = list(found(root)) if root.is_dir() else [root]
+    if not sources:
+        raise InputError("no recordings (.npz, .json or OpenPose folders) here", file=root)
+    return [load_recording(s, layout=layout) for s in sources]
 
 
 def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None = None) -> None:
@@ -306,12 +315,15 @@ def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None =
 
     add_rig_argument(p, default=None)
     p.add_argument(
-        "--train", required=True, help="single-person recordings: a file or a folder of them"
+        "--train",
+        required=True,
+        help="single-person recordings: a file, an OpenPose folder, or a folder of them (any "
+        "format: .npz, .json, OpenPose folders)",
     )
     p.add_argument(
         "--dev",
         required=dev_help is None,
-        help=dev_help or "single-person validation recordings: a file or folder",
+        help=dev_help or "single-person validation recordings, as --train",
     )
     p.add_argument("--out", required=True, help="folder for the best and latest checkpoints")
     p.add_argument("--layout", default=None, help="keypoint layout to convert the recordings to")
@@ -578,6 +590,57 @@ def _detection_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="OpenPose folders: a frame missing in some cameras is an error (default) or empty there",
     )
+
+
+def _convert_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--detections",
+        required=True,
+        help="the recording to convert: native JSON, the original repository's JSON, .npz, or an "
+        "OpenPose folder",
+    )
+    p.add_argument(
+        "--format",
+        choices=("native", "original", "npz", "openpose"),
+        default=None,
+        help="output format (default: npz for a .npz --out, else native JSON)",
+    )
+    p.add_argument(
+        "--layout",
+        default=None,
+        help="keypoint layout to write (default: the recording's; coco18 for OpenPose input)",
+    )
+    p.add_argument(
+        "--cameras", nargs="+", help="write only these cameras, in this order (default: all)"
+    )
+    p.add_argument(
+        "--missing-frames",
+        choices=("error", "empty"),
+        default=None,
+        help="OpenPose input: a frame missing in some cameras is an error (default) or empty there",
+    )
+    p.add_argument("--out", required=True, help="output file (a folder for --format openpose)")
+
+
+@command(
+    "convert",
+    "Convert a recording between the formats the tools read (native, original, npz, OpenPose).",
+    _convert_arguments,
+)
+def _convert(args: argparse.Namespace) -> int:
+    from mvpose_jax.data import load_recording, save_recording, select_cameras
+
+    check_writable(args.out, folder=args.format == "openpose")
+    kwargs = {"missing_frames": args.missing_frames} if args.missing_frames else {}
+    rec = load_recording(args.detections, layout=args.layout, **kwargs)
+    if args.cameras:
+        rec = select_cameras(rec, args.cameras, file=args.detections)
+    save_recording(rec, args.out, format=args.format)
+    print(
+        f"{rec.num_frames} frames, {len(rec.cameras)} cameras ({', '.join(rec.cameras)}), layout "
+        f"{rec.layout}: wrote {args.out}"
+    )
+    return 0
 
 
 def _infer_arguments(p: argparse.ArgumentParser) -> None:

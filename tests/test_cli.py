@@ -235,6 +235,7 @@ def test_bad_input_is_one_clear_line(files, tmp_path, capsys):
         "generate",
         "synthetic-figure",
         "rig",
+        "convert",
     ],
 )
 def test_every_command_explains_every_option(name, capsys):
@@ -256,8 +257,20 @@ def test_version(capsys):
     assert re.fullmatch(r"mvpose-jax \S+\n", capsys.readouterr().out)
 
 
-@pytest.mark.parametrize("name", ["infer", "evaluate", "render", "train-matcher", "train-estimator",
-                                  "generate", "synthetic-figure", "rig"])  # fmt: skip
+@pytest.mark.parametrize(
+    "name",
+    [
+        "infer",
+        "evaluate",
+        "render",
+        "train-matcher",
+        "train-estimator",
+        "generate",
+        "synthetic-figure",
+        "rig",
+        "convert",
+    ],
+)
 def test_every_option_with_a_default_shows_it(name):
     from mvpose_jax.cli import build_parser
 
@@ -347,3 +360,77 @@ def test_a_recording_without_people_says_which_setting(files, tmp_path, capsys, 
     assert main([*args, str(tmp_path / "p"), *extra]) == 0
     err = capsys.readouterr().err
     assert "mvpose-jax: warning: no person in any frame: " in err and reason in err
+
+
+def test_training_commands_read_openpose_folders(tmp_path, capsys):
+    from mvpose_jax.cli import _recordings_in
+    from mvpose_jax.synthetic import generate_single_person_recordings
+
+    recs = generate_single_person_recordings(
+        load_rig("panoptic5"), num_recordings=3, num_frames=6, seed=2
+    )
+    train = tmp_path / "train"
+    save_openpose(recs[0], train / "walk_a")  # an OpenPose folder: one recording
+    save_recording(recs[1], train / "walk_b.npz")
+    save_recording(recs[2], train / "more" / "walk_c.json")
+    found = _recordings_in(str(train), None)
+    assert len(found) == 3
+    from mvpose_jax.features import single_person_samples
+
+    in_order = [recs[2], recs[0], recs[1]]  # sorted by path: more/, walk_a/, walk_b.npz
+    for rec, want in zip(found, in_order, strict=True):  # the same people (OpenPose drops padding)
+        got, expected = single_person_samples([rec]), single_person_samples([want])
+        np.testing.assert_allclose(got[0], expected[0], atol=1e-3)
+        np.testing.assert_allclose(got[1], expected[1], atol=1e-4)
+    assert len(_recordings_in(str(train / "walk_a"), None)) == 1  # the folder itself
+    out = tmp_path / "est"
+    args = ["train-estimator", "--rig", "panoptic5", "--train", str(train), "--out", str(out)]
+    assert main([*args, "--steps", "2", "--batch-size", "8"]) == 0
+    assert (out / "best").is_dir()
+
+
+def test_convert_between_every_format(files, recording, tmp_path, capsys):
+    steps = [
+        (files["npz"], tmp_path / "op", "openpose"),
+        (tmp_path / "op", tmp_path / "scene.json", "native"),
+        (tmp_path / "scene.json", tmp_path / "orig.json", "original"),
+        (tmp_path / "orig.json", tmp_path / "back.npz", None),
+    ]
+    for src, dst, fmt in steps:
+        args = ["convert", "--detections", str(src), "--out", str(dst)]
+        assert main(args + (["--format", fmt] if fmt else [])) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    back = load_recording(tmp_path / "back.npz")
+    assert back.cameras == recording.cameras and back.layout == recording.layout
+    np.testing.assert_array_equal(back.detections.count, recording.detections.count)
+    for f, c in zip(*np.nonzero(np.asarray(recording.detections.count)), strict=True):
+        n = int(recording.detections.count[f, c])
+        np.testing.assert_allclose(
+            back.detections.score[f, c, :n], recording.detections.score[f, c, :n], atol=1e-4
+        )
+        seen = np.asarray(recording.detections.score[f, c, :n]) > 0
+        np.testing.assert_allclose(
+            np.asarray(back.detections.xy[f, c, :n])[seen],
+            np.asarray(recording.detections.xy[f, c, :n])[seen],
+            atol=1e-3,
+        )
+    # Camera selection and a layout conversion on the way.
+    assert (
+        main(
+            [
+                "convert",
+                "--detections",
+                str(files["npz"]),
+                "--out",
+                str(tmp_path / "two.npz"),
+                "--cameras",
+                recording.cameras[1],
+                recording.cameras[0],
+                "--layout",
+                "coco17",
+            ]
+        )
+        == 0
+    )
+    two = load_recording(tmp_path / "two.npz")
+    assert two.cameras == (recording.cameras[1], recording.cameras[0]) and two.layout == "coco17"

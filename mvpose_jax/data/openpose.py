@@ -84,6 +84,14 @@ _OTHER_KEYS = (
 )
 
 
+def is_openpose_folder(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder of camera subfolders holding ``*_keypoints.json`` files."""
+    root = Path(path)
+    if not root.is_dir():
+        return False
+    return any(sub.is_dir() and any(sub.glob("*" + SUFFIX)) for sub in root.iterdir())
+
+
 def read_openpose(
     folder: str | os.PathLike,
     *,
