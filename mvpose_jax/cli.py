@@ -560,14 +560,17 @@ def _train_estimator(args: argparse.Namespace) -> int:
 
 def _load_detections(args: argparse.Namespace, rig):
     """The recording of ``--detections`` (any format; an OpenPose folder too) on the rig's cameras."""
-    from mvpose_jax.data import load_recording, select_cameras
+    from mvpose_jax.data import load_recording
 
     kwargs = {}
     if getattr(args, "missing_frames", None):
         kwargs["missing_frames"] = args.missing_frames
-    rec = load_recording(args.detections, layout=args.layout, rig=rig, **kwargs)
-    if getattr(args, "cameras", None):
-        rec = select_cameras(rec, args.cameras)
+    if getattr(args, "camera_map", None):
+        kwargs["camera_map"] = args.camera_map
+    # Cameras are chosen while loading: an OpenPose folder's other folders (a stray or
+    # uncalibrated camera) are never read.
+    cameras = getattr(args, "cameras", None) or None
+    rec = load_recording(args.detections, layout=args.layout, rig=rig, cameras=cameras, **kwargs)
     return rec, rig.select(list(rec.cameras))
 
 
@@ -590,6 +593,26 @@ def _detection_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="OpenPose folders: a frame missing in some cameras is an error (default) or empty there",
     )
+    p.add_argument(
+        "--camera-map",
+        type=camera_map,
+        default=None,
+        metavar="FOLDER=CAMERA,...",
+        help="OpenPose folders: the calibration's camera name of each camera folder, e.g. "
+        "cam01_json=cam01,cam02_json=cam02 (default: the folder's name, or it without a suffix "
+        "tools add: _json, _img, _images, _keypoints)",
+    )
+
+
+def camera_map(text: str) -> dict[str, str]:
+    """``FOLDER=CAMERA,...`` as a dict (the ``--camera-map`` option's type)."""
+    out = {}
+    for item in text.split(","):
+        folder, sep, camera = item.partition("=")
+        if not sep or not folder.strip() or not camera.strip():
+            raise argparse.ArgumentTypeError(f"expected FOLDER=CAMERA, got {item!r}")
+        out[folder.strip()] = camera.strip()
+    return out
 
 
 def _convert_arguments(p: argparse.ArgumentParser) -> None:

@@ -434,3 +434,24 @@ def test_convert_between_every_format(files, recording, tmp_path, capsys):
     )
     two = load_recording(tmp_path / "two.npz")
     assert two.cameras == (recording.cameras[1], recording.cameras[0]) and two.layout == "coco17"
+
+
+def test_infer_reads_pose2sim_folders_and_skips_stray_cameras(recording, tmp_path, capsys):
+    import shutil
+
+    root = tmp_path / "session"
+    save_openpose(recording, root)
+    for i, cam in enumerate(recording.cameras):
+        shutil.move(root / cam, root / f"view{i}")
+    (root / "uncalibrated").mkdir()
+    (root / "uncalibrated" / "000000000000_keypoints.json").write_text("{ broken")
+    cmap = ",".join(f"view{i}={cam}" for i, cam in enumerate(recording.cameras))
+    args = ["infer", "--rig", "panoptic5", "--detections", str(root), "--out", str(tmp_path / "p")]
+    assert main([*args, "--camera-map", cmap, "--cameras", *recording.cameras]) == 0
+    assert load_poses(tmp_path / "p").cameras == recording.cameras
+    capsys.readouterr()
+    assert main([*args, "--camera-map", cmap]) == 2  # the stray folder, named
+    assert "uncalibrated" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*args, "--camera-map", "view0"])
+    assert "expected FOLDER=CAMERA" in capsys.readouterr().err

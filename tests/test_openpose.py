@@ -377,3 +377,30 @@ def test_nan_coordinates_with_score_0_are_missing_keypoints(tmp_path):
     with pytest.raises(InputError, match="not finite") as e:
         load_recording(bad)
     assert e.value.camera == "a" and e.value.field == "people[0].pose_keypoints_2d[keypoint 3]"
+
+
+def test_pose2sim_style_folders_map_to_the_rig_and_strays_can_be_skipped(tmp_path):
+    rec, rig = _recording()
+    save_openpose(rec, tmp_path / "op")
+    for cam in rec.cameras:  # Pose2Sim names its folders cam01_json, ...
+        (tmp_path / "op" / cam).rename(tmp_path / "op" / f"{cam}_json")
+    stray = tmp_path / "op" / "extra_cam"
+    stray.mkdir()
+    (stray / "000000000000_keypoints.json").write_text("{ not json")  # never read when skipped
+    with pytest.raises(InputError, match="not cameras of the rig") as e:
+        load_recording(tmp_path / "op", rig=rig)
+    assert "extra_cam" in str(e.value) and "--camera-map" in str(e.value)
+    back = load_recording(tmp_path / "op", rig=rig, cameras=list(rec.cameras))
+    assert back.cameras == rec.cameras
+    _assert_same_detections(back, rec)
+    # An explicit map, for names no rule can guess; its cameras can be selected by their names.
+    for i, cam in enumerate(rec.cameras):
+        (tmp_path / "op" / f"{cam}_json").rename(tmp_path / "op" / f"view{i}")
+    cmap = {f"view{i}": cam for i, cam in enumerate(rec.cameras)}
+    two = load_recording(tmp_path / "op", rig=rig, camera_map=cmap, cameras=list(rec.cameras[:2]))
+    assert two.cameras == rec.cameras[:2]
+    with pytest.raises(InputError, match="camera map names folder 'nope'"):
+        load_recording(tmp_path / "op", camera_map={"nope": "x"}, cameras=["x"])
+    with pytest.raises(InputError, match="camera_map applies to OpenPose folders only"):
+        save_recording(rec, tmp_path / "r.npz")
+        load_recording(tmp_path / "r.npz", camera_map={"a": "b"})

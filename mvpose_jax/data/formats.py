@@ -22,7 +22,7 @@ the readers import them from there, so this module can import the readers.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,7 @@ def load_recording(
     rig: Any = None,
     source_layout: str | None = None,
     missing_frames: str = "error",
+    camera_map: Mapping[str, str] | None = None,
 ) -> Recording:
     """Loads a recording in any supported format.
 
@@ -60,6 +61,8 @@ def load_recording(
         keypoint count (`mvpose_jax.data.openpose`).
       missing_frames: OpenPose folders only: ``"error"`` or ``"empty"``, what a frame missing in
         some cameras means (`mvpose_jax.data.openpose.read_openpose`).
+      camera_map: OpenPose folders only: folder name -> camera name (see `read_openpose`, which
+        also strips suffixes such as ``_json`` when a rig is given).
     Returns:
       The `Recording`.
     Raises:
@@ -74,10 +77,12 @@ def load_recording(
             cameras=cameras,
             rig=rig,
             missing_frames=missing_frames,
+            camera_map=camera_map,
         )
     for name, value, default in (
         ("source_layout", source_layout, None),
         ("missing_frames", missing_frames, "error"),
+        ("camera_map", camera_map or None, None),
     ):
         if value != default:
             raise InputError(

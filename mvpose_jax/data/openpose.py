@@ -46,7 +46,7 @@ from __future__ import annotations
 import json
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -100,6 +100,7 @@ def read_openpose(
     cameras: Sequence[str] | None = None,
     rig: Any = None,
     missing_frames: str = "error",
+    camera_map: Mapping[str, str] | None = None,
 ) -> Recording:
     """Reads a folder of per-camera, per-frame OpenPose JSON files (see the module docstring).
 
@@ -107,9 +108,13 @@ def read_openpose(
       folder: the root folder, holding one subfolder per camera.
       layout: keypoint layout of the returned recording (converted from the files').
       source_layout: the files' layout; default: detected from the keypoint count.
-      cameras: camera (subfolder) names to read, in this order; default: every subfolder.
+      cameras: camera names to read, in this order (only their folders are read); default: every
+        subfolder.
       rig: optional `Rig`; every camera read must be one of its cameras, and without
-        ``cameras=`` the camera axis follows the rig's order.
+        ``cameras=`` the camera axis follows the rig's order. With a rig, a folder named after a
+        camera plus a suffix tools add (`CAMERA_FOLDER_SUFFIXES`: ``cam01_json`` is ``cam01``)
+        belongs to that camera.
+      camera_map: folder name -> camera name, for folders named otherwise.
       missing_frames: ``"error"`` (default): a frame number present in some cameras and missing in
         another is an error; ``"empty"``: that camera has no detections in that frame.
     Returns:
@@ -126,7 +131,7 @@ def read_openpose(
         )
     if source_layout is not None:
         get_layout(source_layout)
-    names = _camera_folders(root, cameras, rig)
+    names, camera_names = _camera_folders(root, cameras, rig, camera_map)
     files = {name: _frame_files(root / name, name) for name in names}
     frame_of = _frame_numbers(root, files)  # camera -> {frame number: file}
     numbers = sorted(set().union(*(set(per_cam) for per_cam in frame_of.values())))
@@ -208,7 +213,7 @@ def read_openpose(
     det = pack_detections(
         xy, score, index, num_frames=len(numbers), num_cameras=len(names), file=root
     )
-    rec = Recording(detections=det, cameras=tuple(names), layout=src)
+    rec = Recording(detections=det, cameras=tuple(camera_names), layout=src)
     return rec if src == layout else convert_layout(rec, layout)
 
 
@@ -281,8 +286,17 @@ def save_openpose(
 # --------------------------------------------------------------------------- reading helpers
 
 
-def _camera_folders(root: Path, cameras: Sequence[str] | None, rig: Any) -> list[str]:
-    """The camera names to read, in camera-axis order; checks them against the folders and rig."""
+# Suffixes that tools add to camera folder names (Pose2Sim's cam01_json, image folders' _img):
+# with a rig, a folder that is not a camera's name but is one once such a suffix is stripped
+# belongs to that camera.
+CAMERA_FOLDER_SUFFIXES = ("_json", "_img", "_images", "_keypoints", "-json")
+
+
+def _camera_folders(
+    root: Path, cameras: Sequence[str] | None, rig: Any, camera_map: Mapping[str, str] | None = None
+) -> tuple[list[str], list[str]]:
+    """The camera folders to read and their camera names, in camera-axis order; checks them
+    against the folders and the rig. Only these folders are read (selection before loading)."""
     try:
         entries = sorted(root.iterdir())
     except FileNotFoundError:
@@ -306,6 +320,18 @@ def _camera_folders(root: Path, cameras: Sequence[str] | None, rig: Any) -> list
             field="cameras",
         )
     rig_names = None if rig is None else [str(n) for n in rig.names]
+    camera_map = dict(camera_map or {})
+    for folder in camera_map:
+        if folder not in folders:
+            raise InputError(
+                f"the camera map names folder {folder!r}, which is not here; folders: {folders}",
+                file=root,
+                field="camera_map",
+            )
+    name_of = {f: _camera_name(f, camera_map, rig_names) for f in folders}
+    if len(set(name_of.values())) != len(name_of):
+        raise InputError(f"two folders map to one camera: {name_of}", file=root, field="camera_map")
+    folder_of = {n: f for f, n in name_of.items()}
     if cameras is not None:
         names = [str(c) for c in cameras]
         if not names:
@@ -313,7 +339,7 @@ def _camera_folders(root: Path, cameras: Sequence[str] | None, rig: Any) -> list
         if len(set(names)) != len(names):
             raise InputError(f"duplicate camera names {names}", file=root, field="cameras")
         for name in names:
-            if name not in folders:
+            if name not in folder_of:
                 raise InputError(
                     f"no camera folder of that name; the folder has {folders}",
                     file=root,
@@ -321,20 +347,32 @@ def _camera_folders(root: Path, cameras: Sequence[str] | None, rig: Any) -> list
                     field="cameras",
                 )
     elif rig_names is not None:
-        names = sorted(folders, key=lambda n: rig_names.index(n) if n in rig_names else -1)
+        names = sorted(folder_of, key=lambda n: rig_names.index(n) if n in rig_names else -1)
     else:
-        names = folders
+        names = [name_of[f] for f in folders]
     if rig_names is not None:
         unknown = [n for n in names if n not in rig_names]
         if unknown:
             raise InputError(
-                f"camera folders {unknown} are not cameras of the rig. Folders: {folders}; "
-                f"rig cameras: {rig_names} (pass cameras= to read some folders only)",
+                f"camera folders {[folder_of[n] for n in unknown]} are not cameras of the rig. "
+                f"Folders: {folders}; rig cameras: {rig_names} (pass cameras= / --cameras to read "
+                "some folders only, or camera_map= / --camera-map FOLDER=CAMERA to name them)",
                 file=root,
                 camera=unknown[0],
                 field="cameras",
             )
-    return names
+    return [folder_of[n] for n in names], names
+
+
+def _camera_name(folder: str, camera_map: dict[str, str], rig_names: list[str] | None) -> str:
+    if folder in camera_map:
+        return str(camera_map[folder])
+    if rig_names is None or folder in rig_names:
+        return folder
+    for suffix in CAMERA_FOLDER_SUFFIXES:
+        if folder.endswith(suffix) and folder[: -len(suffix)] in rig_names:
+            return folder[: -len(suffix)]
+    return folder
 
 
 def _frame_files(cam_dir: Path, camera: str) -> list[Path]:
