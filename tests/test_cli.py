@@ -17,6 +17,18 @@ from mvpose_jax.data.calibration import load_rig, save_rig
 from mvpose_jax.data.poses import load_poses
 from mvpose_jax.synthetic import generate_recording
 
+COMMANDS = [
+    "rig",
+    "generate",
+    "synthetic-figure",
+    "convert",
+    "train-matcher",
+    "train-estimator",
+    "infer",
+    "evaluate",
+    "render",
+]
+
 
 @pytest.fixture(scope="module")
 def recording():
@@ -224,20 +236,13 @@ def test_bad_input_is_one_clear_line(files, tmp_path, capsys):
     assert "poses.npz" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        "infer",
-        "evaluate",
-        "render",
-        "train-matcher",
-        "train-estimator",
-        "generate",
-        "synthetic-figure",
-        "rig",
-        "convert",
-    ],
-)
+def test_every_command_is_tested_below():
+    from mvpose_jax.cli import _COMMANDS
+
+    assert sorted(_COMMANDS) == sorted(COMMANDS)
+
+
+@pytest.mark.parametrize("name", COMMANDS)
 def test_every_command_explains_every_option(name, capsys):
     with pytest.raises(SystemExit):
         main([name, "--help"])
@@ -257,20 +262,7 @@ def test_version(capsys):
     assert re.fullmatch(r"mvpose-jax \S+\n", capsys.readouterr().out)
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        "infer",
-        "evaluate",
-        "render",
-        "train-matcher",
-        "train-estimator",
-        "generate",
-        "synthetic-figure",
-        "rig",
-        "convert",
-    ],
-)
+@pytest.mark.parametrize("name", COMMANDS)
 def test_every_option_with_a_default_shows_it(name):
     from mvpose_jax.cli import build_parser
 
