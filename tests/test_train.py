@@ -73,6 +73,7 @@ def test_small_paper_style_mlp_fits_a_small_set(clean_samples, tmp_path):
     np.testing.assert_allclose(a, b, atol=1e-5)
 
 
+@pytest.mark.slow  # trains a model
 def test_padding_does_not_change_predictions(clean_samples):
     rig, xy, score = clean_samples
     cfg = EstimatorConfig(
@@ -85,6 +86,7 @@ def test_padding_does_not_change_predictions(clean_samples):
     assert np.all(np.isfinite(many))
 
 
+@pytest.mark.slow  # trains a model
 def test_residual_output_starts_at_the_triangulation(clean_samples):
     from mvpose_jax.inference import triangulate_people
 
@@ -229,6 +231,7 @@ def test_train_estimator_command(tmp_path, capsys):
     )
 
 
+@pytest.mark.slow  # trains a model
 def test_one_camera_estimator_works_in_the_training_rigs_frame(clean_samples, tmp_path):
     """M_1/t: the inference rig of one camera spans nothing (radius 0), so the model must live in
     the training rig's normalised frame, and that frame must survive a checkpoint round trip."""
