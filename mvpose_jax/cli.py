@@ -276,7 +276,7 @@ def _synthetic_figure(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- train-matcher
 
 
-def _recordings_in(path: str, layout: str | None) -> list:
+def _recordings_in(path: str, layout: str | None, source_layout: str | None = None) -> list:
     """Every recording in a file or (recursively) a folder, in any readable format: .npz and
     .json files, and OpenPose folders (one subfolder per camera), each one recording."""
     from pathlib import Path
@@ -301,7 +301,13 @@ def _recordings_in(path: str, layout: str | None) -> list:
     sources = list(found(root)) if root.is_dir() else [root]
     if not sources:
         raise InputError("no recordings (.npz, .json or OpenPose folders) here", file=root)
-    return [load_recording(s, layout=layout) for s in sources]
+
+    def load(source: Path):
+        if source_layout and source.is_dir():
+            return load_recording(source, layout=layout, source_layout=source_layout)
+        return load_recording(source, layout=layout)
+
+    return [load(s) for s in sources]
 
 
 def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None = None) -> None:
@@ -327,6 +333,12 @@ def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None =
     )
     p.add_argument("--out", required=True, help="folder for the best and latest checkpoints")
     p.add_argument("--layout", default=None, help="keypoint layout to convert the recordings to")
+    p.add_argument(
+        "--source-layout",
+        default=None,
+        help="OpenPose folders: the files' keypoint layout (body25, openpose_coco18, coco17, "
+        "halpe26), when their keypoint count does not say it (default: from the count)",
+    )
     p.add_argument(
         "--seed", type=int, default=0, help="seeds initialisation, sample order and augmentation"
     )
@@ -426,8 +438,8 @@ def _train_matcher(args: argparse.Namespace) -> int:
             f"--keypoint-dropout must be in [0, 1), not {config.keypoint_dropout}",
             field="keypoint_dropout",
         )
-    train_recs = _recordings_in(args.train, args.layout)
-    dev_recs = _recordings_in(args.dev, args.layout)
+    train_recs = _recordings_in(args.train, args.layout, args.source_layout)
+    dev_recs = _recordings_in(args.dev, args.layout, args.source_layout)
     matcher, fit = train_matcher(
         rig, train_recs, dev_recs, config, checkpoint_dir=args.out, resume=args.resume
     )
@@ -512,9 +524,13 @@ def _train_estimator(args: argparse.Namespace) -> int:
     for c in train_cams:
         rig.camera_index(c)  # unknown names fail here, naming the camera
 
-    xy, score = single_person_samples(_recordings_in(args.train, args.layout), train_cams)
+    xy, score = single_person_samples(
+        _recordings_in(args.train, args.layout, args.source_layout), train_cams
+    )
     if args.dev:
-        dev_xy, dev_score = single_person_samples(_recordings_in(args.dev, args.layout), train_cams)
+        dev_xy, dev_score = single_person_samples(
+            _recordings_in(args.dev, args.layout, args.source_layout), train_cams
+        )
     else:
         n = max(1, len(xy) // 10)
         xy, score, dev_xy, dev_score = xy[:-n], score[:-n], xy[-n:], score[-n:]
@@ -567,6 +583,8 @@ def _load_detections(args: argparse.Namespace, rig):
         kwargs["missing_frames"] = args.missing_frames
     if getattr(args, "camera_map", None):
         kwargs["camera_map"] = args.camera_map
+    if getattr(args, "source_layout", None):
+        kwargs["source_layout"] = args.source_layout
     # Cameras are chosen while loading: an OpenPose folder's other folders (a stray or
     # uncalibrated camera) are never read.
     cameras = getattr(args, "cameras", None) or None
@@ -601,6 +619,12 @@ def _detection_arguments(p: argparse.ArgumentParser) -> None:
         help="OpenPose folders: the calibration's camera name of each camera folder, e.g. "
         "cam01_json=cam01,cam02_json=cam02 (default: the folder's name, or it without a suffix "
         "tools add: _json, _img, _images, _keypoints)",
+    )
+    p.add_argument(
+        "--source-layout",
+        default=None,
+        help="OpenPose folders: the files' keypoint layout (body25, openpose_coco18, coco17, "
+        "halpe26), when their keypoint count does not say it (default: from the count)",
     )
 
 
@@ -642,6 +666,12 @@ def _convert_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="OpenPose input: a frame missing in some cameras is an error (default) or empty there",
     )
+    p.add_argument(
+        "--source-layout",
+        default=None,
+        help="OpenPose folders: the files' keypoint layout (body25, openpose_coco18, coco17, "
+        "halpe26), when their keypoint count does not say it (default: from the count)",
+    )
     p.add_argument("--out", required=True, help="output file (a folder for --format openpose)")
 
 
@@ -655,6 +685,8 @@ def _convert(args: argparse.Namespace) -> int:
 
     check_writable(args.out, folder=args.format == "openpose")
     kwargs = {"missing_frames": args.missing_frames} if args.missing_frames else {}
+    if args.source_layout:
+        kwargs["source_layout"] = args.source_layout
     rec = load_recording(args.detections, layout=args.layout, **kwargs)
     if args.cameras:
         rec = select_cameras(rec, args.cameras, file=args.detections)

@@ -7,6 +7,8 @@ Layouts:
   * ``coco18`` (default): COCO's 17 keypoints plus the neck as index 17, the original repository's.
   * ``coco17``: COCO's 17 keypoints.
   * ``body25``: OpenPose's BODY_25.
+  * ``halpe26``: HALPE_26 (RTMPose / AlphaPose body, Pose2Sim's default): COCO's 17, then head,
+    neck, mid_hip, big toes, small toes and heels (left before right).
   * ``openpose_coco18``: OpenPose's COCO model: the same 18 keypoints as ``coco18`` in OpenPose's
     order (0 nose, 1 neck, 2-4 right arm, 5-7 left arm, 8-10 right leg, 11-13 left leg, 14 r_eye,
     15 l_eye, 16 r_ear, 17 l_ear). OpenPose JSON files hold this order; `convert_keypoints` maps it
@@ -219,7 +221,43 @@ BODY25 = _layout(
     ),
 )
 
-LAYOUTS: dict[str, Layout] = {lay.name: lay for lay in (COCO18, COCO17, BODY25, OPENPOSE_COCO18)}
+# HALPE_26 (Halpe-FullBody's body keypoints; Pose2Sim's default with RTMPose/AlphaPose): COCO's 17,
+# then head top, neck, mid hip and the six foot keypoints.
+HALPE26 = _layout(
+    "halpe26",
+    _COCO17
+    + (
+        "head",
+        "neck",
+        "mid_hip",
+        "l_big_toe",
+        "r_big_toe",
+        "l_small_toe",
+        "r_small_toe",
+        "l_heel",
+        "r_heel",
+    ),
+    _LIMBS
+    + (
+        ("neck", "head"),
+        ("neck", "nose"),
+        ("neck", "l_shoulder"),
+        ("neck", "r_shoulder"),
+        ("neck", "mid_hip"),
+        ("mid_hip", "l_hip"),
+        ("mid_hip", "r_hip"),
+        ("l_ankle", "l_heel"),
+        ("l_ankle", "l_big_toe"),
+        ("l_big_toe", "l_small_toe"),
+        ("r_ankle", "r_heel"),
+        ("r_ankle", "r_big_toe"),
+        ("r_big_toe", "r_small_toe"),
+    ),
+)
+
+LAYOUTS: dict[str, Layout] = {
+    lay.name: lay for lay in (COCO18, COCO17, BODY25, OPENPOSE_COCO18, HALPE26)
+}
 DEFAULT_LAYOUT = "coco18"
 
 # Keypoints of one layout that other layouts lack, as the mean of keypoints they share.

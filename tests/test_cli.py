@@ -447,3 +447,20 @@ def test_infer_reads_pose2sim_folders_and_skips_stray_cameras(recording, tmp_pat
     with pytest.raises(SystemExit):
         main([*args, "--camera-map", "view0"])
     assert "expected FOLDER=CAMERA" in capsys.readouterr().err
+
+
+def test_source_layout_reaches_the_openpose_reader(tmp_path, capsys):
+    import json as json_
+
+    # 17 keypoints per person could be coco17; --source-layout says which layout the files use.
+    root = tmp_path / "op"
+    for cam in ("a", "b"):
+        (root / cam).mkdir(parents=True)
+        doc = {"people": [{"pose_keypoints_2d": [10.0, 20.0, 0.9] + [0.0] * 48}]}
+        (root / cam / "000000000000_keypoints.json").write_text(json_.dumps(doc))
+    out = tmp_path / "r.npz"
+    args = ["convert", "--detections", str(root), "--out", str(out)]
+    assert main([*args, "--source-layout", "coco17", "--layout", "coco17"]) == 0
+    assert load_recording(out).layout == "coco17"
+    assert main([*args, "--source-layout", "body25"]) == 2  # 17 numbers are not BODY_25's 25
+    assert "body25" in capsys.readouterr().err

@@ -67,6 +67,18 @@ BODY25_PERSON = {
     24: (23.0, 24.0, 0.35),
 }
 BODY25_TO_OURS = {1: 17, 2: 6, 9: 12, 14: 15}
+# HALPE_26 (RTMPose / Pose2Sim): 0 nose, 6 r_shoulder, 11 l_hip, 17 head (no coco18 slot), 18 neck,
+# 19 mid_hip (no slot), 24 l_heel (no slot).
+HALPE26_PERSON = {
+    0: (31.0, 32.0, 0.9),
+    6: (33.0, 34.0, 0.8),
+    11: (35.0, 36.0, 0.7),
+    17: (37.0, 38.0, 0.6),
+    18: (39.0, 40.0, 0.5),
+    19: (41.0, 42.0, 0.4),
+    24: (43.0, 44.0, 0.3),
+}
+HALPE26_TO_OURS = {0: 0, 6: 6, 11: 11, 18: 17}
 
 
 def _tiny_folder(root: Path, K: int, person: dict) -> Path:
@@ -88,8 +100,12 @@ def _tiny_folder(root: Path, K: int, person: dict) -> Path:
 
 @pytest.mark.parametrize(
     "K, person, mapping",
-    [(18, COCO_PERSON, COCO_TO_OURS), (25, BODY25_PERSON, BODY25_TO_OURS)],
-    ids=["coco", "body25"],
+    [
+        (18, COCO_PERSON, COCO_TO_OURS),
+        (25, BODY25_PERSON, BODY25_TO_OURS),
+        (26, HALPE26_PERSON, HALPE26_TO_OURS),
+    ],
+    ids=["coco", "body25", "halpe26"],
 )
 def test_hand_written_folder_lands_in_coco18(tmp_path, K, person, mapping):
     root = _tiny_folder(tmp_path / "op", K, person)

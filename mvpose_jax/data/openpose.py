@@ -69,7 +69,7 @@ from mvpose_jax.skeletons import get_layout
 SUFFIX = "_keypoints.json"
 MISSING_FRAMES = ("error", "empty")
 # Layout of files holding this many keypoints (module docstring).
-LAYOUT_OF_COUNT = {25: "body25", 18: "openpose_coco18", 17: "coco17"}
+LAYOUT_OF_COUNT = {25: "body25", 18: "openpose_coco18", 17: "coco17", 26: "halpe26"}
 # What `save_openpose` writes for a recording in the project's coco18: OpenPose's own order.
 _WRITE_LAYOUT = {"coco18": "openpose_coco18"}
 # The keys OpenPose (1.3 and later) writes for each person, all but the pose left empty.
