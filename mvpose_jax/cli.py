@@ -568,6 +568,7 @@ def _train_estimator(args: argparse.Namespace) -> int:
         f"{best.get('val_px_per_keypoint', float('nan')):.2f} px per keypoint after {fit.steps} steps "
         f"({fit.seconds:.0f} s); checkpoints in {args.out}"
     )
+    _print_dev_quality(args.out)
     return 0
 
 
@@ -1063,6 +1064,24 @@ def _render(args: argparse.Namespace) -> int:
         written += 1
     print(f"wrote {written} frames to {out}")
     return 0
+
+
+def _print_dev_quality(folder: str) -> None:
+    """The estimator against triangulation on the dev people (`train.compare_with_triangulation`)."""
+    import json
+    from pathlib import Path
+
+    from mvpose_jax.trained import DEV_QUALITY_FILE
+
+    path = Path(folder) / DEV_QUALITY_FILE
+    if path.is_file():
+        q = json.loads(path.read_text())
+        verdict = "better" if q["estimator_px"] <= q["triangulation_px"] else "WORSE"
+        print(
+            f"dev reprojection on the {q['keypoints']} keypoints triangulation reconstructs: "
+            f"estimator {q['estimator_px']:.2f} px, triangulation {q['triangulation_px']:.2f} px "
+            f"({verdict} than triangulation)"
+        )
 
 
 def _recording_fps(timestamps) -> float:

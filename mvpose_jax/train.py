@@ -43,16 +43,24 @@ import numpy as np
 import optax
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, rig_centre_and_radius
+from mvpose_jax.cameras import Rig, project_points, rig_centre_and_radius
 from mvpose_jax.checkpoints import Checkpoints
-from mvpose_jax.data.files import to_jsonable
+from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
 from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches, split_graph_batch
 from mvpose_jax.losses import masked_mean, match_mse, reprojection_error_l1
 from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
 from mvpose_jax.parallel import make_data_mesh, mesh_size, replicate, replicated, shard_batch
-from mvpose_jax.trained import Estimator, EstimatorConfig, Matcher, MatcherConfig, TrainConfig
+from mvpose_jax.trained import (
+    DEV_QUALITY_FILE,
+    Estimator,
+    EstimatorConfig,
+    Matcher,
+    MatcherConfig,
+    TrainConfig,
+)
+from mvpose_jax.triangulate import triangulate_points
 
 if TYPE_CHECKING:  # annotations only: importing data.recording loads every reader
     from mvpose_jax.data.recording import Recording
@@ -651,9 +659,59 @@ def train_estimator(
         desc="estimator",
         progress=progress,
     )
+    if checkpoint_dir is not None and jax.process_index() == 0:
+        # The yardstick a user needs before trusting the model on their rig: its reprojection
+        # error on the dev people against triangulation's, on the keypoints both reconstruct.
+        quality = compare_with_triangulation(
+            graphdef,
+            rest,
+            jax.device_get(result.state.params),
+            rig_train,
+            infer_idx,
+            dev_xy,
+            dev_score,
+        )
+        atomic_write_text(
+            Path(checkpoint_dir) / DEV_QUALITY_FILE, json.dumps(quality, indent=1) + "\n"
+        )
     return Estimator(
         graphdef, rest, result.state.params, rig_infer, config, (centre, radius)
     ), result
+
+
+def compare_with_triangulation(
+    graphdef, rest, params, rig_train: Rig, infer_idx: Sequence[int], xy, score
+) -> dict:
+    """Mean reprojection error (px per detected keypoint and training camera) of an estimator's
+    people and of DLT triangulation from the same inference views, on the keypoints the
+    triangulation reconstructs (seen in 2+ inference views).
+
+    Args:
+      xy: (N, C_t, K, 2), score: (N, C_t, K): people of the dev recordings, training cameras.
+    Returns:
+      {"estimator_px", "triangulation_px", "keypoints"}.
+    """
+    data = make_estimator_batch(rig_train, infer_idx, xy, score)
+    centre, radius = rig_centre_and_radius(rig_train)
+    model = nnx.merge(graphdef, params, rest)
+    xyz_est = to_world(model(assemble_features(data.inputs, data.available)), centre, radius)
+    idx = np.asarray(infer_idx)
+    xy_i, score_i = jnp.moveaxis(data.xy[:, idx], 1, 0), jnp.moveaxis(data.score[:, idx], 1, 0)
+    xyz_tri, ok = triangulate_points(rig_train.select(list(idx)), xy_i, score_i)  # (N, K, 3)
+    seen = (data.score > 0) & ok[:, None, :]  # (N, C_t, K)
+
+    def per_keypoint(xyz):
+        px = jnp.moveaxis(project_points(rig_train, xyz), 0, 1)  # (N, C_t, K, 2)
+        err = jnp.abs(px - data.xy).sum(-1)
+        return float(jnp.where(seen, err, 0.0).sum() / jnp.maximum(seen.sum(), 1))
+
+    return {
+        "estimator_px": round(per_keypoint(xyz_est), 4),
+        "triangulation_px": round(per_keypoint(xyz_tri), 4),
+        "keypoints": int(seen.sum()),
+        "how": "mean L1 reprojection error per detected keypoint, over the training cameras, of "
+        "the dev people's keypoints that DLT triangulates from the inference cameras",
+    }
 
 
 def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, data: EstimatorBatch):

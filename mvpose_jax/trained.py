@@ -9,6 +9,8 @@ The configs are frozen dataclasses whose defaults are the paper's (DESIGN.md §1
 from __future__ import annotations
 
 import dataclasses
+import json
+import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -19,7 +21,7 @@ from flax import nnx
 
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
 from mvpose_jax.checkpoints import Checkpoints
-from mvpose_jax.errors import InputError
+from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
 
 
@@ -153,7 +155,35 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
                 field="config.frame",
             )
         normalisation = (jnp.asarray(f[:3]), jnp.asarray(f[3]))
+    _warn_if_worse_than_triangulation(Path(directory))
     return Estimator(graphdef, rest, params, rig_infer, config, normalisation)
+
+
+# Written by `train.train_estimator` beside the checkpoints.
+DEV_QUALITY_FILE = "dev_reprojection.json"
+
+
+class ModelQualityWarning(MvposeWarning):
+    """A trained model does worse on its own dev data than the geometry it should improve on."""
+
+
+def _warn_if_worse_than_triangulation(directory: Path) -> None:
+    path = directory / DEV_QUALITY_FILE
+    if not path.is_file():
+        return  # trained before the comparison was written
+    try:
+        q = json.loads(path.read_text())
+        est, tri = float(q["estimator_px"]), float(q["triangulation_px"])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"unreadable ({e})", file=path) from None
+    if est > tri:
+        warnings.warn(
+            f"{directory}: on its dev recordings this estimator reprojects {est:.2f} px per keypoint "
+            f"where triangulation reprojects {tri:.2f} px (same keypoints): it is likely trained "
+            "too briefly or on other data; triangulation (no --estimator) may serve better",
+            ModelQualityWarning,
+            stacklevel=3,
+        )
 
 
 # =========================================================================== skeleton matching

@@ -4,6 +4,7 @@ their checkpoints restore, a resumed run ends where an uninterrupted one does.""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -289,3 +290,22 @@ def test_train_matcher_quick_runs_and_checkpoints(ring_rig, tmp_path):
     again = load_matcher(tmp_path, ring_rig, cfg, num_keypoints=recs[0].num_keypoints)
     for a, b in zip(jax.tree.leaves(matcher.params), jax.tree.leaves(again.params), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_a_model_worse_than_triangulation_on_its_dev_data_says_so(clean_samples, tmp_path):
+    from mvpose_jax.trained import DEV_QUALITY_FILE, ModelQualityWarning
+
+    rig, xy, score = clean_samples
+    cfg = EstimatorConfig(
+        mlp=MLPConfig(widths=(16,)),  # absolute output, 2 steps: far worse than geometry
+        train=TrainConfig(learning_rate=1e-3, max_steps=2, batch_size=16),
+    )
+    train_estimator(
+        rig, xy, score, xy[:16], score[:16], cfg, checkpoint_dir=tmp_path, progress=False
+    )
+    quality = json.loads((tmp_path / DEV_QUALITY_FILE).read_text())
+    assert quality["keypoints"] > 0
+    # Clean detections: triangulation reprojects within a pixel or so; the untrained MLP does not.
+    assert quality["triangulation_px"] < 2.0 < quality["estimator_px"]
+    with pytest.warns(ModelQualityWarning, match="triangulation reprojects"):
+        load_estimator(tmp_path, rig)
