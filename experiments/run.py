@@ -640,13 +640,15 @@ def _in_gt_order(pred: Poses3D, gt: Poses3D, f: int, g_list: np.ndarray, layout:
 # --------------------------------------------------------------------------- tables
 
 
-def _get(r: dict, path: str):
-    for key in path.split("/"):
+def _get(r: dict, path: str | tuple[str, ...]):
+    """A nested value by its keys: a tuple, or one string of them joined by '/' (for keys that
+    hold no '/'; model names such as M_2/6 do, and go as tuples)."""
+    for key in path.split("/") if isinstance(path, str) else path:
         r = r[key]
     return r
 
 
-def _ms(runs: list[dict], path: str, nd: int = 2) -> str:
+def _ms(runs: list[dict], path: str | tuple[str, ...], nd: int = 2) -> str:
     """A result across training seeds: ``mean ± sd`` (sample sd), or the value for one seed."""
     v = np.array([float(_get(r, path)) for r in runs])
     if len(v) == 1:
@@ -836,13 +838,13 @@ def arp_table(runs: list[dict], key: str, grouping: str, paper: bool = True) -> 
     ]
     for name in first:
         cells = [
-            f"{_ms(runs, f'{key}/{name}/reprojection/{c}/mean', 1)} / {_ms(runs, f'{key}/{name}/reprojection/{c}/median', 1)}"
+            f"{_ms(runs, (key, name, 'reprojection', c, 'mean'), 1)} / {_ms(runs, (key, name, 'reprojection', c, 'median'), 1)}"
             for c in cams
         ]
         lines.append(
-            f"| {name} | {_ms(runs, f'{key}/{name}/people', 0)} | "
+            f"| {name} | {_ms(runs, (key, name, 'people'), 0)} | "
             + " | ".join(cells)
-            + f" | {_ms(runs, f'{key}/{name}/mpjpe_mm', 1)} | {_ms(runs, f'{key}/{name}/pcp', 1)} |"
+            + f" | {_ms(runs, (key, name, 'mpjpe_mm'), 1)} | {_ms(runs, (key, name, 'pcp'), 1)} |"
         )
     if paper:
         lines += [
@@ -904,6 +906,11 @@ def paper_panoptic(
                 res["figures"].append(_curves(res["training"], out / "figures"))
         runs.append(res)
         _save_partial(runs, out)
+    return runs, panoptic_tables(runs)
+
+
+def panoptic_tables(runs: list[dict]) -> list[str]:
+    """Tables 3 and 6 (test scenes), then the same on validation scenes."""
     lines = ["## Test scenes (the reported results; read only for this table)", ""]
     lines += matching_table(
         runs, "test", PAPER_TABLE3, "Matching (Table 3): panoptic5, test scenes with 1-8 people"
@@ -914,7 +921,7 @@ def paper_panoptic(
         runs, "validation", PAPER_TABLE3, "Matching: panoptic5, validation scenes with 1-8 people"
     )
     lines += pose_table(runs, "validation")
-    return runs, lines
+    return lines
 
 
 def paper_arp(
@@ -959,6 +966,11 @@ def paper_arp(
             res["figures"] = [_curves(res["training"], out / "figures")]
         runs.append(res)
         _save_partial(runs, out)
+    return runs, arp_tables(runs)
+
+
+def arp_tables(runs: list[dict]) -> list[str]:
+    """Tables 4 and 7 (test scenes), then matching on validation scenes."""
     lines = ["## Test scenes (the reported results; read only for these tables)", ""]
     lines += matching_table(
         runs, "test", PAPER_TABLE4, "Matching (Table 4): arplab6, test scenes with 1-8 people"
@@ -974,7 +986,7 @@ def paper_arp(
     lines += matching_table(
         runs, "validation", PAPER_TABLE4, "Matching: arplab6, validation scenes with 1-8 people"
     )
-    return runs, lines
+    return lines
 
 
 def _save_partial(runs: list[dict], out: Path) -> None:
@@ -1082,6 +1094,13 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--out", type=Path, help="output folder (default results/<experiment>)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument(
+        "--tables-from",
+        type=Path,
+        metavar="RUNS_JSON",
+        help="write the tables from the finished seeds of an earlier run (its runs_partial.json, "
+        "or metrics.json) instead of running: a stopped multi-seed run keeps its seeds",
+    )
     args = ap.parse_args(argv)
     scale = "smoke" if args.smoke else args.scale
     out = args.out or Path("results") / args.experiment
@@ -1093,9 +1112,19 @@ def main(argv=None) -> int:
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
     seeds = [args.seed + i for i in range(args.seeds)]
-    runs, lines = EXPERIMENTS[args.experiment](
-        SCALES[scale], seeds, args.seed, out, not args.no_progress
-    )
+    if args.tables_from is not None:
+        saved = json.loads(args.tables_from.read_text())
+        runs = saved["runs"] if isinstance(saved, dict) else saved
+        seeds = [r["seed"] for r in runs]
+        tables = {"paper-panoptic": panoptic_tables, "paper-arp": arp_tables}
+        if args.experiment not in tables:
+            ap.error(f"--tables-from applies to {sorted(tables)}")
+        lines = tables[args.experiment](runs)
+        command += f" (the runs of {args.tables_from}; their seeds {seeds})"
+    else:
+        runs, lines = EXPERIMENTS[args.experiment](
+            SCALES[scale], seeds, args.seed, out, not args.no_progress
+        )
     seconds = time.perf_counter() - t0
     meta = {
         "experiment": args.experiment,

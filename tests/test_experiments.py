@@ -84,3 +84,29 @@ def test_synthetic_summary_smoke(tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert set(m["runs"][0]["variants"]) == {"detected", "projected", "average"}
     assert (out / "recording.json").exists()
+
+
+def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
+    out = tmp_path / "arp"
+    assert main(["--experiment", "paper-arp", "--smoke", "--out", str(out), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "Table 4" in text and "Table 7" in text
+    (res,) = json.loads((out / "metrics.json").read_text())["runs"]
+    for key in ("camera_subsets", "camera_subsets_proposals"):
+        assert set(res[key]) == {"M_1/6", "M_2/6", "M_6/6", "M_2/2"}
+        for model in res[key].values():
+            assert {"people", "reprojection", "mpjpe_mm", "pcp"} <= set(model)
+    assert set(res["matching"]) == {"validation", "test"}
+    # The tables again, from the saved seeds (a stopped multi-seed run keeps what it finished).
+    again = tmp_path / "again"
+    argv = [
+        "--experiment",
+        "paper-arp",
+        "--out",
+        str(again),
+        "--tables-from",
+        str(out / "runs_partial.json"),
+    ]
+    assert main(argv) == 0
+    first = (out / "tables.md").read_text().split("\n", 3)[3]
+    assert (again / "tables.md").read_text().split("\n", 3)[3] == first
