@@ -1095,11 +1095,19 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="output folder (default results/<experiment>)")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument(
+        "--scenes-seed",
+        type=int,
+        default=None,
+        help="the validation and test scenes' seed (default: --seed); with it, the training seeds "
+        "of one table can run in several parts (--seed 1 --seeds 2 --scenes-seed 0)",
+    )
+    ap.add_argument(
         "--tables-from",
         type=Path,
+        nargs="+",
         metavar="RUNS_JSON",
-        help="write the tables from the finished seeds of an earlier run (its runs_partial.json, "
-        "or metrics.json) instead of running: a stopped multi-seed run keeps its seeds",
+        help="write the tables from the finished seeds of earlier runs (their runs_partial.json "
+        "or metrics.json; several parts of one multi-seed run are joined) instead of running",
     )
     args = ap.parse_args(argv)
     scale = "smoke" if args.smoke else args.scale
@@ -1112,24 +1120,31 @@ def main(argv=None) -> int:
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
     seeds = [args.seed + i for i in range(args.seeds)]
+    scenes_seed = args.seed if args.scenes_seed is None else args.scenes_seed
     if args.tables_from is not None:
-        saved = json.loads(args.tables_from.read_text())
-        runs = saved["runs"] if isinstance(saved, dict) else saved
+        runs = []
+        for path in args.tables_from:
+            saved = json.loads(path.read_text())
+            runs += saved["runs"] if isinstance(saved, dict) else saved
         seeds = [r["seed"] for r in runs]
+        if len(set(seeds)) != len(seeds):
+            ap.error(f"the runs repeat training seeds: {seeds}")
         tables = {"paper-panoptic": panoptic_tables, "paper-arp": arp_tables}
         if args.experiment not in tables:
             ap.error(f"--tables-from applies to {sorted(tables)}")
         lines = tables[args.experiment](runs)
-        command += f" (the runs of {args.tables_from}; their seeds {seeds})"
+        sources = ", ".join(str(p) for p in args.tables_from)
+        command += f" (the runs of {sources}; their training seeds {seeds})"
     else:
         runs, lines = EXPERIMENTS[args.experiment](
-            SCALES[scale], seeds, args.seed, out, not args.no_progress
+            SCALES[scale], seeds, scenes_seed, out, not args.no_progress
         )
     seconds = time.perf_counter() - t0
     meta = {
         "experiment": args.experiment,
         "scale": scale,
         "seed": args.seed,
+        "scenes_seed": scenes_seed,
         "seeds": seeds,
         "command": command,
         "seconds": round(seconds, 1),
@@ -1143,7 +1158,7 @@ def main(argv=None) -> int:
         "Synthetic data on the paper's real camera geometry; trained from scratch in this run, no 3D labels.",
         "Splits: single-person training and dev recordings per training seed; multi-person validation scenes",
         "(every setting a person picks is picked on them) and test scenes (read only for the reported",
-        f"tables), both from seed {args.seed}. Proposal settings (GAT threshold, epipolar cutoff) are chosen on",
+        f"tables), both from seed {scenes_seed}. Proposal settings (GAT threshold, epipolar cutoff) are chosen on",
         "frames composed from the dev recordings.",
         "",
     ]
