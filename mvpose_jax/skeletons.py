@@ -201,25 +201,22 @@ OPENPOSE_COCO18 = _layout(
     ),
     _COCO18_BONES,
 )
-BODY25 = _layout(
-    "body25",
-    _BODY25,
-    _LIMBS
-    + (
-        ("neck", "nose"),
-        ("neck", "l_shoulder"),
-        ("neck", "r_shoulder"),
-        ("neck", "mid_hip"),
-        ("mid_hip", "l_hip"),
-        ("mid_hip", "r_hip"),
-        ("l_ankle", "l_heel"),
-        ("l_ankle", "l_big_toe"),
-        ("l_big_toe", "l_small_toe"),
-        ("r_ankle", "r_heel"),
-        ("r_ankle", "r_big_toe"),
-        ("r_big_toe", "r_small_toe"),
-    ),
+# The trunk (neck, mid hip) and feet of the layouts that have them (BODY_25, HALPE_26).
+_TRUNK_AND_FEET_BONES = (
+    ("neck", "nose"),
+    ("neck", "l_shoulder"),
+    ("neck", "r_shoulder"),
+    ("neck", "mid_hip"),
+    ("mid_hip", "l_hip"),
+    ("mid_hip", "r_hip"),
+    ("l_ankle", "l_heel"),
+    ("l_ankle", "l_big_toe"),
+    ("l_big_toe", "l_small_toe"),
+    ("r_ankle", "r_heel"),
+    ("r_ankle", "r_big_toe"),
+    ("r_big_toe", "r_small_toe"),
 )
+BODY25 = _layout("body25", _BODY25, _LIMBS + _TRUNK_AND_FEET_BONES)
 
 # HALPE_26 (Halpe-FullBody's body keypoints; Pose2Sim's default with RTMPose/AlphaPose): COCO's 17,
 # then head top, neck, mid hip and the six foot keypoints.
@@ -237,22 +234,7 @@ HALPE26 = _layout(
         "l_heel",
         "r_heel",
     ),
-    _LIMBS
-    + (
-        ("neck", "head"),
-        ("neck", "nose"),
-        ("neck", "l_shoulder"),
-        ("neck", "r_shoulder"),
-        ("neck", "mid_hip"),
-        ("mid_hip", "l_hip"),
-        ("mid_hip", "r_hip"),
-        ("l_ankle", "l_heel"),
-        ("l_ankle", "l_big_toe"),
-        ("l_big_toe", "l_small_toe"),
-        ("r_ankle", "r_heel"),
-        ("r_ankle", "r_big_toe"),
-        ("r_big_toe", "r_small_toe"),
-    ),
+    _LIMBS + (("neck", "head"),) + _TRUNK_AND_FEET_BONES,
 )
 
 LAYOUTS: dict[str, Layout] = {
