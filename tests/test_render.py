@@ -134,6 +134,26 @@ def test_poses_round_trip_npz_and_json(tmp_path):
         assert back.cameras == res.cameras and back.layout == "coco18"
 
 
+def test_poses_round_trip_keeps_tracks_filled_keypoints_and_timestamps(tmp_path):
+    import dataclasses
+
+    res = _results(F=4)
+    rng = np.random.default_rng(1)
+    track = np.where(res.poses.valid, rng.integers(0, 5, res.poses.valid.shape), -1)
+    filled = (rng.random(res.poses.keypoint_valid.shape) > 0.7) & res.poses.keypoint_valid
+    res = dataclasses.replace(res, track=track.astype(np.int32), filled=filled)
+    npz, js = save_poses(res, tmp_path)
+    for path in (npz, js):
+        back = load_poses(path)
+        np.testing.assert_array_equal(back.track, res.track)
+        np.testing.assert_array_equal(back.filled, res.filled)
+        np.testing.assert_allclose(back.timestamps, res.timestamps)
+    untracked = load_poses(save_poses(_results(), tmp_path / "u")[1])
+    assert untracked.track is None and untracked.filled is None
+    with pytest.raises(InputError, match="track"):
+        dataclasses.replace(res, track=track[:, :1])
+
+
 def test_poses_reader_rejects_other_files(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="junk.npz"):

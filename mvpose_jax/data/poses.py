@@ -6,7 +6,8 @@ Two files with the same content:
   ``keypoint_valid`` (F, G, K), ``confidence`` (F, G), ``members`` (F, G, C) int32 (each person's
   skeleton index in each camera of ``cameras``, -1 none), ``identity`` (F, C, P) int32 (each
   detected skeleton's person, -1 none), ``cameras`` (C,) str, ``layout`` () str; optional
-  ``timestamps`` (F,). Read without pickle, each member's header checked against its bytes
+  ``timestamps`` (F,), ``track`` (F, G) int32 (each person's identity over time, -1 none) and
+  ``filled`` (F, G, K) bool (keypoints interpolated over a gap, not measured). Read without pickle, each member's header checked against its bytes
   (`data.npz.load_npz_members`).
 * ``poses.json``, for people and other tools::
 
@@ -14,8 +15,13 @@ Two files with the same content:
      "keypoints": ["nose", ...], "cameras": ["cam0", ...],
      "frames": [{"frame": 0, "timestamp": 0.0,            # timestamp only when known
                  "people": [{"person": 0, "confidence": 0.91,
+                             "track": 4,                              # only when tracked
                              "keypoints": [[x, y, z] or null, ...],   # null: not produced
+                             "filled": [3, 4],                        # only when some were
                              "skeletons": {"cam0": 2, "cam1": 0}}]}]}  # the detections used
+
+``person`` is a slot within one frame; ``track`` is the same person across frames (tracking).
+``filled`` lists the keypoints interpolated over a gap rather than reconstructed from detections.
 
 Both are written atomically (temporary file, then rename).
 """
@@ -48,6 +54,8 @@ class PoseResults:
     cameras: tuple[str, ...]
     layout: str
     timestamps: np.ndarray | None = None
+    track: np.ndarray | None = None
+    filled: np.ndarray | None = None
 
     def __post_init__(self):
         F, G, K = np.shape(self.poses.keypoint_valid)
@@ -58,6 +66,10 @@ class PoseResults:
             "confidence": (np.shape(self.confidence), (F, G)),
             "members": (np.shape(self.members), (F, G, C)),
         }
+        if self.track is not None:
+            checks["track"] = (np.shape(self.track), (F, G))
+        if self.filled is not None:
+            checks["filled"] = (np.shape(self.filled), (F, G, K))
         for field, (got, want) in checks.items():
             if got != want:
                 raise InputError(f"shape {got}, expected {want}", field=field)
@@ -85,6 +97,10 @@ def save_poses(results: PoseResults, folder: str | os.PathLike) -> tuple[Path, P
     }
     if results.timestamps is not None:
         arrays["timestamps"] = np.asarray(results.timestamps, np.float64)
+    if results.track is not None:
+        arrays["track"] = np.asarray(results.track, np.int32)
+    if results.filled is not None:
+        arrays["filled"] = np.asarray(results.filled, bool)
     npz_path, json_path = folder / "poses.npz", folder / "poses.json"
     with atomic_open(npz_path, "wb") as f:
         np.savez_compressed(f, **arrays)
@@ -101,20 +117,23 @@ def poses_to_json(results: PoseResults) -> dict:
     for f in range(len(xyz)):
         people = []
         for g in np.nonzero(np.asarray(results.poses.valid[f]))[0]:
-            people.append(
-                {
-                    "person": int(g),
-                    "confidence": round(float(results.confidence[f, g]), 4),
-                    "keypoints": [
-                        xyz[f, g, k].tolist() if kv[f, g, k] else None for k in range(xyz.shape[2])
-                    ],
-                    "skeletons": {
-                        cam: int(s)
-                        for cam, s in zip(results.cameras, results.members[f, g], strict=True)
-                        if s >= 0
-                    },
-                }
-            )
+            person = {
+                "person": int(g),
+                "confidence": round(float(results.confidence[f, g]), 4),
+            }
+            if results.track is not None:
+                person["track"] = int(results.track[f, g])
+            person["keypoints"] = [
+                xyz[f, g, k].tolist() if kv[f, g, k] else None for k in range(xyz.shape[2])
+            ]
+            if results.filled is not None and results.filled[f, g].any():
+                person["filled"] = np.nonzero(results.filled[f, g])[0].tolist()
+            person["skeletons"] = {
+                cam: int(s)
+                for cam, s in zip(results.cameras, results.members[f, g], strict=True)
+                if s >= 0
+            }
+            people.append(person)
         frame = {"frame": f, "people": people}
         if results.timestamps is not None:
             frame["timestamp"] = float(results.timestamps[f])
@@ -162,10 +181,14 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
             raise InputError(f"expected numbers, got {data[field].dtype}", file=path, field=field)
         if not np.isfinite(data[field]).all():
             raise InputError("non-finite values", file=path, field=field)
-    for field in ("members", "identity"):  # skeleton indices: a float (or NaN) is no index
+    for field in ("members", "identity", "track"):  # indices: a float (or NaN) is no index
+        if field not in data:
+            continue
         if data[field].dtype.kind not in "iu":
             raise InputError(f"expected integers, got {data[field].dtype}", file=path, field=field)
-    for field in ("valid", "keypoint_valid"):
+    for field in ("valid", "keypoint_valid", "filled"):
+        if field not in data:
+            continue
         if data[field].dtype.kind not in "biu":
             raise InputError(f"expected booleans, got {data[field].dtype}", file=path, field=field)
     try:
@@ -181,6 +204,8 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
             tuple(str(c) for c in np.atleast_1d(data["cameras"])),
             str(data["layout"]),
             data.get("timestamps"),
+            data["track"].astype(np.int32) if "track" in data else None,
+            data["filled"].astype(bool) if "filled" in data else None,
         )
     except InputError as e:
         raise e.at(file=path) from None
@@ -202,11 +227,18 @@ def _poses_from_json(path: Path) -> PoseResults:
         valid = np.zeros((F, G), bool)
         conf = np.zeros((F, G), np.float32)
         members = np.full((F, G, len(cameras)), -1, np.int32)
+        tracked = any("track" in p for fr in frames for p in fr["people"])
+        track = np.full((F, G), -1, np.int32) if tracked else None
+        filled = np.zeros((F, G, K), bool)
         for f, fr in enumerate(frames):
             for p in fr["people"]:
                 g = int(p["person"])
                 valid[f, g] = True
                 conf[f, g] = float(p["confidence"])
+                if track is not None:
+                    track[f, g] = int(p.get("track", -1))
+                for k in p.get("filled", ()):
+                    filled[f, g, int(k)] = True
                 for k, v in enumerate(p["keypoints"]):
                     if v is not None:
                         xyz[f, g, k], kv[f, g, k] = v, True
@@ -218,4 +250,17 @@ def _poses_from_json(path: Path) -> PoseResults:
     identity = np.full((F, len(cameras), P), -1, np.int32)
     f, g, c = np.nonzero(members >= 0)
     identity[f, c, members[f, g, c]] = g
-    return PoseResults(Poses3D(xyz, valid, kv), conf, members, identity, cameras, layout)
+    timestamps = None
+    if frames and all("timestamp" in fr for fr in frames):
+        timestamps = np.array([float(fr["timestamp"]) for fr in frames])
+    return PoseResults(
+        Poses3D(xyz, valid, kv),
+        conf,
+        members,
+        identity,
+        cameras,
+        layout,
+        timestamps,
+        track,
+        filled if filled.any() else None,
+    )
