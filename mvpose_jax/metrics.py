@@ -18,6 +18,10 @@
     limb class and per person; every limb of a ground-truth person nobody predicted is wrong.
   * Every frame counts: predictions must cover the ground truth's frames, and a frame where a
     method proposed nobody scores its people as missed.
+  * `identity_metrics`: tracks over time against ground-truth identities, by the CLEAR-MOT and
+    identity (IDF1) definitions, computed by py-motmetrics; a prediction and a ground-truth person
+    may match in a frame when their mean keypoint error is under ``max_distance_m``.
+  * `jitter`: mean |second difference| of each keypoint along a track (mm per frame²).
   * `reprojection_errors`: per camera, the pixel distances between projected predictions and the
     detections they came from (mean and median; the paper's Table 7, no ground truth needed).
 """
@@ -532,3 +536,140 @@ def matching_scores(
 
 
 CLUSTERING_SCORES = ("ari", "homogeneity", "completeness", "v_measure")
+
+
+# --------------------------------------------------------------------------- tracks over time
+
+
+def identity_metrics(
+    pred: Poses3D,
+    pred_track: np.ndarray,
+    gt: Poses3D,
+    *,
+    gt_ids: np.ndarray | None = None,
+    layout: str = "coco18",
+    max_distance_m: float = 0.5,
+) -> dict:
+    """How well predicted tracks keep people's identities (multi-object tracking metrics).
+
+    Each frame, py-motmetrics matches predictions to ground truth by the CLEAR-MOT procedure
+    (correspondences of the previous frame kept while under the distance, then a minimum-cost
+    assignment of the rest); IDF1 comes from the one global track-to-identity assignment.
+
+    Args:
+      pred: predicted `Poses3D` (F, P, K) (slot-major: P is an order within each frame).
+      pred_track: (F, P) int, each prediction's track id (-1: none; such predictions count as
+        false positives when valid).
+      gt: ground truth `Poses3D` (F, G, K).
+      gt_ids: optional (F, G) int identities of the ground truth (default: the G index).
+      layout: the evaluation keypoints' layout (the mean keypoint error is over them).
+      max_distance_m: a pair farther apart (mean keypoint error, metres) never matches.
+    Returns:
+      idf1, idp, idr (fractions), mota (fraction), id_switches, false_positives, misses,
+      person_frames (ground-truth person-frames), switches_per_1000 (per 1,000 person-frames),
+      num_tracks (distinct predicted tracks), num_ids (distinct ground-truth identities).
+    """
+    import motmetrics as mm
+
+    pred = _finite_only(Poses3D(*(np.asarray(a) for a in pred)))
+    gt = Poses3D(*(np.asarray(a) for a in gt))
+    pred_track = np.asarray(pred_track)
+    F = gt.valid.shape[0]
+    if pred.valid.shape[0] != F or pred_track.shape != pred.valid.shape:
+        raise ValueError(
+            f"predictions cover {pred.valid.shape[0]} frames (tracks {pred_track.shape}), the "
+            f"ground truth {F}: every frame must be scored"
+        )
+    if gt_ids is None:
+        gt_ids = np.broadcast_to(np.arange(gt.valid.shape[1]), gt.valid.shape)
+    kps = evaluation_keypoints(layout)
+    acc = mm.MOTAccumulator(auto_id=True)
+    untracked = 0
+    for f in range(F):
+        g_idx = np.flatnonzero(gt.valid[f])
+        p_idx = np.flatnonzero(pred.valid[f])
+        untracked += int((pred_track[f, p_idx] < 0).sum())
+        p_idx = p_idx[pred_track[f, p_idx] >= 0]
+        err = _pair_errors(
+            pred.xyz[f][p_idx][:, kps],
+            pred.keypoint_valid[f][p_idx][:, kps],
+            gt.xyz[f][g_idx][:, kps],
+            gt.keypoint_valid[f][g_idx][:, kps],
+        ).T  # (G, P): motmetrics wants objects (ground truth) by hypotheses
+        dist = np.where(err < max_distance_m, err, np.nan)
+        acc.update([int(i) for i in gt_ids[f, g_idx]], [int(t) for t in pred_track[f, p_idx]], dist)
+    names = ["idf1", "idp", "idr", "mota", "num_switches", "num_false_positives", "num_misses"]
+    names += ["num_objects", "num_unique_objects"]
+    row = mm.metrics.create().compute(acc, metrics=names, name="all").iloc[0]
+    person_frames = int(row["num_objects"])
+    switches = int(row["num_switches"])
+    fp = int(row["num_false_positives"]) + untracked
+    misses = int(row["num_misses"])
+    tracks = np.unique(pred_track[pred.valid & (pred_track >= 0)])
+    return {
+        "idf1": _nan_as_zero(row["idf1"]),
+        "idp": _nan_as_zero(row["idp"]),
+        "idr": _nan_as_zero(row["idr"]),
+        # MOTA again from its definition, so that untracked predictions count as false positives.
+        "mota": 1.0 - (misses + fp + switches) / max(person_frames, 1),
+        "id_switches": switches,
+        "false_positives": fp,
+        "misses": misses,
+        "person_frames": person_frames,
+        "switches_per_1000": 1000.0 * switches / max(person_frames, 1),
+        "num_tracks": len(tracks),
+        "num_ids": int(row["num_unique_objects"]),
+    }
+
+
+def _nan_as_zero(x) -> float:
+    x = float(x)
+    return 0.0 if np.isnan(x) else x
+
+
+def track_major(
+    xyz: np.ndarray, keypoint_valid: np.ndarray, valid: np.ndarray, track: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slot-major people (a person's slot may change every frame) as one series per track.
+
+    Args:
+      xyz: (F, G, K, 3); keypoint_valid: (F, G, K); valid: (F, G); track: (F, G) int, -1 none.
+    Returns:
+      (ids (T,), xyz (T, F, K, 3), keypoint mask (T, F, K)): track ids[t]'s keypoints in each
+      frame, the mask False where the track has no person or the keypoint was not produced.
+    Raises:
+      ValueError when a frame holds one track twice.
+    """
+    track = np.where(np.asarray(valid), np.asarray(track), -1)
+    ids = np.unique(track[track >= 0])
+    F, G, K = np.shape(keypoint_valid)
+    out = np.zeros((len(ids), F, K, 3), np.float64)
+    mask = np.zeros((len(ids), F, K), bool)
+    f, g = np.nonzero(track >= 0)
+    t = np.searchsorted(ids, track[f, g])
+    if len(np.unique(t * F + f)) != len(t):
+        raise ValueError("a track appears twice in one frame")
+    out[t, f] = np.asarray(xyz)[f, g]
+    mask[t, f] = np.asarray(keypoint_valid)[f, g]
+    return ids, out, mask
+
+
+def jitter(
+    xyz: np.ndarray, keypoint_valid: np.ndarray, valid: np.ndarray, track: np.ndarray
+) -> float:
+    """Mean |second difference| of keypoints along tracks, in mm per frame².
+
+    Over every (track, keypoint, frame f) where the keypoint exists at f-1, f and f+1 (a gap
+    breaks the series). Ground truth's own jitter: pass its identities as ``track``.
+
+    Args:
+      xyz (F, G, K, 3) metres, keypoint_valid (F, G, K), valid (F, G), track (F, G) int (-1 none).
+    Returns:
+      the mean in millimetres per frame², NaN when no keypoint has three consecutive frames.
+    """
+    _, series, mask = track_major(xyz, keypoint_valid, valid, track)
+    acc = series[:, 2:] - 2 * series[:, 1:-1] + series[:, :-2]  # (T, F-2, K, 3)
+    ok = mask[:, 2:] & mask[:, 1:-1] & mask[:, :-2]
+    if not ok.any():
+        return float("nan")
+    return float(np.linalg.norm(acc, axis=-1)[ok].mean() * 1000)

@@ -282,3 +282,80 @@ def test_matching_scores_average_per_frame_and_pool_beside():
     # Frame 2, where nobody was proposed, is scored (ARI 0), not skipped.
     without = matching_scores(true[:2], pred[:2], count[:2])
     assert s["ari"] < without["ari"]
+
+
+# --------------------------------------------------------------------------- tracks over time
+
+
+def _walkers(F=10, G=2, K=18, seed=0):
+    """G people walking in parallel lines 1 m apart, (F, G, K, 3) metres."""
+    rng = np.random.default_rng(seed)
+    body = rng.normal(scale=0.2, size=(G, K, 3))
+    t = np.arange(F)[:, None, None, None] * np.array([0.03, 0.0, 0.0])
+    offset = np.arange(G)[None, :, None, None] * np.array([0.0, 1.0, 0.0])
+    xyz = body[None] + t + offset
+    return Poses3D(xyz, np.ones((F, G), bool), np.ones((F, G, K), bool))
+
+
+def test_identity_metrics_perfect_tracks_with_slots_shuffled_every_frame():
+    gt = _walkers()
+    rng = np.random.default_rng(1)
+    order = np.stack([rng.permutation(2) for _ in range(10)])  # slot order changes per frame
+    f = np.arange(10)[:, None]
+    pred = Poses3D(gt.xyz[f, order], gt.valid[f, order], gt.keypoint_valid[f, order])
+    m = metrics.identity_metrics(pred, order + 7, gt)  # track ids need not be 0..G-1
+    assert m["idf1"] == 1.0 and m["id_switches"] == 0 and m["mota"] == 1.0
+    assert m["person_frames"] == 20 and m["num_tracks"] == 2 and m["num_ids"] == 2
+
+
+def test_identity_metrics_one_swap_by_the_definitions():
+    # Tracks swap people at frame 5: the best global track-to-person assignment keeps 5 of each
+    # person's 10 frames, so IDF1 = 2 IDTP / (GT + predictions) = 2 * 10 / 40; CLEAR-MOT counts
+    # one switch per person at the swap, MOTA = 1 - 2 / 20.
+    gt = _walkers()
+    track = np.tile([0, 1], (10, 1))
+    track[5:] = [1, 0]
+    m = metrics.identity_metrics(gt, track, gt)
+    assert m["idf1"] == pytest.approx(0.5)
+    assert m["id_switches"] == 2 and m["mota"] == pytest.approx(0.9)
+    assert m["switches_per_1000"] == pytest.approx(100.0)
+
+
+def test_identity_metrics_far_and_untracked_predictions_are_errors():
+    gt = _walkers(F=4)
+    far = Poses3D(gt.xyz + np.array([0.0, 0.0, 2.0]), gt.valid, gt.keypoint_valid)
+    m = metrics.identity_metrics(far, np.tile([0, 1], (4, 1)), gt, max_distance_m=0.5)
+    assert m["misses"] == 8 and m["false_positives"] == 8 and m["idf1"] == 0.0
+    untracked = np.tile([0, -1], (4, 1))  # the second person is never given a track
+    m = metrics.identity_metrics(gt, untracked, gt)
+    assert m["misses"] == 4 and m["false_positives"] == 4
+    assert m["mota"] == pytest.approx(1 - 8 / 8)
+    with pytest.raises(ValueError, match="frames"):
+        metrics.identity_metrics(gt, np.zeros((3, 2), int), gt)
+
+
+def test_jitter_closed_form_and_gaps():
+    # x = a f^2 has second difference 2a everywhere; a gap breaks the series.
+    F, K, a = 12, 18, 0.004
+    x = a * np.arange(F, dtype=float) ** 2
+    xyz = np.zeros((F, 1, K, 3))
+    xyz[..., 0] = x[:, None, None]
+    kv = np.ones((F, 1, K), bool)
+    valid = np.ones((F, 1), bool)
+    assert metrics.jitter(xyz, kv, valid, np.zeros((F, 1), int)) == pytest.approx(2 * a * 1000)
+    # The same person in slot 1 on odd frames: tracks follow the person, not the slot.
+    swapped = np.zeros((F, 2, K, 3))
+    track = np.full((F, 2), -1)
+    for f in range(F):
+        swapped[f, f % 2] = xyz[f, 0]
+        track[f, f % 2] = 3
+    both = np.ones((F, 2), bool)
+    got = metrics.jitter(swapped, np.ones((F, 2, K), bool), both & (track >= 0), track)
+    assert got == pytest.approx(2 * a * 1000)
+    # Frame 6 missing: the triples that straddle it are skipped, and a jump after it is unseen.
+    xyz2 = xyz.copy()
+    xyz2[7:] += 1.0
+    kv2 = kv.copy()
+    kv2[6] = False
+    assert metrics.jitter(xyz2, kv2, valid, np.zeros((F, 1), int)) == pytest.approx(2 * a * 1000)
+    assert np.isnan(metrics.jitter(xyz[:2], kv[:2], valid[:2], np.zeros((2, 1), int)))
