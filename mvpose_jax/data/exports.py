@@ -237,7 +237,8 @@ def frame_times(
         warnings.warn(
             f"{uneven} of {len(steps)} timestamp steps differ from the median step "
             f"({step:.6g} s) by more than half: C3D assumes a constant rate "
-            f"({1 / step:.6g} Hz), so its frame times there are not the timestamps",
+            f"({1 / step:.6g} Hz), so there its frames are not at their timestamps (TRC's "
+            "Time column and the CSV keep them)",
             MvposeWarning,
             stacklevel=2,
         )
