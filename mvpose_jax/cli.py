@@ -41,12 +41,15 @@ def check_writable(path: str, *, folder: bool) -> object:
     return check(path, folder=folder)
 
 
-def add_rig_argument(p: argparse.ArgumentParser, default: str | None = "panoptic5") -> None:
-    """The ``--rig`` option every subcommand that needs cameras shares."""
+def add_rig_argument(
+    p: argparse.ArgumentParser, default: str | None = "panoptic5", required: bool | None = None
+) -> None:
+    """The ``--rig`` option every subcommand that needs cameras shares (required when it has no
+    default, unless ``required`` says otherwise)."""
     p.add_argument(
         "--rig",
         default=default,
-        required=default is None,
+        required=default is None if required is None else required,
         help="preset name (panoptic5, arplab6) or calibration file (.json native or CMU Panoptic, "
         ".toml anipose/Pose2Sim)",
     )
@@ -736,6 +739,19 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--chunk-frames", type=int, default=256, help="frames per batch (bounds memory)")
     p.add_argument("--out", required=True, help="output folder: poses.json and poses.npz")
+    p.add_argument(
+        "--export",
+        action="append",
+        metavar="FORMATS",
+        help="also write the poses as trc, c3d and/or csv (comma list) in --out, as `export` "
+        "does with its defaults: one file per track, mm, OpenSim axes from the rig's up",
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate for --export (default: from the detections' timestamps; required "
+        "without them)",
+    )
 
 
 @command(
@@ -757,6 +773,7 @@ def _infer(args: argparse.Namespace) -> int:
         args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
     )
     rec, rig = _load_detections(args, rig_all)
+    export = _export_after_infer(args, rig_all, rec)  # None without --export; checks first
     matcher = load_matcher(args.matcher, rig) if args.matcher else None
     estimator = load_estimator(args.estimator, rig) if args.estimator else None
     if args.chunk_frames < 1:
@@ -793,6 +810,8 @@ def _infer(args: argparse.Namespace) -> int:
         f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
         f"ms/frame; wrote {json_path} and {npz_path}"
     )
+    if export:
+        export(out)
     return 0
 
 
@@ -1064,6 +1083,164 @@ def _render(args: argparse.Namespace) -> int:
         written += 1
     print(f"wrote {written} frames to {out}")
     return 0
+
+
+# --------------------------------------------------------------------------- export
+#   mvpose-jax export --poses poses/ --format trc,c3d --rig calib.toml --out opensim/
+
+_EXPORT_SUFFIXES = (".trc", ".c3d", ".csv")
+
+
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--poses", required=True, help="poses.npz / poses.json (or their folder) written by infer"
+    )
+    p.add_argument(
+        "--format",
+        action="append",
+        required=True,
+        metavar="FORMATS",
+        help="trc, c3d and/or csv: a comma list, or the option given several times",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output folder (files named poses_track<id>.trc, poses.csv ...) or a file "
+        "(walk.trc: walk_track<id>.trc, walk_track<id>.c3d, walk.csv ...)",
+    )
+    add_rig_argument(p, default=None, required=False)
+    p.add_argument(
+        "--up",
+        help="the world's up direction X,Y,Z, instead of the rig's (--rig); the OpenSim axes "
+        "need one of the two",
+    )
+    p.add_argument(
+        "--axes",
+        choices=("opensim", "world"),
+        default="opensim",
+        help="opensim: rotate so that Y is up (X the world axis most orthogonal to up, in the "
+        "floor plane; see README); world: the calibration's axes as they are",
+    )
+    p.add_argument("--units", choices=("mm", "m"), default="mm", help="units of the coordinates")
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate (default: from the poses' timestamps; required without them)",
+    )
+    files = p.add_mutually_exclusive_group()
+    files.add_argument(
+        "--per-track",
+        dest="per_track",
+        action="store_true",
+        default=True,
+        help="one TRC/C3D file per track, markers named after the keypoints (the default)",
+    )
+    files.add_argument(
+        "--one-file",
+        dest="per_track",
+        action="store_false",
+        help="one TRC/C3D file of every track, markers named t<id>_<keypoint>",
+    )
+
+
+def _export_formats(values: Sequence[str]) -> tuple[str, ...]:
+    """``--format trc,c3d --format csv`` -> ("trc", "c3d", "csv"); an unknown one is an error."""
+    from mvpose_jax.data.exports import EXPORT_FORMATS
+
+    formats = []
+    for value in values:
+        for fmt in value.split(","):
+            fmt = fmt.strip().lower()
+            if fmt not in EXPORT_FORMATS:
+                raise InputError(
+                    f"unknown format {fmt!r}; choose from {', '.join(EXPORT_FORMATS)}",
+                    field="--format",
+                )
+            if fmt not in formats:
+                formats.append(fmt)
+    return tuple(formats)
+
+
+def _up_option(text: str) -> tuple[float, float, float]:
+    try:
+        up = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        up = ()
+    if len(up) != 3:
+        raise InputError(f"expected three numbers X,Y,Z, got {text!r}", field="--up")
+    return up
+
+
+@command(
+    "export",
+    "Write 3D poses (infer's) as TRC and C3D marker files for OpenSim and motion-capture tools, "
+    "or as a tidy CSV.",
+    _export_arguments,
+)
+def _export(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from mvpose_jax.cameras import up_vector
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.data.exports import ExportConfig, export_poses
+    from mvpose_jax.data.poses import load_poses
+
+    formats = _export_formats(args.format)
+    out = Path(args.out)
+    to_file = out.suffix.lower() in _EXPORT_SUFFIXES
+    check_writable(args.out, folder=not to_file)
+    stem = out.with_suffix("") if to_file else out / "poses"
+    up = None
+    if args.axes == "opensim":
+        if args.rig and args.up:
+            raise InputError("give the up direction once: --rig or --up, not both", field="--up")
+        if args.up:
+            up = _up_option(args.up)
+        elif args.rig:
+            rig = load_rig(
+                args.rig,
+                translation_scale=args.translation_scale,
+                orthonormalise=args.orthonormalise,
+            )
+            up = tuple(float(v) for v in up_vector(rig))
+        else:
+            raise InputError(
+                "the OpenSim axes need the world's up: give --rig (the calibration infer used) "
+                "or --up X,Y,Z, or keep the calibration's axes with --axes world",
+                field="--rig",
+            )
+    config = ExportConfig(formats, args.units, args.per_track, args.fps, args.axes, up)
+    paths = export_poses(load_poses(args.poses), stem, config, progress=True)
+    axes = "world axes" if up is None else f"OpenSim axes (Y = up {np.round(up, 3).tolist()})"
+    print(f"wrote {len(paths)} files ({args.units}, {axes}) to {stem.parent}")
+    for path in paths:
+        print(f"  {path.name}")
+    return 0
+
+
+def _export_after_infer(args: argparse.Namespace, rig, rec):
+    """``infer --export``: checks the settings before the work; returns ``export(results)``, or
+    None without --export."""
+    if not args.export:
+        return None
+    from pathlib import Path
+
+    from mvpose_jax.cameras import up_vector
+    from mvpose_jax.data.exports import ExportConfig, export_poses, frame_times
+
+    formats = _export_formats(args.export)
+    with warnings.catch_warnings():  # uneven timestamps are warned about once, when exporting
+        warnings.simplefilter("ignore", MvposeWarning)
+        frame_times(rec.timestamps, rec.num_frames, args.fps)
+    config = ExportConfig(formats, fps=args.fps, up=tuple(float(v) for v in up_vector(rig)))
+
+    def export(results) -> None:
+        paths = export_poses(results, Path(args.out) / "poses", config, progress=True)
+        print(f"exported {len(paths)} files: " + ", ".join(p.name for p in paths))
+
+    return export
 
 
 def _print_dev_quality(folder: str) -> None:

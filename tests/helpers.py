@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -186,3 +187,123 @@ def tiny_matcher_train_state(config: GATConfig = TINY_GAT, lr: float = 3e-3, see
     tx = make_optimizer(dataclasses.replace(MatcherConfig().train, learning_rate=lr))
     graphdef, rest, state = init_train_state(m, tx)
     return graphdef, rest, state, make_train_step(graphdef, rest, tx, matcher_loss_fn)
+
+
+def read_trc(path) -> dict:
+    """A TRC file read by the format's description alone (not by mvpose-jax's writer): line 1
+    ``PathFileType``; lines 2-3 header keys and values; line 4 ``Frame#``, ``Time`` and each
+    marker's name over its three columns; line 5 ``X1 Y1 Z1 ...``; then, after any blank lines,
+    one tab-separated row per frame, an empty field where a marker is missing.
+
+    Returns:
+      dict: header (key -> text), names (M,), frame (N,) int, time (N,), xyz (N, M, 3) NaN missing.
+    """
+    lines = Path(path).read_text(encoding="utf-8").split("\n")
+    assert lines[0].split("\t")[:3] == ["PathFileType", "4", "(X/Y/Z)"], lines[0]
+    header = dict(zip(lines[1].split("\t"), lines[2].split("\t"), strict=True))
+    columns = lines[3].split("\t")
+    assert columns[:2] == ["Frame#", "Time"], columns[:2]
+    M = int(header["NumMarkers"])
+    names = [columns[2 + 3 * m] for m in range(M)]
+    assert all(c == "" for m in range(M) for c in columns[3 + 3 * m : 5 + 3 * m])
+    axes = lines[4].split("\t")
+    assert axes[2 : 2 + 3 * M] == [f"{a}{m}" for m in range(1, M + 1) for a in "XYZ"]
+    rows = [line.split("\t") for line in lines[5:] if line.strip()]
+    assert len(rows) == int(header["NumFrames"])
+    xyz = np.full((len(rows), M, 3), np.nan)
+    for n, row in enumerate(rows):
+        values = row[2 : 2 + 3 * M]
+        assert len(values) == 3 * M and all(v == "" for v in row[2 + 3 * M :]), row
+        for m in range(M):
+            triple = values[3 * m : 3 * m + 3]
+            assert all(v == "" for v in triple) or all(v != "" for v in triple), triple
+            if triple[0]:
+                xyz[n, m] = [float(v) for v in triple]
+    return dict(
+        header=header,
+        names=names,
+        frame=np.array([int(r[0]) for r in rows]),
+        time=np.array([float(r[1]) for r in rows]),
+        xyz=xyz,
+    )
+
+
+def read_c3d(path) -> dict:
+    """A C3D file read by the C3D manual alone (Intel byte order, float points, no analog): the
+    512-byte header, the parameter section (groups and parameters, arrays column-major), and
+    the 3D data (x, y, z and a fourth word: negative = invalid, else residual byte low, camera
+    mask high).
+
+    Returns:
+      dict: parameters {GROUP: {PARAM: value}} (strings as lists of stripped str, numbers as
+      arrays indexed as the manual's dimensions), first_frame, rate, xyz (N, M, 3) NaN invalid,
+      residual (N, M) int (-1 invalid), labels (M,) (LABELS, LABELS2 ...).
+    """
+    data = Path(path).read_bytes()
+    header = np.frombuffer(data[:512], "<i2")
+    assert data[1] == 0x50, "not a C3D file"
+    num_points, first_frame, last_frame = int(header[1]), int(header[3]), int(header[4])
+    data_start = int(header[8])
+    rate = float(np.frombuffer(data[20:24], "<f4")[0])
+    start = (data[0] - 1) * 512
+    assert data[start + 3] == 84, "expected Intel processor type"
+    groups, params, pos = {}, [], start + 4
+    while True:
+        name_len, ident = (int(v) for v in np.frombuffer(data[pos : pos + 2], "i1"))
+        if name_len == 0:
+            break
+        name_len = abs(name_len)
+        name = data[pos + 2 : pos + 2 + name_len].decode()
+        body = pos + 2 + name_len
+        offset = int(np.frombuffer(data[body : body + 2], "<i2")[0])
+        if ident < 0:
+            groups[-ident] = name
+        else:
+            kind, ndim = (int(v) for v in np.frombuffer(data[body + 2 : body + 4], "i1"))
+            dims = list(data[body + 4 : body + 4 + ndim])
+            raw = data[body + 4 + ndim : body + 4 + ndim + abs(kind) * int(np.prod(dims))]
+            if kind == -1:
+                if len(dims) <= 1:
+                    value = [raw.decode().strip()]
+                else:
+                    width = dims[0]
+                    value = [raw[i : i + width].decode().strip() for i in range(0, len(raw), width)]
+            else:
+                dtype = {1: "i1", 2: "<i2", 4: "<f4"}[kind]
+                # column-major: the first dimension varies fastest
+                value = (
+                    np.frombuffer(raw, dtype).reshape(dims[::-1]).T
+                    if dims
+                    else (np.frombuffer(raw, dtype)[0])
+                )
+            params.append((ident, name, value))
+        if offset == 0:
+            break
+        pos = body + offset
+    parameters = {g: {} for g in groups.values()}
+    for ident, name, value in params:
+        parameters[groups[ident]][name] = value
+    point = parameters["POINT"]
+    assert int(point["USED"]) == num_points
+    assert float(point["SCALE"]) < 0, "expected float points"
+    num_frames = last_frame - first_frame + 1
+    words = np.frombuffer(
+        data[(data_start - 1) * 512 :][: num_frames * num_points * 16], "<f4"
+    ).reshape(num_frames, num_points, 4)
+    invalid = words[..., 3] < 0
+    xyz = np.where(invalid[..., None], np.nan, words[..., :3].astype(np.float64))
+    residual = np.where(invalid, -1, words[..., 3].astype(np.int64) & 0xFF)
+    labels = []
+    for i in range(1, 100):
+        key = "LABELS" if i == 1 else f"LABELS{i}"
+        if key not in point:
+            break
+        labels += point[key]
+    return dict(
+        parameters=parameters,
+        first_frame=first_frame,
+        rate=rate,
+        xyz=xyz,
+        residual=residual,
+        labels=labels[:num_points],
+    )

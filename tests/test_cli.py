@@ -15,6 +15,7 @@ from mvpose_jax.cli import main
 from mvpose_jax.data import load_recording, save_openpose, save_recording
 from mvpose_jax.data.calibration import load_rig, save_rig
 from mvpose_jax.data.poses import load_poses
+from mvpose_jax.skeletons import get_layout
 from mvpose_jax.synthetic import generate_recording
 
 COMMANDS = [
@@ -27,6 +28,7 @@ COMMANDS = [
     "infer",
     "evaluate",
     "render",
+    "export",
 ]
 
 
@@ -464,3 +466,178 @@ def test_source_layout_reaches_the_openpose_reader(tmp_path, capsys):
     assert load_recording(out).layout == "coco17"
     assert main([*args, "--source-layout", "body25"]) == 2  # 17 numbers are not BODY_25's 25
     assert "body25" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- export
+
+
+@pytest.fixture(scope="module")
+def three_people(tmp_path_factory):
+    """A 3-person recording, its inferred poses with tracks from the true identities, in
+    shuffled slots: (recording, folder of tracked poses, PoseResults)."""
+    import dataclasses
+
+    from mvpose_jax.data.poses import save_poses
+
+    root = tmp_path_factory.mktemp("three")
+    rec = generate_recording(load_rig("panoptic5"), num_people=3, num_frames=6, seed=4)
+    save_recording(rec, root / "scene.npz")
+    args = ["infer", "--rig", "panoptic5", "--detections", str(root / "scene.npz")]
+    assert main([*args, "--out", str(root / "poses")]) == 0
+    res = load_poses(root / "poses")
+    F, G, C = res.members.shape
+    # each slot's person: the true identity its detections agree on
+    track = np.full((F, G), -1, np.int32)
+    for f, g in zip(*np.nonzero(res.poses.valid), strict=True):
+        cams = np.nonzero(res.members[f, g] >= 0)[0]
+        ids = rec.identity[f, cams, res.members[f, g, cams]]
+        track[f, g] = np.bincount(ids[ids >= 0]).argmax()
+    assert sorted(set(track[res.poses.valid].tolist())) == [0, 1, 2]
+    order = np.stack([np.random.default_rng(f).permutation(G) for f in range(F)])
+    rows = np.arange(F)[:, None]
+
+    def shuffled(a):
+        return None if a is None else np.asarray(a)[rows, order]
+
+    tracked = dataclasses.replace(
+        res,
+        poses=type(res.poses)(*(shuffled(a) for a in res.poses)),
+        confidence=shuffled(res.confidence),
+        members=shuffled(res.members),
+        track=shuffled(track),
+    )
+    save_poses(tracked, root / "tracked")
+    return rec, root / "tracked", tracked
+
+
+def _track_positions(res, track_id):
+    """(F, K, 3) world metres of one track, NaN where absent."""
+    F, G, K, _ = res.poses.xyz.shape
+    out = np.full((F, K, 3), np.nan)
+    for f, g in zip(*np.nonzero(res.poses.valid & (res.track == track_id)), strict=True):
+        kv = res.poses.keypoint_valid[f, g]
+        out[f, kv] = res.poses.xyz[f, g, kv]
+    return out
+
+
+def test_export_writes_trc_and_c3d_of_three_people_read_back_independently(
+    three_people, tmp_path, capsys
+):
+    from mvpose_jax.data.exports import opensim_from_world
+    from tests.helpers import read_c3d, read_trc
+
+    rec, poses, res = three_people
+    out = tmp_path / "opensim"
+    args = ["export", "--poses", str(poses), "--format", "trc,c3d", "--format", "csv"]
+    assert main([*args, "--rig", "panoptic5", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "wrote 7 files (mm, OpenSim axes (Y = up [0.0, -1.0, 0.0]))" in text
+    R = opensim_from_world((0, -1, 0))  # panoptic5's calibrated up
+    fps = 1 / np.median(np.diff(rec.timestamps))
+    keypoints = list(get_layout(res.layout).keypoints)
+    for t in (0, 1, 2):
+        want = _track_positions(res, t)
+        present = np.nonzero(~np.isnan(want[..., 0]).all(axis=1))[0]
+        want = want[present[0] : present[-1] + 1]
+        trc = read_trc(out / f"poses_track{t}.trc")
+        c3d = read_c3d(out / f"poses_track{t}.c3d")
+        assert trc["names"] == keypoints and c3d["labels"] == keypoints
+        assert float(trc["header"]["DataRate"]) == pytest.approx(fps)
+        assert c3d["rate"] == pytest.approx(fps)
+        assert trc["frame"][0] == c3d["first_frame"] == present[0] + 1
+        for got in (trc["xyz"], c3d["xyz"]):
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+            world = got / 1000 @ R  # undo the documented rotation and units
+            np.testing.assert_allclose(world, want, atol=0.01e-3)  # 0.01 mm
+    ezc3d = pytest.importorskip("ezc3d")
+    c = ezc3d.c3d(str(out / "poses_track1.c3d"))
+    assert c["parameters"]["POINT"]["RATE"]["value"][0] == pytest.approx(fps)
+    got = c["data"]["points"][:3].transpose(2, 1, 0) / 1000 @ R
+    want = _track_positions(res, 1)
+    present = np.nonzero(~np.isnan(want[..., 0]).all(axis=1))[0]
+    np.testing.assert_allclose(got, want[present[0] : present[-1] + 1], atol=0.01e-3)
+
+
+def test_export_one_file_in_metres_to_a_named_file(three_people, tmp_path, capsys):
+    from mvpose_jax.data.exports import opensim_from_world
+    from tests.helpers import read_trc
+
+    _, poses, res = three_people
+    args = ["export", "--poses", str(poses), "--format", "trc", "--one-file", "--units", "m"]
+    assert main([*args, "--up", "0,0,2", "--out", str(tmp_path / "walk.trc")]) == 0
+    trc = read_trc(tmp_path / "walk.trc")
+    assert trc["header"]["Units"] == "m"
+    keypoints = get_layout(res.layout).keypoints
+    assert trc["names"] == [f"t{t}_{k}" for t in (0, 1, 2) for k in keypoints]
+    want = np.concatenate([_track_positions(res, t) for t in (0, 1, 2)], axis=1)
+    got = trc["xyz"] @ opensim_from_world((0, 0, 1))
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got, want, atol=0.01e-3)
+
+
+def test_infer_exports_after_the_poses(three_people, tmp_path, capsys):
+    from tests.helpers import read_trc
+
+    rec, _, _ = three_people
+    scene = tmp_path / "scene.npz"
+    save_recording(rec, scene)
+    out = tmp_path / "poses"
+    args = ["infer", "--rig", "panoptic5", "--detections", str(scene), "--out", str(out)]
+    assert main([*args, "--export", "trc,c3d"]) == 0
+    captured = capsys.readouterr()
+    # infer has no tracker: each slot is exported as a track, and the user is told so
+    assert "slot is not the same person over time" in captured.err
+    res = load_poses(out)
+    slots = sorted({int(g) for g in np.nonzero(res.poses.valid)[1]})
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(
+        ["poses.json", "poses.npz"] + [f"poses_track{g}.{e}" for g in slots for e in ("trc", "c3d")]
+    )
+    assert "exported" in captured.out
+    trc = read_trc(out / f"poses_track{slots[0]}.trc")
+    assert float(trc["header"]["DataRate"]) == pytest.approx(1 / np.median(np.diff(rec.timestamps)))
+
+
+def test_export_errors_are_clear_and_write_nothing(three_people, tmp_path, capsys):
+    import dataclasses
+
+    from mvpose_jax.data.poses import save_poses
+
+    rec, poses, res = three_people
+    no_time = tmp_path / "no_time"
+    save_poses(dataclasses.replace(res, timestamps=None), no_time)
+    out = tmp_path / "out"
+    base = ["export", "--poses", str(poses), "--rig", "panoptic5", "--out", str(out)]
+    assert main([*base, "--format", "trc,fbx"]) == 2
+    assert "field '--format': unknown format 'fbx'; choose from trc, c3d, csv" in (
+        capsys.readouterr().err
+    )
+    args = ["export", "--poses", str(no_time), "--format", "trc", "--rig", "panoptic5"]
+    assert main([*args, "--out", str(out)]) == 2
+    assert "the poses have no timestamps, so the frame rate is unknown: give it (--fps)" in (
+        capsys.readouterr().err
+    )
+    assert main([*args, "--out", str(out), "--fps", "30"]) == 0
+    assert (out / "poses_track0.trc").exists()
+    capsys.readouterr()
+    no_up = ["export", "--poses", str(poses), "--format", "trc", "--out", str(tmp_path / "o2")]
+    assert main(no_up) == 2
+    assert "the OpenSim axes need the world's up: give --rig" in capsys.readouterr().err
+    assert main([*no_up, "--rig", "panoptic5", "--up", "0,0,1"]) == 2
+    assert "--rig or --up, not both" in capsys.readouterr().err
+    assert main([*no_up, "--up", "0,1"]) == 2
+    assert "expected three numbers X,Y,Z" in capsys.readouterr().err
+    a_file = tmp_path / "taken"
+    a_file.write_text("x")
+    assert main([*base[:-1], str(a_file), "--format", "trc"]) == 2
+    assert "is a file, but an output folder must go here" in capsys.readouterr().err
+    assert main([*base[:-1], str(a_file / "walk.trc"), "--format", "trc"]) == 2
+    assert "is a file, so nothing can be written below it" in capsys.readouterr().err
+    assert not (tmp_path / "o2").exists()
+    # infer --export without timestamps or --fps fails before the work
+    bare = tmp_path / "bare.npz"
+    save_recording(dataclasses.replace(rec, timestamps=None), bare)
+    infer = ["infer", "--rig", "panoptic5", "--detections", str(bare), "--export", "c3d"]
+    assert main([*infer, "--out", str(tmp_path / "p")]) == 2
+    assert "give it (--fps)" in capsys.readouterr().err
+    assert not (tmp_path / "p" / "poses.npz").exists()
