@@ -8,7 +8,7 @@ Per frame (`update_tracks`):
 
 1. Each active track predicts its pose at the frame's time: its last keypoints moved by its
    velocity (constant velocity, m/s) times the time since it was last seen.
-2. Cost of track t and person d: the mean distance (metres) between the prediction and the
+2. Cost of track t and person d: the median distance (metres) between the prediction and the
    person over the keypoints both have (the distance of their centres of valid keypoints when
    they share fewer than ``min_common_keypoints``); where the track was seen in the previous
    frame and both have 2D skeletons in a camera, the 2D evidence joins in: the mean pixel distance
@@ -130,6 +130,17 @@ def _norm(a: np.ndarray, axis: int = -1, keepdims: bool = False) -> np.ndarray:
     return np.sqrt(np.square(a).sum(axis, keepdims=keepdims))
 
 
+def _masked_median(values: np.ndarray, mask: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(..., K) values -> (...) the (lower) median of the masked ones; inf where none.
+
+    Robust where the mean is not: a few keypoints of a person built from two people's skeletons
+    lie far off, and must not decide the match or the velocity.
+    """
+    ranked = np.sort(np.where(mask, values, np.inf), axis=-1)
+    at = np.maximum((count - 1) // 2, 0)[..., None]
+    return np.take_along_axis(ranked, at, axis=-1)[..., 0]
+
+
 def _centres(xyz: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(N, K, 3), (N, K) -> (N, 3) mean of the valid keypoints (0 where none)."""
     n = valid.sum(-1, keepdims=True)
@@ -171,7 +182,7 @@ def update_tracks(
         common = state.keypoint_valid[:, None] & keypoint_valid[None]  # (T, D, K)
         n_common = common.sum(-1)
         dist = _norm(pred[:, None] - xyz[None], axis=-1)  # (T, D, K)
-        d_kp = (dist * common).sum(-1) / np.maximum(n_common, 1)
+        d_kp = _masked_median(dist, common, n_common)
         few = n_common < config.min_common_keypoints
         d3 = d_kp  # (T, D)
         if few.any():
@@ -215,15 +226,19 @@ def update_tracks(
         t_idx, d_idx = matched_track[m], np.nonzero(m)[0]
         dt_m = dt[t_idx][:, None]  # (M, 1)
         new_kv = keypoint_valid[d_idx]
-        common = kv_t[t_idx] & new_kv
-        n_common = common.sum(-1, keepdims=True)
-        disp_kp = ((xyz[d_idx] - xyz_t[t_idx]) * common[..., None]).sum(-2) / np.maximum(
-            n_common, 1
-        )
+        pred_m = xyz_t[t_idx] + (vel[t_idx] * dt_m)[:, None]
+        # A keypoint far off the prediction (a gross reconstruction error) neither moves the
+        # track nor is stored: the track keeps its prediction there.
+        off = _norm(xyz[d_idx] - pred_m) > config.gate_m + config.gate_speed_mps * dt_m
+        common = kv_t[t_idx] & new_kv & ~off
+        n_common = common.sum(-1)
+        disp = xyz[d_idx] - xyz_t[t_idx]  # (M, K, 3)
+        disp_kp = _masked_median(disp.transpose(0, 2, 1), common[:, None], n_common[:, None])
         if (n_common == 0).any():
             disp_centre = _centres(xyz[d_idx], new_kv) - _centres(xyz_t[t_idx], kv_t[t_idx])
-            disp_kp = np.where(n_common >= 1, disp_kp, disp_centre)
+            disp_kp = np.where(n_common[:, None] >= 1, disp_kp, disp_centre)
         v_new = disp_kp / np.maximum(dt_m, 1e-9)
+        new_kv = new_kv & ~(off & kv_t[t_idx])
         speed = _norm(v_new, axis=-1, keepdims=True)
         v_new *= np.minimum(1.0, config.max_speed_mps / np.maximum(speed, 1e-12))
         # The first measured velocity is taken whole; later ones blended with the estimate.
