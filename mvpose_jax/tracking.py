@@ -226,10 +226,9 @@ def update_tracks(
         t_idx, d_idx = matched_track[m], np.nonzero(m)[0]
         dt_m = dt[t_idx][:, None]  # (M, 1)
         new_kv = keypoint_valid[d_idx]
-        pred_m = xyz_t[t_idx] + (vel[t_idx] * dt_m)[:, None]
         # A keypoint far off the prediction (a gross reconstruction error) neither moves the
         # track nor is stored: the track keeps its prediction there.
-        off = _norm(xyz[d_idx] - pred_m) > config.gate_m + config.gate_speed_mps * dt_m
+        off = dist[t_idx, d_idx] > gate[t_idx, None]  # (M, K)
         common = kv_t[t_idx] & new_kv & ~off
         n_common = common.sum(-1)
         disp = xyz[d_idx] - xyz_t[t_idx]  # (M, K, 3)
