@@ -6,6 +6,8 @@
 * `offline`: a long recording in batches: frames/s and people/s of both stages, GFLOP/s of the 3D
   stage, single-person latency.
 * `training`: samples/s and compile time of the estimator's and the matcher's train steps.
+* `tracking`: the streaming path's host work per frame (tracker update and One-Euro filter) per
+  person, at 1, 4, 8 and 16 people.
 
 Every timed call is warmed up first (every shape it meets is compiled before timing), and every
 clock stops after the result is on the host or after `jax.block_until_ready`.
@@ -819,9 +821,81 @@ def _train_matcher_step(rig, recs, gat, tier: Tier, K: int) -> dict:
     }
 
 
+# --------------------------------------------------------------------------- tracking
+
+TRACKING_LIMIT_MS = 0.1  # per person per frame, tracker + One-Euro (the tracker issue)
+
+
+def tracking(tier: Tier) -> dict:
+    """Per-frame host time of the streaming path after the 3D stage, per person.
+
+    Each frame: `tracking.update_tracks` (with the 2D evidence of every camera) then
+    `smoothing.one_euro_update`, as `inference.stream_pipeline` runs them. Input: the synthetic
+    ground truth (5 views) with 1 cm noise, grouped by the true identities, so the person count
+    is exact.
+    """
+    from mvpose_jax.smoothing import one_euro_initial, one_euro_update
+    from mvpose_jax.synthetic import generate_recording
+    from mvpose_jax.tracking import initial_state, metres_per_pixel, update_tracks
+
+    people = (2,) if tier.name == "smoke" else (1, 4, 8, 16)
+    frames = {"smoke": 10, "quick": 100, "full": 300}[tier.name]
+    rig = load_rig("panoptic5")
+    rows = []
+    for n in people:
+        rec = generate_recording(rig, num_people=n, num_frames=frames, seed=[0, 9, n])
+        gt = rec.ground_truth
+        xy, score = group_people(
+            rec.detections.xy, rec.detections.score, members_from_identity(rec.identity, n)
+        )
+        rng = np.random.default_rng(n)
+        xyz = np.asarray(gt.xyz, np.float64) + rng.normal(0, 0.01, np.shape(gt.xyz))
+        kv = np.asarray(gt.keypoint_valid)
+        centre = (xyz * kv[..., None]).sum(-2) / np.maximum(kv.sum(-1, keepdims=True), 1)
+        per_px = metres_per_pixel(rig, centre)
+        K, C = kv.shape[-1], rig.num_cameras
+        track_s, euro_s = [], []
+        for rep in range(2):  # the first pass warms up (imports, caches)
+            state, euro = initial_state(K, C), one_euro_initial(K)
+            for f in range(frames):
+                t0 = time.perf_counter()
+                state, ids = update_tracks(
+                    state,
+                    time=f / 30.0,
+                    xyz=xyz[f],
+                    keypoint_valid=kv[f],
+                    xy=xy[f],
+                    score=score[f],
+                    metres_per_px=per_px[f],
+                )
+                t1 = time.perf_counter()
+                euro, _ = one_euro_update(
+                    euro, time=f / 30.0, track=ids, xyz=xyz[f], keypoint_valid=kv[f]
+                )
+                t2 = time.perf_counter()
+                if rep:
+                    track_s.append(t1 - t0)
+                    euro_s.append(t2 - t1)
+        total = np.asarray(track_s) + np.asarray(euro_s)
+        per_person = summary(total / n)
+        rows.append(
+            {
+                "people": n,
+                "frames": frames,
+                "tracks": int(state.next_id),
+                "tracker_ms": summary(track_s),
+                "one_euro_ms": summary(euro_s),
+                "per_person_ms": per_person,
+                "status": "pass" if per_person["median"] <= TRACKING_LIMIT_MS else "miss",
+            }
+        )
+    return {"limit_ms_per_person": TRACKING_LIMIT_MS, "rows": rows}
+
+
 GROUPS: dict[str, Callable[[Tier], dict]] = {
     "peaks": peaks,
     "latency": latency,
     "offline": offline,
     "training": training,
+    "tracking": tracking,
 }

@@ -257,6 +257,24 @@ def markdown(run: dict) -> str:
             )
 
     mem = run.get("memory")
+    trk = run.get("tracking")
+    if trk:
+        lines += [
+            "",
+            f"## Tracking and streaming filter (target <= {trk['limit_ms_per_person']} ms per "
+            "person per frame)",
+            "",
+            "Per frame: `tracking.update_tracks` (2D evidence of 5 cameras) + "
+            "`smoothing.one_euro_update`; median [p10-p90] ms.",
+            "",
+            "| people | tracker ms | One-Euro ms | per person ms | target |",
+            "|---|---|---|---|---|",
+        ]
+        for r in trk["rows"]:
+            lines.append(
+                f"| {r['people']} | {_ms(r['tracker_ms'])} | {_ms(r['one_euro_ms'])} | "
+                f"{_ms(r['per_person_ms'])} | {r['status']} |"
+            )
     if mem:
         lines += [
             "",

@@ -738,6 +738,18 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         help="geometric matcher: epipolar distance (px) that scores 0.5",
     )
     p.add_argument("--chunk-frames", type=int, default=256, help="frames per batch (bounds memory)")
+    p.add_argument(
+        "--no-track",
+        action="store_true",
+        help="no track ids (each frame's people stand alone; no filtering or gap filling)",
+    )
+    p.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=1.0,
+        help="tracking: a person unseen for up to this many seconds keeps their track id",
+    )
+    add_smoothing_arguments(p, default_filter="butterworth")
     p.add_argument("--out", required=True, help="output folder: poses.json and poses.npz")
     p.add_argument(
         "--export",
@@ -754,6 +766,69 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_smoothing_arguments(p: argparse.ArgumentParser, *, default_filter: str) -> None:
+    """The filter and gap-filling options of ``infer`` and ``smooth``."""
+    p.add_argument(
+        "--filter",
+        choices=("none", "one-euro", "butterworth"),
+        default=default_filter,
+        help="per-track filter: butterworth (zero-phase, offline, over each whole track after "
+        "the stream), one-euro (causal, per frame, as a live stream runs it) or none",
+    )
+    p.add_argument(
+        "--cutoff-hz",
+        type=float,
+        default=3.0,
+        help="butterworth: cut-off frequency (Hz, order 4; chosen on validation scenes)",
+    )
+    p.add_argument(
+        "--fill-gap-s",
+        type=float,
+        default=0.5,
+        help="fill gaps of a track's keypoints up to this long (seconds; cubic; 0: none); "
+        "filled keypoints are flagged in the output",
+    )
+    p.add_argument(
+        "--outlier-m",
+        type=float,
+        default=0.1,
+        help="before filling and filtering, drop samples further than this (metres) from "
+        "their keypoint's 7-frame median (0: keep all)",
+    )
+    p.add_argument(
+        "--min-cutoff", type=float, default=1.0, help="one-euro: cut-off when still (Hz)"
+    )
+    p.add_argument(
+        "--beta", type=float, default=7.0, help="one-euro: cut-off rise per speed (Hz per m/s)"
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="frame rate (default: the recording's, from its timestamps; else 30)",
+    )
+
+
+def _smoothing(args: argparse.Namespace):
+    """The smoothing options as (OneEuroConfig, smooth_poses keyword arguments)."""
+    from mvpose_jax.smoothing import OneEuroConfig
+
+    for name in ("cutoff_hz", "min_cutoff", "fps"):
+        value = getattr(args, name)
+        if value is not None and value <= 0:
+            raise InputError("must be > 0", field="--" + name.replace("_", "-"))
+    for name in ("fill_gap_s", "outlier_m", "beta"):
+        if getattr(args, name) < 0:
+            raise InputError("must be >= 0", field="--" + name.replace("_", "-"))
+    one_euro = OneEuroConfig(min_cutoff_hz=args.min_cutoff, beta=args.beta)
+    return one_euro, {
+        "cutoff_hz": args.cutoff_hz,
+        "fill_gap_s": args.fill_gap_s,
+        "outlier_m": args.outlier_m or None,
+        "one_euro": one_euro,
+    }
+
+
 @command(
     "infer",
     "3D poses from a calibration and 2D detections: matching, proposals, estimator or triangulation.",
@@ -766,6 +841,8 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.data.poses import PoseResults, save_poses
     from mvpose_jax.inference import run_pipeline
     from mvpose_jax.proposals import read_proposal_threshold
+    from mvpose_jax.smoothing import smooth_poses
+    from mvpose_jax.tracking import TrackingConfig
     from mvpose_jax.trained import load_estimator, load_matcher
 
     check_writable(args.out, folder=True)
@@ -779,6 +856,11 @@ def _infer(args: argparse.Namespace) -> int:
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
     threshold = read_proposal_threshold(args.matcher, args.threshold)
+    one_euro, smooth_kwargs = _smoothing(args)
+    if args.max_gap_s < 0:
+        raise InputError("must be >= 0", field="--max-gap-s")
+    fps = args.fps or _recording_fps(rec.timestamps)
+    tracking = None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s)
     res = run_pipeline(
         rig,
         rec.detections,
@@ -790,6 +872,9 @@ def _infer(args: argparse.Namespace) -> int:
         half_score_px=args.half_score_px,
         chunk_frames=args.chunk_frames,
         progress=True,
+        tracking=tracking,
+        one_euro=one_euro if tracking is not None and args.filter == "one-euro" else None,
+        fps=fps,
     )
     out = PoseResults(
         res.poses,
@@ -799,19 +884,67 @@ def _infer(args: argparse.Namespace) -> int:
         res.cameras,
         rec.layout,
         rec.timestamps,
+        res.track,
     )
+    if tracking is not None:
+        # One-Euro already ran inside the stream; Butterworth needs each whole track; gaps are
+        # filled (and outliers dropped) here for every filter.
+        filt = "butterworth" if args.filter == "butterworth" else "none"
+        out = smooth_poses(out, fps=fps, filter=filt, **smooth_kwargs)
     npz_path, json_path = save_poses(out, args.out)
     F = len(res.confidence)
     people = int(np.asarray(res.poses.valid).sum())
     if people == 0 and F > 0:
         warnings.warn(_why_nobody(rec, res.cameras, args, threshold), MvposeWarning, stacklevel=1)
+    tracks = ""
+    if out.track is not None:
+        n_tracks = len(np.unique(out.track[out.poses.valid]))
+        n_filled = int(out.filled.sum()) if out.filled is not None else 0
+        tracks = f", {n_tracks} tracks, {n_filled} keypoints filled ({args.filter} filter)"
     print(
-        f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame); proposals "
+        f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame){tracks}; proposals "
         f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
         f"ms/frame; wrote {json_path} and {npz_path}"
     )
     if export:
         export(out)
+    return 0
+
+
+def _smooth_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--poses", required=True, help="tracked poses.npz / poses.json (or their folder) from infer"
+    )
+    add_smoothing_arguments(p, default_filter="butterworth")
+    p.add_argument("--out", required=True, help="output folder: poses.json and poses.npz")
+
+
+@command(
+    "smooth",
+    "Filter tracked 3D poses per track (Butterworth or One-Euro) and fill short gaps, flagging "
+    "the filled keypoints.",
+    _smooth_arguments,
+)
+def _smooth(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from mvpose_jax.data.poses import load_poses, save_poses
+    from mvpose_jax.smoothing import smooth_poses
+
+    check_writable(args.out, folder=True)
+    _, smooth_kwargs = _smoothing(args)
+    poses = load_poses(args.poses)
+    fps = args.fps or _recording_fps(poses.timestamps)
+    try:
+        out = smooth_poses(poses, fps=fps, filter=args.filter, **smooth_kwargs)
+    except InputError as e:
+        raise e.at(file=args.poses) from None
+    npz_path, json_path = save_poses(out, args.out)
+    print(
+        f"{len(out.confidence)} frames, {len(np.unique(out.track[out.poses.valid]))} tracks at "
+        f"{fps:g} fps; {args.filter} filter, {int(out.filled.sum())} keypoints filled; wrote "
+        f"{json_path} and {npz_path}"
+    )
     return 0
 
 
@@ -978,7 +1111,7 @@ def _render_arguments(p: argparse.ArgumentParser) -> None:
 @command(
     "render",
     "Draw 3D poses over each camera's view (detections thin, reprojected people thick, one colour "
-    "per person) as images or an mp4, and 3D skeleton figures.",
+    "per person: per track when tracked) as images or an mp4, and 3D skeleton figures.",
     _render_arguments,
 )
 def _render(args: argparse.Namespace) -> int:
@@ -1038,6 +1171,7 @@ def _render(args: argparse.Namespace) -> int:
                     identity=ident,
                     xyz=xyz,
                     keypoint_valid=poses.poses.keypoint_valid[f] & v[:, None],
+                    colours=None if poses.track is None else poses.track[f],
                     scale=args.scale,
                 )
             )

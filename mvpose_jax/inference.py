@@ -38,6 +38,9 @@ from mvpose_jax.graphs import (
 from mvpose_jax.models import to_world
 from mvpose_jax.proposals import Proposals, choose_proposal_threshold, propose_people
 from mvpose_jax.skeletons import Detections, Poses3D
+from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
+from mvpose_jax.tracking import TrackingConfig, track_frames
+from mvpose_jax.tracking import initial_state as tracker_initial_state
 from mvpose_jax.trained import Estimator, Matcher
 from mvpose_jax.triangulate import camera_pairs, triangulate_pairwise_centroid, triangulate_points
 
@@ -658,7 +661,10 @@ class PipelineResult(NamedTuple):
     members: (F, G, C) int32: each person's skeleton index in each proposal camera, -1 none.
     identity: (F, C, P) int32: the person of each detected skeleton, -1 none.
     cameras: the proposal cameras (the C axis of ``members`` and ``identity``).
-    seconds: wall time of each stage over all frames, {"proposals": s, "poses": s}.
+    seconds: wall time of each stage over all frames, {"proposals": s, "poses": s} (and
+      "tracking": s when tracked).
+    track: (F, G) int32 each person's track id over the whole stream (-1 none), or None
+      when not tracked (`tracking`).
     """
 
     poses: Poses3D
@@ -667,6 +673,7 @@ class PipelineResult(NamedTuple):
     identity: np.ndarray
     cameras: tuple[str, ...]
     seconds: dict[str, float]
+    track: np.ndarray | None = None
 
 
 def group_people(
@@ -738,6 +745,9 @@ def stream_pipeline(
     half_score_px: float = 30.0,
     chunk_frames: int = 256,
     progress: bool = False,
+    tracking: TrackingConfig | None = None,
+    one_euro: OneEuroConfig | None = None,
+    fps: float = 30.0,
 ) -> Iterator[tuple[int, PipelineResult]]:
     """The pipeline over a recording, one chunk of frames at a time: yields (first frame, result).
 
@@ -751,6 +761,11 @@ def stream_pipeline(
         "centroid", the paper's pairwise centroid).
       threshold, min_views: the proposal step (`propose_people`).
       chunk_frames: frames per chunk (memory is bounded by it).
+      tracking: persistent person ids (`tracking.track_frames`, with each person's 2D skeletons
+        as evidence), the tracker's state carried from chunk to chunk; None: no tracks.
+      one_euro: with ``tracking``, each track's keypoints are filtered causally by this One-Euro
+        filter (`smoothing.one_euro_frames`, its state carried too); None: unfiltered.
+      fps: frames per second (the tracker's and the filter's clock: frame i is at i / fps).
     """
     from tqdm.auto import tqdm
 
@@ -780,6 +795,8 @@ def stream_pipeline(
     elif method not in ("dlt", "centroid"):
         raise ValueError(f"method must be 'dlt' or 'centroid', not {method!r}")
     F = len(count)
+    tracker = tracker_initial_state(K, len(prop_cams))
+    smoother = one_euro_initial(K)
     bar = tqdm(total=F, desc="pipeline", unit="frame", disable=not progress, dynamic_ncols=True)
     try:
         for start in range(0, F, chunk_frames):
@@ -809,20 +826,44 @@ def stream_pipeline(
             # A person is kept only where the 3D stage produced one; its members say so too.
             members = np.where(poses.valid[..., None], members, -1).astype(np.int32)
             identity = _identity_from_members(members, det.score.shape[:3])
+            seconds, track = {"proposals": t1 - t0, "poses": t2 - t1}, None
+            if tracking is not None:
+                tracker, smoother, track, poses = _track_chunk(
+                    tracker, smoother, det, members, poses, start, fps, prop_rig, tracking, one_euro
+                )
+                seconds["tracking"] = time.perf_counter() - t2
             yield (
                 start,
-                PipelineResult(
-                    poses,
-                    conf,
-                    members,
-                    identity,
-                    prop_cams,
-                    {"proposals": t1 - t0, "poses": t2 - t1},
-                ),
+                PipelineResult(poses, conf, members, identity, prop_cams, seconds, track),
             )
             bar.update(stop - start)
     finally:
         bar.close()
+
+
+def _track_chunk(tracker, smoother, det, members, poses, start, fps, rig, tracking, one_euro):
+    """Tracks (and optionally One-Euro filters) one chunk: (tracker, smoother, track, poses)."""
+    xy, score = group_people(det.xy, det.score, members)
+    times = (start + np.arange(len(members))) / fps
+    kv = np.asarray(poses.keypoint_valid)
+    tracker, track = track_frames(
+        tracker,
+        times=times,
+        xyz=poses.xyz,
+        keypoint_valid=kv,
+        valid=poses.valid,
+        xy=xy,
+        score=score,
+        rig=rig,
+        config=tracking,
+    )
+    if one_euro is not None:
+        smoother, xyz = one_euro_frames(
+            smoother, times=times, track=track, xyz=poses.xyz, keypoint_valid=kv, config=one_euro
+        )
+        smoother = one_euro_keep(smoother, tracker.ids)
+        poses = poses._replace(xyz=np.where(kv[..., None], xyz, poses.xyz).astype(np.float32))
+    return tracker, smoother, track, poses
 
 
 def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
@@ -847,6 +888,7 @@ def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
             np.zeros((0, len(cams), P), np.int32),
             cams,
             {"proposals": 0.0, "poses": 0.0},
+            np.zeros((0, 1), np.int32) if kwargs.get("tracking") is not None else None,
         )
     return concat_results(parts)
 
@@ -868,6 +910,7 @@ def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
         cat(lambda r: r.poses.keypoint_valid),
     )
     seconds = {k: float(sum(r.seconds[k] for r in parts)) for k in parts[0].seconds}
+    tracked = all(r.track is not None for r in parts)
     return PipelineResult(
         poses,
         cat(lambda r: r.confidence),
@@ -875,6 +918,7 @@ def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
         np.concatenate([r.identity for r in parts]),
         parts[0].cameras,
         seconds,
+        cat(lambda r: r.track, -1) if tracked else None,
     )
 
 

@@ -64,6 +64,7 @@ def draw_view(
     identity: np.ndarray | None = None,
     xyz: np.ndarray | None = None,
     keypoint_valid: np.ndarray | None = None,
+    colours: np.ndarray | None = None,
     scale: float = 1.0,
 ) -> np.ndarray:
     """One camera's picture: detections and reprojected 3D people.
@@ -76,6 +77,8 @@ def draw_view(
       identity: (P,) the person of each detection (its colour), -1 unassigned (grey).
       xyz: (G, K, 3) metres, people to reproject (thick lines, person g in colour g).
       keypoint_valid: (G, K) which keypoints of xyz exist (default all).
+      colours: (G,) the colour index of each person (its track id, so a person keeps a colour
+        over time; -1 grey); default: the person's index g. Detections take their person's.
       scale: resize factor of the output (and everything drawn).
     Returns:
       (H·scale, W·scale, 3) uint8 BGR.
@@ -113,11 +116,16 @@ def draw_view(
         for k in np.nonzero(seen)[0]:
             cv2.circle(canvas, tuple(map(int, pts[k])), radius, colour, -1, cv2.LINE_AA)
 
+    def colour_of(g: int) -> int:
+        if colours is None or g < 0 or g >= len(colours):
+            return g if colours is None else -1
+        return int(colours[g])
+
     if detections is not None:
         xy, score = (np.asarray(a) for a in detections)
         for p in range(len(xy)):
             ident = -1 if identity is None else int(identity[p])
-            draw(xy[p], score[p] > 0, person_colour(ident), thin, thin + 1)
+            draw(xy[p], score[p] > 0, person_colour(colour_of(ident)), thin, thin + 1)
     if xyz is not None and len(xyz):
         xyz = np.asarray(xyz, np.float32)
         kv = np.ones(xyz.shape[:2], bool) if keypoint_valid is None else np.asarray(keypoint_valid)
@@ -130,7 +138,7 @@ def draw_view(
                 draw(
                     px[g],
                     kv[g] & (depth[g] > 0) & np.isfinite(px[g]).all(-1),
-                    person_colour(g),
+                    person_colour(colour_of(g)),
                     3 * thin,
                     2 * thin + 1,
                 )

@@ -86,7 +86,11 @@ def test_smoke_run_has_every_section(smoke_run):
         g = run["training"]["matcher"][size]
         assert g["graphs_per_s"] > 0 and g["budgets_compiled"] >= 1
 
-    assert set(run["memory"]) == {"peaks", "latency", "offline", "training"}
+    for row in run["tracking"]["rows"]:
+        _check_stats(row["per_person_ms"])
+        assert row["tracks"] == row["people"] and row["status"] in ("pass", "miss")
+
+    assert set(run["memory"]) == {"peaks", "latency", "offline", "training", "tracking"}
     assert all(r["maxrss_mb"] > 0 for r in run["memory"].values())
 
     assert len(run["targets"]) == 4
@@ -98,6 +102,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "## Training throughput",
         "## Peak memory",
         "## Breakdown",
+        "## Tracking",
     ):
         assert heading in md
 

@@ -26,6 +26,7 @@ COMMANDS = [
     "train-matcher",
     "train-estimator",
     "infer",
+    "smooth",
     "evaluate",
     "render",
     "export",
@@ -641,3 +642,40 @@ def test_export_errors_are_clear_and_write_nothing(three_people, tmp_path, capsy
     assert main([*infer, "--out", str(tmp_path / "p")]) == 2
     assert "give it (--fps)" in capsys.readouterr().err
     assert not (tmp_path / "p" / "poses.npz").exists()
+
+
+def test_infer_tracks_filters_and_smooth_refilters(files, recording, tmp_path, capsys):
+    out = tmp_path / "poses"
+    args = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"])]
+    assert main(args + ["--out", str(out)]) == 0
+    assert "2 tracks" in capsys.readouterr().out
+    res = load_poses(out)
+    assert res.track is not None and res.filled is not None
+    # Each slot's person keeps one id: two true people, two tracks, every frame.
+    assert set(np.unique(res.track[res.poses.valid])) == {0, 1}
+    doc = json.loads((out / "poses.json").read_text())
+    assert all("track" in p for f in doc["frames"] for p in f["people"])
+
+    raw = tmp_path / "raw"
+    assert main(args + ["--out", str(raw), "--filter", "none", "--fill-gap-s", "0"]) == 0
+    unfiltered = load_poses(raw)
+    assert not unfiltered.filled.any()
+    # `smooth` on the unfiltered output gives what infer's default gives.
+    again = tmp_path / "again"
+    assert main(["smooth", "--poses", str(raw), "--out", str(again), "--fps", "30"]) == 0
+    assert "butterworth filter" in capsys.readouterr().out
+    np.testing.assert_allclose(load_poses(again).poses.xyz, res.poses.xyz, atol=1e-6)
+
+    euro = tmp_path / "euro"
+    assert main(args + ["--out", str(euro), "--filter", "one-euro"]) == 0
+    # The first frame passes through the causal filter unchanged.
+    np.testing.assert_allclose(load_poses(euro).poses.xyz[0], unfiltered.poses.xyz[0], atol=1e-6)
+
+    bare = tmp_path / "bare"
+    assert main(args + ["--out", str(bare), "--no-track"]) == 0
+    assert load_poses(bare).track is None
+    capsys.readouterr()
+    assert main(["smooth", "--poses", str(bare), "--out", str(tmp_path / "x")]) == 2
+    assert "no tracks" in capsys.readouterr().err
+    assert main(args + ["--out", str(bare), "--cutoff-hz", "-1"]) == 2
+    assert "--cutoff-hz" in capsys.readouterr().err

@@ -1,0 +1,200 @@
+"""The tracker: constant ids through crossings and slot swaps, entering and leaving, gaps shorter
+and longer than the limit, chunks, and one track per true person on a synthetic recording."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.synthetic import generate_recording
+from mvpose_jax.tracking import (
+    TrackingConfig,
+    initial_state,
+    metres_per_pixel,
+    track_frames,
+    update_tracks,
+)
+
+FPS = 30.0
+# A small rigid body: keypoint offsets (K, 3) around a root, metres.
+BODY = np.array(
+    [[0, 0, 1.7], [0.2, 0, 1.4], [-0.2, 0, 1.4], [0.1, 0, 0.9], [-0.1, 0, 0.9], [0, 0, 0.1]]
+)
+
+
+def _walk(start, velocity, frames):
+    """(F, K, 3) the body moving at constant velocity (m/s) from start."""
+    t = np.arange(frames)[:, None] / FPS
+    root = np.asarray(start)[None] + t * np.asarray(velocity)[None]
+    return root[:, None] + BODY[None]
+
+
+def _frames(people, present):
+    """People (list of (F, K, 3)) and presence (list of (F,) bool) -> slot-major xyz, kv, valid,
+    truth: each frame's present people packed into the first slots, in a rotating order."""
+    F, K = people[0].shape[:2]
+    G = len(people)
+    xyz = np.zeros((F, G, K, 3))
+    valid = np.zeros((F, G), bool)
+    truth = np.full((F, G), -1)
+    for f in range(F):
+        here = [i for i in range(G) if present[i][f]]
+        here = here[f % max(len(here), 1) :] + here[: f % max(len(here), 1)]  # slots rotate
+        for g, i in enumerate(here):
+            xyz[f, g], valid[f, g], truth[f, g] = people[i][f], True, i
+    kv = np.repeat(valid[..., None], K, axis=-1)
+    return xyz, kv, valid, truth
+
+
+def _track(xyz, kv, valid, config=TrackingConfig()):
+    _, track = track_frames(
+        initial_state(kv.shape[-1]),
+        times=np.arange(len(valid)) / FPS,
+        xyz=xyz,
+        keypoint_valid=kv,
+        valid=valid,
+        config=config,
+    )
+    return track
+
+
+def _ids_of(track, truth, person):
+    return set(np.unique(track[truth == person]).tolist())
+
+
+def test_people_crossing_with_slots_swapped_every_frame_keep_their_ids():
+    # Two people walk towards each other and pass 0.45 m apart; a third stands still nearby.
+    F = 90
+    a = _walk([-2.0, 0.0, 0.0], [1.4, 0.0, 0.0], F)
+    b = _walk([2.0, 0.45, 0.0], [-1.4, 0.0, 0.0], F)
+    c = _walk([0.0, 1.5, 0.0], [0.0, 0.0, 0.0], F)
+    rng = np.random.default_rng(0)
+    people = [p + rng.normal(0, 0.01, p.shape) for p in (a, b, c)]
+    xyz, kv, valid, truth = _frames(people, [np.ones(F, bool)] * 3)
+    assert (truth[1:, 0] != truth[:-1, 0]).all()  # the slot order changes every frame
+    track = _track(xyz, kv, valid)
+    assert [_ids_of(track, truth, i) for i in range(3)] == [{0}, {1}, {2}]
+    assert (track[~valid] == -1).all()
+
+
+def test_entering_leaving_and_gaps_shorter_and_longer_than_the_limit():
+    F = 120
+    a = _walk([-1.0, 0.0, 0.0], [0.5, 0.0, 0.0], F)
+    b = _walk([1.0, 1.0, 0.0], [0.0, -0.3, 0.0], F)
+    present_a = np.ones(F, bool)
+    present_b = np.zeros(F, bool)
+    present_b[10:40] = True  # enters at 10
+    present_b[55:70] = True  # back after 15 frames (0.5 s): the same person
+    present_b[110:] = True  # back after 40 frames (1.33 s): a new track
+    xyz, kv, valid, truth = _frames([a, b], [present_a, present_b])
+    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=1.0))
+    assert _ids_of(track, truth, 0) == {0}
+    f_b, g_b = np.nonzero(truth == 1)
+    ids_b = track[f_b, g_b]
+    assert set(ids_b[f_b < 70]) == {1}
+    assert set(ids_b[f_b >= 110]) == {2}  # never reused, never the old id
+    # The limit is the configured one: with 2 s the third appearance keeps its id.
+    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=2.0))
+    assert _ids_of(track, truth, 1) == {1}
+
+
+def test_a_frame_without_anyone_and_a_person_with_few_keypoints():
+    F = 30
+    a = _walk([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], F)
+    xyz, kv, valid, truth = _frames([a], [np.ones(F, bool)])
+    valid[10] = False
+    kv[10] = False
+    kv[15:18, 0, 2:] = False  # two keypoints only: matched by the centre
+    track = _track(xyz, kv, valid)
+    assert set(track[valid].tolist()) == {0} and track[10, 0] == -1
+
+
+def test_chunks_carry_the_state():
+    F = 60
+    people = [
+        _walk([-2.0, 0.0, 0.0], [1.4, 0.0, 0.0], F),
+        _walk([2.0, 0.45, 0.0], [-1.4, 0.0, 0.0], F),
+    ]
+    present = [np.ones(F, bool), np.r_[np.ones(20, bool), np.zeros(10, bool), np.ones(30, bool)]]
+    xyz, kv, valid, _ = _frames(people, present)
+    whole = _track(xyz, kv, valid)
+    state, parts = initial_state(kv.shape[-1]), []
+    for s in (slice(0, 7), slice(7, 25), slice(25, 60)):
+        state, t = track_frames(
+            state,
+            times=np.arange(F)[s] / FPS,
+            xyz=xyz[s],
+            keypoint_valid=kv[s],
+            valid=valid[s],
+        )
+        parts.append(t)
+    np.testing.assert_array_equal(np.concatenate(parts), whole)
+    assert state.next_id == 2
+
+
+def test_the_gate_refuses_a_jump_and_the_2d_evidence_decides_between_near_people():
+    state = initial_state(len(BODY), 1)
+    here = BODY[None] + np.array([0.0, 0.0, 0.0])
+    state, ids = update_tracks(state, time=0.0, xyz=here, keypoint_valid=np.ones((1, 6), bool))
+    # 1 m away one frame later: a new person, not the same one.
+    far = here + np.array([1.0, 0.0, 0.0])
+    state2, ids2 = update_tracks(state, time=1 / FPS, xyz=far, keypoint_valid=np.ones((1, 6), bool))
+    assert ids.tolist() == [0] and ids2.tolist() == [1]
+
+    # Two tracks 0.3 m apart; the new frame's two people are halfway between in 3D (equal 3D
+    # cost either way), but their 2D skeletons in the one camera are those of the tracks.
+    state = initial_state(len(BODY), 1)
+    two = np.stack([BODY, BODY + [0.3, 0.0, 0.0]])
+    xy = np.stack([np.zeros((1, 6, 2)), np.full((1, 6, 2), 100.0)])
+    sc = np.ones((2, 1, 6))
+    per_px = np.full((2, 1), 0.003)
+    kv = np.ones((2, 6), bool)
+    state, ids = update_tracks(
+        state, time=0.0, xyz=two, keypoint_valid=kv, xy=xy, score=sc, metres_per_px=per_px
+    )
+    mid = np.stack([BODY + [0.15, 0.0, 0.0]] * 2)
+    state, ids = update_tracks(
+        state,
+        time=1 / FPS,
+        xyz=mid,
+        keypoint_valid=kv,
+        xy=xy[::-1] + 1.0,
+        score=sc,
+        metres_per_px=per_px,
+    )
+    assert ids.tolist() == [1, 0]
+
+
+def test_metres_per_pixel_is_depth_over_focal():
+    rig = load_rig("panoptic5")
+    point = np.array([0.3, -1.0, 0.2])
+    got = metres_per_pixel(rig, point)
+    R, t, K = (np.asarray(a) for a in (rig.R, rig.t, rig.K))
+    depth = (R @ point + t)[:, 2]
+    np.testing.assert_allclose(got, depth / ((K[:, 0, 0] + K[:, 1, 1]) / 2))
+
+
+@pytest.mark.slow  # the geometric pipeline over 60 frames of 3 people (a few seconds)
+def test_one_track_per_true_person_on_a_synthetic_recording():
+    rig = load_rig("panoptic5")
+    rec = generate_recording(rig, num_people=3, num_frames=60, seed=[7, 3, 3])
+    res = run_pipeline(rig, rec.detections, tracking=TrackingConfig(), chunk_frames=60)
+    chunked = run_pipeline(rig, rec.detections, tracking=TrackingConfig(), chunk_frames=16)
+    np.testing.assert_array_equal(chunked.track, res.track)
+    # Each reconstructed person's true identity: the majority of its skeletons' identities.
+    f, g, c = np.nonzero(res.members >= 0)
+    truth_of_skel = np.asarray(rec.identity)[f, c, res.members[f, g, c]]
+    votes = np.zeros(res.members.shape[:2] + (3,), int)
+    ok = truth_of_skel >= 0
+    np.add.at(votes, (f[ok], g[ok], truth_of_skel[ok]), 1)
+    valid = np.asarray(res.poses.valid) & (votes.sum(-1) > 0)
+    truth = votes.argmax(-1)
+    for person in range(3):
+        ids, counts = np.unique(res.track[valid & (truth == person)], return_counts=True)
+        main = ids[counts.argmax()]
+        assert counts.max() >= 0.95 * counts.sum()  # one track holds (almost) all of the person
+        # and that track is (almost) only this person
+        others = (res.track == main) & valid & (truth != person)
+        assert others.sum() <= 0.05 * counts.max()
