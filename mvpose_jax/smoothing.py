@@ -511,21 +511,3 @@ def _to_slots(
         track=track,
         filled=out_filled,
     )
-
-
-def jitter_mm(xyz: np.ndarray, keypoint_valid: np.ndarray, track: np.ndarray) -> float:
-    """Mean norm of the second difference of each track's keypoints (mm per frame²), over the
-    frame triples where the keypoint is valid three frames running.
-
-    Args:
-      xyz: (F, G, K, 3) metres; keypoint_valid (F, G, K); track (F, G) ids, -1 none (for ground
-        truth, the person index).
-    """
-    kv = np.asarray(keypoint_valid, bool)
-    series = track_series(track, kv.any(-1), xyz, kv)
-    x, m, same = series.xyz, series.keypoint_valid, ~series.starts
-    if len(x) < 3:
-        return float("nan")
-    d2 = _norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1)  # (N-2, K)
-    ok = m[2:] & m[1:-1] & m[:-2] & same[2:, None] & same[1:-1, None]
-    return float(1000 * d2[ok].mean()) if ok.any() else float("nan")

@@ -359,3 +359,20 @@ def test_jitter_closed_form_and_gaps():
     kv2[6] = False
     assert metrics.jitter(xyz2, kv2, valid, np.zeros((F, 1), int)) == pytest.approx(2 * a * 1000)
     assert np.isnan(metrics.jitter(xyz[:2], kv[:2], valid[:2], np.zeros((2, 1), int)))
+
+
+def test_jitter_of_two_tracks_is_the_mean_second_difference():
+    F = 30
+    t = np.arange(F, dtype=float)
+    xyz = np.zeros((F, 2, 1, 3))
+    xyz[:, 0, 0, 0] = 0.001 * t**2  # second difference 2 mm per frame²
+    xyz[:, 1, 0, 1] = 0.002 * t**2 + 5.0  # 4 mm per frame²
+    kv = np.ones((F, 2, 1), bool)
+    both = np.ones((F, 2), bool)
+    assert metrics.jitter(xyz, kv, both, np.tile([0, 1], (F, 1))) == pytest.approx(3.0)
+    # A track switch between the two people would be a huge jump; ids keep them apart.
+    swapped = np.tile([0, 1], (F, 1))
+    xyz_s = xyz.copy()
+    xyz_s[::2] = xyz_s[::2, ::-1]
+    swapped[::2] = swapped[::2, ::-1]
+    assert metrics.jitter(xyz_s, kv, both, swapped) == pytest.approx(3.0)

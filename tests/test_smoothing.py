@@ -14,7 +14,6 @@ from mvpose_jax.smoothing import (
     OneEuroConfig,
     butterworth,
     fill_gaps,
-    jitter_mm,
     one_euro_frames,
     one_euro_initial,
     one_euro_update,
@@ -226,19 +225,3 @@ def test_an_absent_person_frame_is_filled_into_a_free_slot_and_flagged():
             ),
             fps=10.0,
         )
-
-
-def test_jitter_is_the_mean_second_difference():
-    F = 30
-    t = np.arange(F, dtype=float)
-    xyz = np.zeros((F, 2, 1, 3))
-    xyz[:, 0, 0, 0] = 0.001 * t**2  # second difference 2 mm per frame²
-    xyz[:, 1, 0, 1] = 0.002 * t**2 + 5.0  # 4 mm per frame²
-    kv = np.ones((F, 2, 1), bool)
-    assert jitter_mm(xyz, kv, np.tile([0, 1], (F, 1))) == pytest.approx(3.0)
-    # A track switch between the two people would be a huge jump; ids keep them apart.
-    swapped = np.tile([0, 1], (F, 1))
-    xyz_s = xyz.copy()
-    xyz_s[::2] = xyz_s[::2, ::-1]
-    swapped[::2] = swapped[::2, ::-1]
-    assert jitter_mm(xyz_s, kv, swapped) == pytest.approx(3.0)
