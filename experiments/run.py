@@ -12,6 +12,9 @@ beside ours and labelled as the paper's):
   - the whole pipeline (5-view matcher -> proposals -> estimator) against triangulation on the
     same proposals, for the D-detected, D-projected and D-average variants: MPJPE, mAP, mR, PCP,
     completeness, t_pp, t_3Dg, t_3Di; and the estimator alone on true groupings.
+  - tracks over time on long scenes (1-8 people, 300 frames at 30 fps): identities (IDF1, ID
+    switches, MOTA, by py-motmetrics) and, per filter (none, One-Euro, Butterworth), jitter,
+    MPJPE and PCP, for the learned pipeline and for epipolar proposals + DLT.
 * ``paper-arp``: Tables 4 and 7 on the ``arplab6`` rig: matchers for the robot's 2 cameras and
   all 6; estimators M_1/6, M_2/6, M_6/6, M_2/2 (inference cameras: the robot's), with the
   reprojection error per camera (mean / median) of each model's people, on the true skeleton
@@ -44,6 +47,7 @@ from mvpose_jax.cameras import up_vector
 from mvpose_jax.data import save_recording, select_cameras
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
+from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.features import people_from_identity, single_person_samples
 from mvpose_jax.inference import (
     composed_frames,
@@ -58,6 +62,8 @@ from mvpose_jax.inference import (
 )
 from mvpose_jax.metrics import (
     PCP_CLASSES,
+    identity_metrics,
+    jitter,
     match_people,
     matching_scores,
     pose_metrics,
@@ -67,11 +73,13 @@ from mvpose_jax.models import GATConfig, MLPConfig
 from mvpose_jax.proposals import choose_geometric_cutoff, choose_proposal_threshold
 from mvpose_jax.render import curves_figure, save_figure, skeleton_figure
 from mvpose_jax.skeletons import Detections, Poses3D, evaluation_keypoints
+from mvpose_jax.smoothing import smooth_poses
 from mvpose_jax.synthetic import (
     detection_variants,
     generate_recording,
     generate_single_person_recordings,
 )
+from mvpose_jax.tracking import TrackingConfig
 from mvpose_jax.train import train_estimator, train_matcher
 from mvpose_jax.trained import MATCHER_TRAIN, EstimatorConfig, MatcherConfig, TrainConfig
 
@@ -135,6 +143,8 @@ class Scale:
       estimator: the estimator configuration (cameras filled in per model).
       threshold_frames: multi-person frames composed from the dev recordings to choose each
         matcher's proposal threshold on.
+      tracking_frames: frames of each tracking scene (one per entry of test_people, per split):
+        long scenes, for identities and jitter over time.
     """
 
     train_recordings: int
@@ -147,6 +157,7 @@ class Scale:
     matcher_steps: dict[int, int]
     estimator: EstimatorConfig
     threshold_frames: int = 1024
+    tracking_frames: int = 300
 
 
 def _estimator(mlp: MLPConfig, steps: int, batch: int = 256) -> EstimatorConfig:
@@ -197,6 +208,7 @@ SCALES = {
         matcher_steps={2: 4, 3: 4, 5: 4, 6: 4},
         estimator=_estimator(MLPConfig(widths=(64, 64)), steps=6, batch=64),
         threshold_frames=32,
+        tracking_frames=12,
     ),
     # Minutes on a 2-core CPU: the paper's GAT (the 3-layer quick GAT stays near chance at these
     # step counts) with short training, the small MLP. Matcher steps: ARI on the scenes that are
@@ -227,6 +239,7 @@ SCALES = {
         matcher=_matcher(GATConfig(), lr=1e-3, samples_per_epoch=1500, eval_every=5, dev=300),
         matcher_steps={2: 48000, 3: 40000, 5: 12000, 6: 12000},
         estimator=_estimator(MLPConfig(), steps=12000),
+        tracking_frames=900,
     ),
 }
 
@@ -241,6 +254,8 @@ SCALES = {
 #                                     test scenes until the measurement review, and were tuned on
 #   [data_seed, 5, n]                 test scenes: read for the reported tables only
 SPLITS = {"validation": 3, "test": 5}
+#   [data_seed, 4, n], [data_seed, 6, n]  the validation and test tracking scenes (long, n people)
+TRACKING_SPLITS = {"validation": 4, "test": 6}
 
 
 @dataclasses.dataclass
@@ -536,6 +551,125 @@ def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[di
             "gat_proposals_at_half": _rounded({"ours": behind_half}),
         }
     return rows, samples
+
+
+def make_tracking_scenes(rig, sc: Scale, data_seed: int) -> dict:
+    """Long multi-person scenes (one per entry of ``test_people``) for tracks over time."""
+    return {
+        split: [
+            generate_recording(
+                rig, num_people=n, num_frames=sc.tracking_frames, seed=[data_seed, stream, n]
+            )
+            for n in sc.test_people
+        ]
+        for split, stream in TRACKING_SPLITS.items()
+    }
+
+
+def _seen_truth(rec) -> Poses3D:
+    """The ground truth of the people at least one camera detected in each frame."""
+    gt = rec.ground_truth
+    ident = np.asarray(rec.identity)
+    seen = (ident[:, :, :, None] == np.arange(gt.valid.shape[1])).any(axis=(1, 2))
+    return gt._replace(valid=np.asarray(gt.valid) & seen)
+
+
+def _stack_frames(parts: list[np.ndarray], fill=0) -> np.ndarray:
+    """Arrays (F_i, G_i, ...) of consecutive scenes as one (sum F_i, max G_i, ...)."""
+    G = max(a.shape[1] for a in parts)
+    pad = lambda a: np.pad(  # noqa: E731
+        a, [(0, 0), (0, G - a.shape[1])] + [(0, 0)] * (a.ndim - 2), constant_values=fill
+    )
+    return np.concatenate([pad(np.asarray(a)) for a in parts])
+
+
+def tracking_rows(rig, scenes: list, matcher, estimator, fit: dict) -> dict:
+    """Tracks over time on long scenes: identities (IDF1, switches, MOTA) and, per filter, jitter,
+    MPJPE and PCP, for the learned pipeline and for epipolar proposals + DLT.
+
+    Each scene is its own stream (the tracker starts afresh); scenes are pooled by keeping their
+    track and person ids apart, so the pooled metrics are those of one long recording.
+    """
+    fps = 1.0 / float(np.median(np.diff(scenes[0].timestamps)))
+    layout = scenes[0].layout
+    pipelines = {
+        "gat_mlp": {"matcher": matcher, "estimator": estimator, "threshold": fit["threshold"]},
+        "epipolar_dlt": {"half_score_px": fit["geometric_cutoff_px"]},
+    }
+    filters = {
+        "none": {"filter": "none", "fill_gap_s": 0.0, "outlier_m": None},
+        "one_euro": {"filter": "one-euro", "fill_gap_s": 0.0, "outlier_m": None},
+        "butterworth": {"filter": "butterworth"},
+    }
+    out = {}
+    gts = [_seen_truth(r) for r in scenes]
+    G = max(g.valid.shape[1] for g in gts)
+    gt_ids = _stack_frames(
+        [
+            np.broadcast_to(i * G + np.arange(g.valid.shape[1]), g.valid.shape)
+            for i, g in enumerate(gts)
+        ]
+    )
+    gt = Poses3D(*(_stack_frames([g[i] for g in gts]) for i in range(3)))
+    gt_jitter = jitter(gt.xyz, gt.keypoint_valid, gt.valid, np.where(gt.valid, gt_ids, -1))
+    scoring = {"up": up_vector(rig), "person_ids": gt_ids, "layout": layout}
+    for name, kwargs in pipelines.items():
+        per_filter = {f: [] for f in filters}
+        tracks, seconds, person_frames = [], 0.0, 0
+        for i, rec in enumerate(scenes):
+            res = run_pipeline(rig, rec.detections, tracking=TrackingConfig(), fps=fps, **kwargs)
+            seconds += res.seconds["tracking"]
+            person_frames += int(res.poses.valid.sum())
+            tracks.append(np.where(res.track >= 0, res.track + i * 100_000, -1))
+            results = PoseResults(
+                res.poses,
+                res.confidence,
+                res.members,
+                res.identity,
+                res.cameras,
+                layout,
+                rec.timestamps,
+                res.track,
+            )
+            for f, fk in filters.items():
+                sm = smooth_poses(results, fps=fps, **fk)
+                filled = np.zeros_like(sm.poses.keypoint_valid) if sm.filled is None else sm.filled
+                per_filter[f].append((sm.poses, sm.track, filled))
+        track = _stack_frames(tracks, fill=-1)
+        raw = Poses3D(*(_stack_frames([p[0][i] for p in per_filter["none"]]) for i in range(3)))
+        row = {
+            "identity": identity_metrics(raw, track, gt, gt_ids=gt_ids, layout=layout),
+            "tracking_ms_per_person_frame": 1000 * seconds / max(person_frames, 1),
+            "gt_jitter_mm": gt_jitter,
+            "scene_people": [int(g.valid.shape[1]) for g in gts],
+        }
+        for f, parts in per_filter.items():
+            poses = Poses3D(*(_stack_frames([p[0][i] for p in parts]) for i in range(3)))
+            # Offsets as above, so scenes' tracks stay apart in the jitter too.
+            trk = _stack_frames(
+                [np.where(p[1] >= 0, p[1] + i * 100_000, -1) for i, p in enumerate(parts)], fill=-1
+            )
+            filled = _stack_frames([p[2] for p in parts], fill=False)
+            m = pose_metrics(poses, gt, **scoring)
+            row[f] = {
+                "jitter_mm": jitter(poses.xyz, poses.keypoint_valid, poses.valid, trk),
+                "mpjpe_mm": m["mpjpe_mm"],
+                "pcp": m["pcp"],
+                "completeness": m["completeness"],
+                "filled_share": float(100 * filled.sum() / max(poses.keypoint_valid.sum(), 1)),
+            }
+        out[name] = _rounded_tree(row)
+    return out
+
+
+def _rounded_tree(d):
+    if isinstance(d, dict):
+        return {k: _rounded_tree(v) for k, v in d.items()}
+    if isinstance(d, list):
+        return [_rounded_tree(v) for v in d]
+    if isinstance(d, (int, np.integer)):
+        return int(d)
+    return round(float(d), 4)
 
 
 def arp_rows(
@@ -878,6 +1012,7 @@ def paper_panoptic(
 ) -> tuple[list[dict], list[str]]:
     rig = load_rig("panoptic5")
     scenes = make_scenes(rig, sc, data_seed)
+    tracking_scenes = make_tracking_scenes(rig, sc, data_seed)
     views = {2: rig.names[:2], 3: rig.names[:3], 5: rig.names}
     runs = []
     for i, seed in enumerate(seeds):
@@ -904,6 +1039,13 @@ def paper_panoptic(
                     samples, rig, data.scenes["test"][0].layout, out / "figures"
                 )
                 res["figures"].append(_curves(res["training"], out / "figures"))
+        print(f"== seed {seed}: tracks over time", flush=True)
+        res["tracking"] = {
+            split: tracking_rows(
+                rig, tracking_scenes[split], matchers[5], est, res["training"]["matcher-5"]
+            )
+            for split in TRACKING_SPLITS
+        }
         runs.append(res)
         _save_partial(runs, out)
     return runs, panoptic_tables(runs)
@@ -916,12 +1058,74 @@ def panoptic_tables(runs: list[dict]) -> list[str]:
         runs, "test", PAPER_TABLE3, "Matching (Table 3): panoptic5, test scenes with 1-8 people"
     )
     lines += pose_table(runs, "test") + pose_papers_table()
+    lines += tracking_table(runs, "test")
     lines += ["## Validation scenes (where settings are chosen)", ""]
     lines += matching_table(
         runs, "validation", PAPER_TABLE3, "Matching: panoptic5, validation scenes with 1-8 people"
     )
     lines += pose_table(runs, "validation")
+    lines += tracking_table(runs, "validation")
     return lines
+
+
+def tracking_table(runs: list[dict], split: str) -> list[str]:
+    """Identities over time, and each filter's jitter and accuracy (tracking scenes)."""
+    runs = [r for r in runs if "tracking" in r]  # runs saved before tracking have none
+    if not runs:
+        return []
+    names = {"gat_mlp": "GAT + MLP (learned)", "epipolar_dlt": "epipolar + DLT"}
+    first = runs[0]["tracking"][split]["gat_mlp"]
+    people = first["scene_people"]
+    lines = [
+        f"### Tracks over time: panoptic5, {split} tracking scenes with {min(people)}-"
+        f"{max(people)} people, 30 fps ({first['identity']['person_frames']} person-frames)",
+        "",
+        _seeds_line(runs),
+        "",
+        "| pipeline | IDF1 | ID switches | per 1,000 person-frames | MOTA | tracks / people "
+        "| tracking ms per person-frame |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for key, title in names.items():
+        base = ("tracking", split, key)
+        lines.append(
+            f"| {title} | {_ms(runs, (*base, 'identity', 'idf1'), 4)} "
+            f"| {_ms(runs, (*base, 'identity', 'id_switches'), 1)} "
+            f"| {_ms(runs, (*base, 'identity', 'switches_per_1000'), 2)} "
+            f"| {_ms(runs, (*base, 'identity', 'mota'), 4)} "
+            f"| {_ms(runs, (*base, 'identity', 'num_tracks'), 1)} / "
+            f"{_ms(runs, (*base, 'identity', 'num_ids'), 0)} "
+            f"| {_ms(runs, (*base, 'tracking_ms_per_person_frame'), 3)} |"
+        )
+    lines += [
+        "",
+        "Jitter: mean |second difference| of keypoints along tracks (mm per frame²); the ground "
+        f"truth's own: {_ms(runs, ('tracking', split, 'gat_mlp', 'gt_jitter_mm'), 2)}.",
+        "Filters: none; One-Euro (causal, as the stream runs it); Butterworth (zero-phase, "
+        "offline) with outlier rejection and gaps up to 0.5 s filled (share of keypoints filled).",
+        "",
+        "| pipeline | filter | jitter mm/frame² | × ground truth | MPJPE mm | PCP % "
+        "| completeness % | filled % |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for key, title in names.items():
+        for f in ("none", "one_euro", "butterworth"):
+            base = ("tracking", split, key, f)
+            ratio = [
+                r["tracking"][split][key][f]["jitter_mm"]
+                / r["tracking"][split][key]["gt_jitter_mm"]
+                for r in runs
+            ]
+            ratio_txt = f"{np.mean(ratio):.2f}" + (
+                f" ± {np.std(ratio, ddof=1):.2f}" if len(ratio) > 1 else ""
+            )
+            lines.append(
+                f"| {title} | {f} | {_ms(runs, (*base, 'jitter_mm'), 2)} | {ratio_txt} "
+                f"| {_ms(runs, (*base, 'mpjpe_mm'), 1)} | {_ms(runs, (*base, 'pcp'), 2)} "
+                f"| {_ms(runs, (*base, 'completeness'), 2)} "
+                f"| {_ms(runs, (*base, 'filled_share'), 4)} |"
+            )
+    return lines + [""]
 
 
 def paper_arp(
