@@ -716,9 +716,25 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--method",
-        choices=("dlt", "centroid"),
+        choices=("dlt", "centroid", "robust"),
         default="dlt",
-        help="triangulation without --estimator: score-weighted DLT, or the paper's pairwise centroid",
+        help="triangulation without --estimator: score-weighted DLT, the paper's pairwise "
+        "centroid, or robust (DLT that drops a person's views that are not theirs, by the "
+        "median keypoint reprojection error, then each keypoint's outlier views; never below 2)",
+    )
+    p.add_argument(
+        "--outlier-px",
+        type=float,
+        default=None,
+        help="--method robust: reprojection error (px) that marks a keypoint's view as an "
+        "outlier (default 30, chosen on validation scenes)",
+    )
+    p.add_argument(
+        "--view-outlier-px",
+        type=float,
+        default=None,
+        help="--method robust: median keypoint reprojection error (px) that marks a whole view "
+        "as not the person's (default 30)",
     )
     p.add_argument(
         "--threshold",
@@ -773,6 +789,14 @@ def _infer(args: argparse.Namespace) -> int:
         half_score_px=args.half_score_px,
         chunk_frames=args.chunk_frames,
         progress=True,
+        **{
+            k: v
+            for k, v in (
+                ("outlier_px", args.outlier_px),
+                ("view_outlier_px", args.view_outlier_px),
+            )
+            if v is not None
+        },
     )
     out = PoseResults(
         res.poses,

@@ -123,6 +123,19 @@ def test_infer_with_a_calibration_file_and_evaluate(files, recording, tmp_path, 
     assert all(v["count"] > 0 for v in m["reprojection_px"].values())
 
 
+def test_infer_robust_triangulation(files, tmp_path, capsys):
+    outs = {}
+    for method, extra in (("dlt", []), ("robust", ["--outlier-px", "25"])):
+        out = outs[method] = tmp_path / method
+        argv = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out", str(out)]
+        assert main(argv + ["--method", method, *extra]) == 0
+    dlt, robust = (load_poses(outs[m] / "poses.npz") for m in ("dlt", "robust"))
+    # Same people (same proposals), and the clean synthetic views keep robust close to DLT.
+    np.testing.assert_array_equal(dlt.poses.valid, robust.poses.valid)
+    both = robust.poses.keypoint_valid & dlt.poses.keypoint_valid
+    assert both.any() and np.abs(robust.poses.xyz - dlt.poses.xyz)[both].max() < 0.2
+
+
 def test_evaluate_without_ground_truth_gives_reprojection_only(files, recording, tmp_path, capsys):
     bare = tmp_path / "bare.json"
     rec = load_recording(files["native"])
