@@ -477,3 +477,49 @@ def test_source_layout_reaches_the_openpose_reader(tmp_path, capsys):
     assert load_recording(out).layout == "coco17"
     assert main([*args, "--source-layout", "body25"]) == 2  # 17 numbers are not BODY_25's 25
     assert "body25" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # measures a floor twice (the geometric pipeline and robust triangulation)
+def test_floor_from_detections_end_to_end(tmp_path, capsys):
+    from mvpose_jax.synthetic import estimate_floor_height
+
+    rig = load_rig("panoptic5")
+    guess = estimate_floor_height(rig)
+    # "Your" recording: people on a floor half a metre below where the cameras suggest.
+    mine = tmp_path / "mine.npz"
+    argv = ["generate", "--rig", "panoptic5", "--people", "4", "--frames", "40"]
+    assert main([*argv, "--floor-height", f"{guess - 0.5}", "--out", str(mine)]) == 0
+    assert "guess" not in capsys.readouterr().err  # a floor was given: no warning
+    assert main(["rig", "--rig", "panoptic5", "--detections", str(mine)]) == 0
+    out = capsys.readouterr().out
+    assert "measured from the people" in out and "guessed from the cameras" in out
+    off = float(out.split("the guess is ")[1].split(" m off")[0])
+    assert abs(off - 0.5) < 0.03
+    train = tmp_path / "train"
+    argv = ["generate", "--rig", "panoptic5", "--single-person-recordings", "2", "--frames", "5"]
+    assert main([*argv, "--floor-from", str(mine), "--out", str(train), "--format", "npz"]) == 0
+    captured = capsys.readouterr()
+    assert "floor measured from" in captured.out and "guess" not in captured.err
+    for path in sorted(train.iterdir()):  # the training people stand near the measured floor
+        rec = load_recording(path)
+        h = np.asarray(rec.ground_truth.xyz)[:, :, 15:17] @ np.array([0.0, -1.0, 0.0])
+        # Measured floor +- the training jitter (0.3 m), ankles 0.07 m above it.
+        assert abs(np.median(h.min(-1)) - 0.07 - (guess - 0.5)) < 0.3 + 0.05
+
+
+def test_generate_warns_that_the_floor_is_a_guess(tmp_path, capsys):
+    argv = ["generate", "--rig", "panoptic5", "--people", "1", "--frames", "2"]
+    assert main([*argv, "--out", str(tmp_path / "a.npz")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the floor height is a guess from the camera positions" in err
+    assert "--floor-from DETECTIONS" in err
+    assert main([*argv, "--floor-height", "0", "--out", str(tmp_path / "b.npz")]) == 0
+    assert "guess" not in capsys.readouterr().err
+    # Too few people to measure a floor from: a clear error, nothing written.
+    few = ["--floor-from", str(tmp_path / "a.npz"), "--out", str(tmp_path / "c.npz")]
+    assert main([*argv, *few]) == 2
+    assert "cannot measure the floor" in capsys.readouterr().err
+    assert not (tmp_path / "c.npz").exists()
+    with pytest.raises(SystemExit):  # argparse: not both
+        main([*argv, "--floor-height", "0", *few])
+    assert "not allowed with argument" in capsys.readouterr().err
