@@ -67,10 +67,22 @@ def add_rig_argument(
     )
 
 
+def _rig_arguments(p: argparse.ArgumentParser) -> None:
+    add_rig_argument(p)
+    p.add_argument(
+        "--detections",
+        default=None,
+        help="also measure the floor from these detections (any format --detections takes "
+        "elsewhere, OpenPose folders included) and compare it with the guess from the cameras",
+    )
+    add_detection_options(p, what="--detections")
+
+
 @command(
     "rig",
-    "Show a rig (preset or calibration file): cameras, centres, image sizes, up.",
-    add_rig_argument,
+    "Show a rig (preset or calibration file): cameras, centres, image sizes, up; with "
+    "--detections, the floor measured from the people against the camera-based guess.",
+    _rig_arguments,
 )
 def _rig(args: argparse.Namespace) -> int:
     import numpy as np
@@ -93,7 +105,60 @@ def _rig(args: argparse.Namespace) -> int:
         print(
             f"  {name:>12s}  {w}x{h}  f={float(rig.K[c, 0, 0]):.1f}px  centre {np.round(centres[c], 3).tolist()}"
         )
+    if args.detections:
+        from mvpose_jax.synthetic import estimate_floor_height
+
+        measured = measure_floor(rig, args.detections, args)
+        guess = estimate_floor_height(rig)
+        print(
+            f"floor along up: {measured.height:.3f} m measured from the people (spread "
+            f"{measured.spread:.3f} m over {measured.num_samples} person-frames of "
+            f"{measured.num_frames} frames); {guess:.3f} m guessed from the cameras; the guess is "
+            f"{guess - measured.height:+.3f} m off"
+        )
     return 0
+
+
+def add_detection_options(p: argparse.ArgumentParser, *, what: str) -> None:
+    """How to read an OpenPose folder given to ``what`` (camera names, layout, missing frames)."""
+    p.add_argument(
+        "--missing-frames",
+        choices=("error", "empty"),
+        default=None,
+        help=f"OpenPose folders ({what}): a frame missing in some cameras is an error (default) "
+        "or empty there",
+    )
+    p.add_argument(
+        "--camera-map",
+        type=camera_map,
+        default=None,
+        metavar="FOLDER=CAMERA,...",
+        help=f"OpenPose folders ({what}): the calibration's camera name of each camera folder, "
+        "e.g. cam01_json=cam01 (default: the folder's name, less suffixes such as _json)",
+    )
+    p.add_argument(
+        "--source-layout",
+        default=None,
+        help=f"OpenPose folders ({what}): the files' keypoint layout (body25, openpose_coco18, "
+        "coco17, halpe26), when their keypoint count does not say it (default: from the count)",
+    )
+
+
+def measure_floor(rig, path: str, args: argparse.Namespace):
+    """`floor.estimate_floor_from_detections` on the recording at ``path`` (read with the
+    OpenPose options of `add_detection_options`), on the rig's cameras it holds."""
+    from mvpose_jax.data import load_recording
+    from mvpose_jax.floor import estimate_floor_from_detections
+
+    kwargs = {
+        k: v
+        for k in ("missing_frames", "camera_map", "source_layout")
+        if (v := getattr(args, k, None))
+    }
+    rec = load_recording(path, rig=rig, **kwargs)
+    return estimate_floor_from_detections(
+        rig.select(list(rec.cameras)), rec.detections, layout=rec.layout
+    )
 
 
 # --------------------------------------------------------------------------- generate
@@ -143,11 +208,32 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
         default=MotionConfig.fps,
         help=f"frame rate (default {MotionConfig.fps:g})",
     )
-    p.add_argument(
+    floor = p.add_mutually_exclusive_group()
+    floor.add_argument(
         "--floor-height",
         type=float,
         default=None,
-        help="floor height along the up vector, metres (default: estimated from the cameras)",
+        help="floor height along the up vector, metres (default: measured with --floor-from, "
+        "else guessed from the camera positions, with a warning)",
+    )
+    floor.add_argument(
+        "--floor-from",
+        metavar="DETECTIONS",
+        default=None,
+        help="measure the floor from your own detections of people on this rig (native JSON, "
+        "original JSON, .npz or an OpenPose folder): the triangulated feet of people seen by 3+ "
+        "cameras",
+    )
+    add_detection_options(p, what="--floor-from")
+    p.add_argument(
+        "--floor-jitter",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="each recording's floor is drawn within this distance of the floor height (its "
+        "capture area follows), so that models trained on them tolerate a floor that is off "
+        f"(default {TRAINING_FLOOR_JITTER_M:g} with --single-person-recordings, the training "
+        "data; 0 for a scene)",
     )
     p.add_argument(
         "--clean",
@@ -164,8 +250,16 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
         )
 
 
-def synthetic_config_from_args(args: argparse.Namespace) -> SyntheticConfig:
-    """The `SyntheticConfig` the options of ``generate`` describe."""
+# Floor jitter of `generate --single-person-recordings` (training data): the measured or guessed
+# floor may be off by a few decimetres, and training on one exact floor ties the models to it.
+TRAINING_FLOOR_JITTER_M = 0.3
+
+
+def synthetic_config_from_args(
+    args: argparse.Namespace, floor_height: float | None = None
+) -> SyntheticConfig:
+    """The `SyntheticConfig` the options of ``generate`` describe (``floor_height``: the
+    measured floor, when ``--floor-height`` is not given)."""
     import dataclasses
 
     from mvpose_jax.synthetic import DetectorConfig, MotionConfig, SceneConfig, SyntheticConfig
@@ -179,8 +273,21 @@ def synthetic_config_from_args(args: argparse.Namespace) -> SyntheticConfig:
     return SyntheticConfig(
         detector=dataclasses.replace(detector, **changes),
         motion=dataclasses.replace(MotionConfig(), fps=args.fps),
-        scene=dataclasses.replace(SceneConfig(), floor_height=args.floor_height),
+        scene=dataclasses.replace(
+            SceneConfig(),
+            floor_height=args.floor_height if args.floor_height is not None else floor_height,
+            floor_jitter_m=_floor_jitter(args),
+        ),
     )
+
+
+def _floor_jitter(args: argparse.Namespace) -> float:
+    jitter = getattr(args, "floor_jitter", None)
+    if jitter is None:
+        return TRAINING_FLOOR_JITTER_M if getattr(args, "single_person_recordings", 0) > 0 else 0.0
+    if not jitter >= 0:
+        raise InputError(f"must be >= 0, not {jitter}", field="--floor-jitter")
+    return jitter
 
 
 @command(
@@ -199,8 +306,26 @@ def _generate(args: argparse.Namespace) -> int:
         translation_scale=getattr(args, "translation_scale", 1.0),
         orthonormalise=getattr(args, "orthonormalise", False),
     )
-    config = synthetic_config_from_args(args)
     out = check_writable(args.out, folder=args.single_person_recordings > 0)
+    measured = None
+    if args.floor_from:
+        measured = measure_floor(rig, args.floor_from, args)
+        print(
+            f"floor measured from {args.floor_from}: {measured.height:.3f} m along up (spread "
+            f"{measured.spread:.3f} m over {measured.num_samples} person-frames)"
+        )
+    config = synthetic_config_from_args(args, None if measured is None else measured.height)
+    if config.scene.floor_height is None:
+        from mvpose_jax.synthetic import scene_geometry
+
+        guess = scene_geometry(rig, config.scene).floor_height
+        warnings.warn(
+            f"the floor height is a guess from the camera positions ({guess:.3f} m along up), "
+            "which can be half a metre off on a real rig, and models trained on a wrong floor "
+            "fail on the real one; pass --floor-height or --floor-from DETECTIONS",
+            MvposeWarning,
+            stacklevel=1,
+        )
     if args.single_person_recordings > 0:
         recordings = generate_single_person_recordings(
             rig,
@@ -719,9 +844,25 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--method",
-        choices=("dlt", "centroid"),
+        choices=("dlt", "centroid", "robust"),
         default="dlt",
-        help="triangulation without --estimator: score-weighted DLT, or the paper's pairwise centroid",
+        help="triangulation without --estimator: score-weighted DLT, the paper's pairwise "
+        "centroid, or robust (DLT that drops a person's views that are not theirs, by the "
+        "median keypoint reprojection error, then each keypoint's outlier views; never below 2)",
+    )
+    p.add_argument(
+        "--outlier-px",
+        type=float,
+        default=None,
+        help="--method robust: reprojection error (px) that marks a keypoint's view as an "
+        "outlier (default 30, chosen on validation scenes)",
+    )
+    p.add_argument(
+        "--view-outlier-px",
+        type=float,
+        default=None,
+        help="--method robust: median keypoint reprojection error (px) that marks a whole view "
+        "as not the person's (default 30)",
     )
     p.add_argument(
         "--threshold",
@@ -757,12 +898,6 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         metavar="FORMATS",
         help="also write the poses as trc, c3d and/or csv (comma list) in --out, as `export` "
         "does with its defaults: one file per track, mm, OpenSim axes from the rig's up",
-    )
-    p.add_argument(
-        "--fps",
-        type=float,
-        help="frame rate for --export (default: from the detections' timestamps; required "
-        "without them)",
     )
 
 
@@ -805,7 +940,8 @@ def add_smoothing_arguments(p: argparse.ArgumentParser, *, default_filter: str) 
         "--fps",
         type=float,
         default=None,
-        help="frame rate (default: the recording's, from its timestamps; else 30)",
+        help="frame rate (default: the recording's, from its timestamps; without them, tracking "
+        "and filters assume 30, and infer --export refuses to guess)",
     )
 
 
@@ -875,6 +1011,14 @@ def _infer(args: argparse.Namespace) -> int:
         tracking=tracking,
         one_euro=one_euro if tracking is not None and args.filter == "one-euro" else None,
         fps=fps,
+        **{
+            k: v
+            for k, v in (
+                ("outlier_px", args.outlier_px),
+                ("view_outlier_px", args.view_outlier_px),
+            )
+            if v is not None
+        },
     )
     out = PoseResults(
         res.poses,

@@ -42,7 +42,17 @@ from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initia
 from mvpose_jax.tracking import TrackingConfig, track_frames
 from mvpose_jax.tracking import initial_state as tracker_initial_state
 from mvpose_jax.trained import Estimator, Matcher
-from mvpose_jax.triangulate import camera_pairs, triangulate_pairwise_centroid, triangulate_points
+from mvpose_jax.triangulate import (
+    OUTLIER_PX,
+    VIEW_OUTLIER_PX,
+    camera_pairs,
+    triangulate_pairwise_centroid,
+    triangulate_points,
+    triangulate_skeletons_robust,
+)
+
+# The triangulation methods of the 3D stage without an estimator.
+TRIANGULATION_METHODS = ("dlt", "centroid", "robust")
 
 # Models are called through jit-compiled functions with their NNX GraphDef closed over, one per
 # GraphDef: passed as a static argument, a GraphDef is hashed on every call, and hashing one
@@ -144,20 +154,37 @@ def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def triangulate_people(
-    rig: Rig, xy: np.ndarray, score: np.ndarray, method: str = "centroid"
+    rig: Rig,
+    xy: np.ndarray,
+    score: np.ndarray,
+    method: str = "centroid",
+    *,
+    outlier_px: float = OUTLIER_PX,
+    view_outlier_px: float = VIEW_OUTLIER_PX,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The triangulation baseline on grouped people.
 
     Args:
       rig: the C cameras of the views.
       xy: (N, C, K, 2); score: (N, C, K).
-      method: "centroid" (the paper's pairwise centroid) or "dlt" (score-weighted DLT).
+      method: "centroid" (the paper's pairwise centroid), "dlt" (score-weighted DLT) or "robust"
+        (score-weighted DLT that rejects a person's wrong views, then each keypoint's outlier
+        views: `triangulate.triangulate_skeletons_robust`).
+      outlier_px, view_outlier_px: "robust" only: the keypoint and whole-view thresholds, px.
     Returns:
       xyz (N, K, 3) and keypoint_valid (N, K): which keypoints two or more views reconstructed.
     """
-    fn = {"centroid": triangulate_pairwise_centroid, "dlt": triangulate_points}[method]
+    if method not in TRIANGULATION_METHODS:
+        raise ValueError(f"method must be one of {TRIANGULATION_METHODS}, not {method!r}")
     xy_p, score_p = _pad_people(xy, score)
-    xyz, ok = fn(rig, np.moveaxis(xy_p, 1, 0), np.moveaxis(score_p, 1, 0))
+    px, w = np.moveaxis(xy_p, 1, 0), np.moveaxis(score_p, 1, 0)
+    if method == "robust":
+        xyz, ok, _ = triangulate_skeletons_robust(
+            rig, px, w, outlier_px=outlier_px, view_outlier_px=view_outlier_px
+        )
+    else:
+        fn = {"centroid": triangulate_pairwise_centroid, "dlt": triangulate_points}[method]
+        xyz, ok = fn(rig, px, w)
     return np.asarray(xyz)[: len(xy)], np.asarray(ok)[: len(xy)]
 
 
@@ -197,15 +224,25 @@ def estimate_grouped(
 
 
 def triangulate_grouped(
-    rig: Rig, xy: np.ndarray, score: np.ndarray, method: str = "centroid", min_views: int = 2
+    rig: Rig,
+    xy: np.ndarray,
+    score: np.ndarray,
+    method: str = "centroid",
+    min_views: int = 2,
+    **robust,
 ) -> tuple[Poses3D, np.ndarray]:
-    """The triangulation baseline for grouped people (same grouping as `estimate_grouped`)."""
+    """The triangulation baseline for grouped people (same grouping as `estimate_grouped`).
+
+    ``robust``: `triangulate_people`'s thresholds for method "robust".
+    """
     F, G, C, K = score.shape
     exists = _present(score, min_views)
     out = np.zeros((F, G, K, 3), np.float32)
     kv = np.zeros((F, G, K), bool)
     if exists.any():
-        out[exists], kv[exists] = triangulate_people(rig, xy[exists], score[exists], method)
+        out[exists], kv[exists] = triangulate_people(
+            rig, xy[exists], score[exists], method, **robust
+        )
     exists = exists & kv.any(axis=-1)
     return poses_from_people(out, kv, exists), _confidence(score)
 
@@ -701,6 +738,8 @@ def poses_of_members(
     estimator: Estimator | None = None,
     method: str = "dlt",
     min_views: int = 2,
+    outlier_px: float = OUTLIER_PX,
+    view_outlier_px: float = VIEW_OUTLIER_PX,
 ) -> tuple[Poses3D, np.ndarray]:
     """The 3D stage on given person groupings (proposals, or any other).
 
@@ -709,14 +748,24 @@ def poses_of_members(
       detections: xy (F, C, P, K, 2), score (F, C, P, K).
       members: (F, G, C) each person's skeleton index per camera, -1 none.
       estimator: 3D from it, on its inference cameras (found by name in ``rig``); None:
-        triangulation (``method`` "dlt" or "centroid") of keypoints seen in 2+ views.
+        triangulation (``method`` "dlt", "centroid" or "robust", see `triangulate_people`) of
+        keypoints seen in 2+ views.
       min_views: a person needs skeletons in this many (inference) views.
+      outlier_px, view_outlier_px: method "robust"'s thresholds (`triangulate_people`).
     Returns:
       (`Poses3D` (F, G, ...), confidence (F, G)).
     """
     p_xy, p_score = group_people(detections.xy, detections.score, members)
     if estimator is None:
-        return triangulate_grouped(rig, p_xy, p_score, method, min_views)
+        return triangulate_grouped(
+            rig,
+            p_xy,
+            p_score,
+            method,
+            min_views,
+            outlier_px=outlier_px,
+            view_outlier_px=view_outlier_px,
+        )
     if tuple(rig.names) != tuple(estimator.rig_infer.names):
         idx = _camera_columns(rig.names, estimator.rig_infer.names, "the estimator's inference")
         p_xy, p_score = p_xy[:, :, idx], p_score[:, :, idx]
@@ -743,6 +792,8 @@ def stream_pipeline(
     threshold: float = 0.5,
     min_views: int = 2,
     half_score_px: float = 30.0,
+    outlier_px: float = OUTLIER_PX,
+    view_outlier_px: float = VIEW_OUTLIER_PX,
     chunk_frames: int = 256,
     progress: bool = False,
     tracking: TrackingConfig | None = None,
@@ -757,9 +808,10 @@ def stream_pipeline(
       matcher: proposals from this learned matcher, on its cameras (``matcher.rig.names``); None:
         the geometric matcher (symmetric epipolar distance, ``half_score_px``) on every camera.
       estimator: 3D from this estimator, on its inference cameras (a subset of the proposal
-        cameras); None: triangulation of every keypoint seen in 2+ views (``method`` "dlt" or
-        "centroid", the paper's pairwise centroid).
+        cameras); None: triangulation of every keypoint seen in 2+ views (``method`` "dlt",
+        "centroid", the paper's pairwise centroid, or "robust", DLT that rejects outlier views).
       threshold, min_views: the proposal step (`propose_people`).
+      outlier_px, view_outlier_px: method "robust"'s thresholds (`triangulate_people`).
       chunk_frames: frames per chunk (memory is bounded by it).
       tracking: persistent person ids (`tracking.track_frames`, with each person's 2D skeletons
         as evidence), the tracker's state carried from chunk to chunk; None: no tracks.
@@ -792,8 +844,8 @@ def stream_pipeline(
             )
     if estimator is not None:
         _camera_columns(prop_cams, estimator.rig_infer.names, "the estimator's inference")
-    elif method not in ("dlt", "centroid"):
-        raise ValueError(f"method must be 'dlt' or 'centroid', not {method!r}")
+    elif method not in TRIANGULATION_METHODS:
+        raise ValueError(f"method must be one of {TRIANGULATION_METHODS}, not {method!r}")
     F = len(count)
     tracker = tracker_initial_state(K, len(prop_cams))
     smoother = one_euro_initial(K)
@@ -820,7 +872,14 @@ def stream_pipeline(
             members = _members_table(proposals, stop - start, len(prop_cams))
             t1 = time.perf_counter()
             poses, conf = poses_of_members(
-                prop_rig, det, members, estimator=estimator, method=method, min_views=min_views
+                prop_rig,
+                det,
+                members,
+                estimator=estimator,
+                method=method,
+                min_views=min_views,
+                outlier_px=outlier_px,
+                view_outlier_px=view_outlier_px,
             )
             t2 = time.perf_counter()
             # A person is kept only where the 3D stage produced one; its members say so too.

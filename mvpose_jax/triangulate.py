@@ -1,11 +1,13 @@
 """Triangulation of keypoints seen by several cameras: batched, masked, jit-able.
 
-Two estimators, both on UNDISTORTED normalised image coordinates and in a world frame centred on
-the rig (which keeps float32 well conditioned, unlike DLT on raw pixels and world coordinates):
+Estimators on UNDISTORTED normalised image coordinates and in a world frame centred on the rig
+(which keeps float32 well conditioned, unlike DLT on raw pixels and world coordinates):
 
 * `triangulate_points`: score-weighted linear (DLT) least squares over all views at once.
 * `triangulate_pairwise_centroid`: the paper's initial estimate and baseline; every pair of views
   that both see the keypoint is triangulated on its own and the results are averaged.
+* `triangulate_robust` / `triangulate_skeletons_robust`: the DLT after rejecting views whose
+  reprojection error marks them as outliers (per point; per skeleton, whole views first).
 
 Both take the camera axis first, like `cameras`: ``px (C, ..., 2)``, ``weight (C, ...)``, and return
 ``xyz (..., 3)`` with ``valid (...)``. A keypoint is valid when at least two views see it and their
@@ -172,3 +174,232 @@ def centroid_of_pairs(xyz: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.
     n = valid.sum(axis=-1)
     mean = jnp.sum(jnp.where(valid[..., None], xyz, 0.0), axis=-2) / jnp.maximum(n, 1)[..., None]
     return jnp.where((n > 0)[..., None], mean, 0.0), n > 0
+
+
+# =========================================================================== robust triangulation
+# A view can be wrong: a left/right swap or a stray keypoint in one camera, or, after a wrong
+# match, another person's skeleton (or a fragment) in the person's group. Such a view is wrong on
+# one keypoint, or on most of the skeleton at once, and DLT spreads its error over every view.
+# The robust estimator rejects views whose reprojection error marks them as outliers, in two
+# stages: whole views of a person first (a view whose MEDIAN keypoint error is an outlier is not
+# this person's skeleton), then single keypoints. Each stage is a greedy backward selection with a
+# fixed number of steps (C - 2, masks, no data-dependent control flow): while the worst view's
+# error exceeds the threshold and three or more views remain, drop the view whose removal leaves
+# the most consistent rest (the least largest error of the remaining views, each triangulated
+# without the candidate). Leaving each candidate out, rather than dropping the view with the
+# largest error under the all-view fit, matters with few views: an outlier pulls the joint fit
+# towards itself, so with three views a good view often shows the largest error. The leave-one-out
+# fits cost little: the normal equations are sums over views (`_view_normals`), so each candidate
+# set is one more 3x3 closed-form solve. RANSAC over view pairs would need more solves and a
+# random or exhaustive pair choice for the same outcome with C <= 8 views; iterative reweighting
+# has no fixed step count to a clean rejection and keeps a small pull from every outlier.
+
+# Reprojection error (undistorted pixels) above which a keypoint's view is an outlier, and above
+# which a view's median keypoint error marks the whole skeleton as not this person's. Chosen on
+# the validation scenes (`python -m experiments.robust_triangulation`, docs/robust_triangulation.md); a view's detections are 8-12 px (mean)
+# from the truth on panoptic5-sized people, so inliers stay well below both.
+OUTLIER_PX = 30.0
+VIEW_OUTLIER_PX = 30.0
+# A view's median is judged only over at least this many keypoints it shares with the fit: the
+# median of one or two keypoints is one keypoint's verdict, which the per-keypoint stage gives.
+_MIN_KEYPOINTS_FOR_VIEW = 3
+
+
+def _focal_lengths(rig: Rig) -> jax.Array:
+    """(C, 2) fx, fy: normalised image coordinates times these are (undistorted) pixels."""
+    return jnp.stack([rig.K[:, 0, 0], rig.K[:, 1, 1]], axis=-1)
+
+
+def _reprojection_px(Rt: jax.Array, focal: jax.Array, X: jax.Array, xy: jax.Array) -> jax.Array:
+    """Undistorted-pixel distance between each camera's projection of X and its observation.
+
+    Args:
+      Rt: (C, 3, 4) centred projection matrices; focal: (C, 2) pixels.
+      X: (..., 3) points in the centred frame; xy: (..., C, 2) normalised observations.
+    Returns:
+      (..., C) pixels; inf where the point is not in front of the camera.
+    """
+    lead = (1,) * (X.ndim - 1)  # explicit broadcasting (the tests raise on rank promotion)
+    cam = jnp.einsum("cij,...j->...ci", Rt[:, :, :3], X) + Rt[:, :, 3].reshape(lead + (-1, 3))
+    z = cam[..., 2]
+    front = z > 1e-6
+    proj = cam[..., :2] / jnp.where(front, z, 1.0)[..., None]  # (..., C, 2)
+    d = (proj - xy) * focal.reshape(lead + (-1, 2))
+    err = jnp.sqrt(jnp.sum(d * d, axis=-1))
+    return jnp.where(front & jnp.isfinite(err), err, jnp.inf)
+
+
+def _masked_sums(mask: jax.Array, m: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Normal equations of the views in ``mask`` (..., C): sums of m (..., C, 3, 3), b (..., C, 3).
+
+    ``mask`` may carry extra leading axes before the view axis that ``m`` lacks (one per
+    candidate set); the sum is exact per set, never a difference of sums.
+    """
+    a = mask.astype(m.dtype)
+    return jnp.einsum("...c,...cij->...ij", a, m), jnp.einsum("...c,...ci->...i", a, b)
+
+
+def _drop_one(
+    active: jax.Array, spread: jax.Array, worst: jax.Array, threshold: jax.Array
+) -> jax.Array:
+    """One greedy step: drop argmin(spread) where the worst error exceeds the threshold and at
+    least three views remain. active (B, C) bool, spread (B, C) (inf: not a candidate), worst (B,)."""
+    C = active.shape[-1]
+    best = jnp.argmin(spread, axis=-1)
+    drop = (active.sum(-1) >= 3) & (worst > threshold) & jnp.isfinite(jnp.min(spread, axis=-1))
+    return active & ~(drop[:, None] & (jnp.arange(C)[None] == best[:, None]))
+
+
+def _keypoint_selection(
+    Rt: jax.Array,
+    focal: jax.Array,
+    m: jax.Array,
+    b: jax.Array,
+    xy: jax.Array,
+    active: jax.Array,
+    threshold: jax.Array,
+) -> jax.Array:
+    """Per-point greedy view rejection. m (B, C, 3, 3), b (B, C, 3), xy (B, C, 2), active (B, C)
+    -> the views kept (B, C)."""
+    C = active.shape[-1]
+    others = ~jnp.eye(C, dtype=bool)  # (candidate, view): the views left without the candidate
+
+    def step(_, active):
+        X, ok = _solve_normals(*_masked_sums(active, m, b), active.sum(-1))
+        err = _reprojection_px(Rt, focal, X, xy)  # (B, C)
+        worst = jnp.where(ok, jnp.max(jnp.where(active, err, -jnp.inf), axis=-1), -jnp.inf)
+        rest = active[:, None, :] & others[None]  # (B, Q, C), Q = candidates
+        X_q, ok_q = _solve_normals(*_masked_sums(rest, m[:, None], b[:, None]), rest.sum(-1))
+        err_q = _reprojection_px(Rt, focal, X_q, xy[:, None])  # (B, Q, C)
+        spread = jnp.max(jnp.where(rest, err_q, -jnp.inf), axis=-1)
+        spread = jnp.where(active & ok_q, spread, jnp.inf)
+        return _drop_one(active, spread, worst, threshold)
+
+    return jax.lax.fori_loop(0, max(C - 2, 0), step, active)
+
+
+def _view_medians(err: jax.Array, use: jax.Array) -> jax.Array:
+    """Median over keypoints of each view's error. err, use: (..., K, C) -> (..., C), NaN where
+    fewer than `_MIN_KEYPOINTS_FOR_VIEW` keypoints are used."""
+    med = jnp.nanmedian(jnp.where(use, err, jnp.nan), axis=-2)
+    return jnp.where(use.sum(-2) >= _MIN_KEYPOINTS_FOR_VIEW, med, jnp.nan)
+
+
+def _skeleton_selection(
+    Rt: jax.Array,
+    focal: jax.Array,
+    m: jax.Array,
+    b: jax.Array,
+    xy: jax.Array,
+    seen: jax.Array,
+    threshold: jax.Array,
+) -> jax.Array:
+    """Per-person greedy rejection of whole views by their median keypoint error.
+
+    m (N, K, C, 3, 3), b (N, K, C, 3), xy (N, K, C, 2), seen (N, K, C) -> views kept (N, C).
+    """
+    C = seen.shape[-1]
+    others = ~jnp.eye(C, dtype=bool)
+
+    def step(_, views):  # views: (N, C)
+        use = seen & views[:, None, :]  # (N, K, C)
+        X, ok = _solve_normals(*_masked_sums(use, m, b), use.sum(-1))  # (N, K, 3)
+        med = _view_medians(_reprojection_px(Rt, focal, X, xy), use & ok[..., None])  # (N, C)
+        worst = jnp.nanmax(jnp.where(views, med, jnp.nan), axis=-1)
+        worst = jnp.where(jnp.isnan(worst), -jnp.inf, worst)
+        rest = views[:, None, :] & others[None]  # (N, Q, C)
+        use_q = seen[:, None] & rest[:, :, None, :]  # (N, Q, K, C)
+        X_q, ok_q = _solve_normals(*_masked_sums(use_q, m[:, None], b[:, None]), use_q.sum(-1))
+        err_q = _reprojection_px(Rt, focal, X_q, xy[:, None])  # (N, Q, K, C)
+        med_q = _view_medians(err_q, use_q & ok_q[..., None])  # (N, Q, C)
+        spread = jnp.nanmax(jnp.where(rest, med_q, jnp.nan), axis=-1)  # (N, Q)
+        spread = jnp.where(views & ~jnp.isnan(spread), spread, jnp.inf)
+        return _drop_one(views, spread, worst, threshold)
+
+    return jax.lax.fori_loop(0, max(C - 2, 0), step, (seen.any(axis=1)))
+
+
+@jax.jit
+def triangulate_robust(
+    rig: Rig, px: jax.Array, weight: jax.Array, *, outlier_px: float = OUTLIER_PX
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Score-weighted DLT that rejects outlier views of each point.
+
+    While the worst view's reprojection error exceeds ``outlier_px`` and three or more views
+    remain, the view whose removal leaves the most consistent rest is dropped (C - 2 steps at
+    most, so never below two views); then DLT on the views kept. Without outliers it is
+    `triangulate_points`.
+
+    Args:
+      rig: the C cameras.
+      px: (C, ..., 2) distorted pixels; weight: (C, ...) scores, 0 = not seen.
+      outlier_px: reprojection error (undistorted pixels) that marks a view as an outlier.
+    Returns:
+      xyz (..., 3) metres (0 where invalid), valid (...), kept (C, ...) bool: the views used.
+    """
+    Rt, centre, radius = _centred_extrinsics(rig)
+    xy, w, batch = _flatten(rig, px, weight)
+    m, b = _view_normals(Rt, xy, w)
+    kept = _keypoint_selection(
+        Rt, _focal_lengths(rig), m, b, xy, w > 0, jnp.asarray(outlier_px, xy.dtype)
+    )
+    return _finish(m, b, kept, centre, radius, batch)
+
+
+@jax.jit
+def triangulate_skeletons_robust(
+    rig: Rig,
+    px: jax.Array,
+    weight: jax.Array,
+    *,
+    outlier_px: float = OUTLIER_PX,
+    view_outlier_px: float = VIEW_OUTLIER_PX,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Robust triangulation of whole skeletons: wrong views of the person, then of each keypoint.
+
+    First, per person, while the largest median keypoint error of a view exceeds
+    ``view_outlier_px`` and three or more views remain, the view whose removal leaves the most
+    consistent rest is dropped for every keypoint (another person's skeleton, or a fragment, in
+    the person's group). Then `triangulate_robust`'s per-keypoint rejection on the views left.
+
+    Args:
+      rig: the C cameras.
+      px: (C, ..., K, 2) distorted pixels, the last batch axis the skeleton's K keypoints.
+      weight: (C, ..., K) scores, 0 = not seen.
+      outlier_px: per-keypoint outlier threshold, undistorted pixels.
+      view_outlier_px: whole-view threshold on the median keypoint error; inf: no whole-view
+        stage.
+    Returns:
+      xyz (..., K, 3) metres (0 where invalid), valid (..., K), kept (C, ..., K) bool.
+    """
+    Rt, centre, radius = _centred_extrinsics(rig)
+    if np.ndim(weight) < 2:
+        raise ValueError("weight must be (C, ..., K): a keypoint axis after the cameras")
+    xy, w, batch = _flatten(rig, px, weight)  # (B, C, 2), (B, C) with B = N * K
+    C, K = w.shape[1], batch[-1]
+    N = xy.shape[0] // max(K, 1)
+    m, b = _view_normals(Rt, xy, w)
+    focal = _focal_lengths(rig)
+    views = _skeleton_selection(
+        Rt,
+        focal,
+        m.reshape(N, K, C, 3, 3),
+        b.reshape(N, K, C, 3),
+        xy.reshape(N, K, C, 2),
+        (w > 0).reshape(N, K, C),
+        jnp.asarray(view_outlier_px, xy.dtype),
+    )  # (N, C)
+    active = (w > 0) & jnp.repeat(views, K, axis=0)  # (B, C)
+    kept = _keypoint_selection(Rt, focal, m, b, xy, active, jnp.asarray(outlier_px, xy.dtype))
+    return _finish(m, b, kept, centre, radius, batch)
+
+
+def _finish(m, b, kept, centre, radius, batch):
+    """DLT on the kept views, back to world metres, reshaped to the batch."""
+    xyz, ok = _solve_normals(*_masked_sums(kept, m, b), kept.sum(-1))
+    xyz = jnp.where(ok[:, None], xyz * radius + centre[None], 0.0)
+    return (
+        xyz.reshape(batch + (3,)),
+        ok.reshape(batch),
+        jnp.moveaxis(kept, 1, 0).reshape((kept.shape[1],) + batch),
+    )

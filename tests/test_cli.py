@@ -126,6 +126,19 @@ def test_infer_with_a_calibration_file_and_evaluate(files, recording, tmp_path, 
     assert all(v["count"] > 0 for v in m["reprojection_px"].values())
 
 
+def test_infer_robust_triangulation(files, tmp_path, capsys):
+    outs = {}
+    for method, extra in (("dlt", []), ("robust", ["--outlier-px", "25"])):
+        out = outs[method] = tmp_path / method
+        argv = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out", str(out)]
+        assert main(argv + ["--method", method, *extra]) == 0
+    dlt, robust = (load_poses(outs[m] / "poses.npz") for m in ("dlt", "robust"))
+    # Same people (same proposals), and the clean synthetic views keep robust close to DLT.
+    np.testing.assert_array_equal(dlt.poses.valid, robust.poses.valid)
+    both = robust.poses.keypoint_valid & dlt.poses.keypoint_valid
+    assert both.any() and np.abs(robust.poses.xyz - dlt.poses.xyz)[both].max() < 0.2
+
+
 def test_evaluate_without_ground_truth_gives_reprojection_only(files, recording, tmp_path, capsys):
     bare = tmp_path / "bare.json"
     rec = load_recording(files["native"])
@@ -586,17 +599,25 @@ def test_infer_exports_after_the_poses(three_people, tmp_path, capsys):
     args = ["infer", "--rig", "panoptic5", "--detections", str(scene), "--out", str(out)]
     assert main([*args, "--export", "trc,c3d"]) == 0
     captured = capsys.readouterr()
-    # infer has no tracker: each slot is exported as a track, and the user is told so
-    assert "slot is not the same person over time" in captured.err
+    # infer tracks: one file per track, no warning about slots
+    assert "slot is not the same person over time" not in captured.err
     res = load_poses(out)
-    slots = sorted({int(g) for g in np.nonzero(res.poses.valid)[1]})
+    tracks = sorted({int(t) for t in res.track[res.poses.valid]})
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
-        ["poses.json", "poses.npz"] + [f"poses_track{g}.{e}" for g in slots for e in ("trc", "c3d")]
+        ["poses.json", "poses.npz"]
+        + [f"poses_track{t}.{e}" for t in tracks for e in ("trc", "c3d")]
     )
     assert "exported" in captured.out
-    trc = read_trc(out / f"poses_track{slots[0]}.trc")
+    trc = read_trc(out / f"poses_track{tracks[0]}.trc")
     assert float(trc["header"]["DataRate"]) == pytest.approx(1 / np.median(np.diff(rec.timestamps)))
+    # Without the tracker each slot is exported as a track, and the user is told so.
+    untracked = tmp_path / "untracked"
+    args[-1] = str(untracked)
+    assert main([*args, "--export", "trc", "--no-track"]) == 0
+    assert "slot is not the same person over time" in capsys.readouterr().err
+    slots = sorted({int(g) for g in np.nonzero(load_poses(untracked).poses.valid)[1]})
+    assert sorted(p.name for p in untracked.glob("*.trc")) == [f"poses_track{g}.trc" for g in slots]
 
 
 def test_export_errors_are_clear_and_write_nothing(three_people, tmp_path, capsys):
@@ -679,3 +700,49 @@ def test_infer_tracks_filters_and_smooth_refilters(files, recording, tmp_path, c
     assert "no tracks" in capsys.readouterr().err
     assert main(args + ["--out", str(bare), "--cutoff-hz", "-1"]) == 2
     assert "--cutoff-hz" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # measures a floor twice (the geometric pipeline and robust triangulation)
+def test_floor_from_detections_end_to_end(tmp_path, capsys):
+    from mvpose_jax.synthetic import estimate_floor_height
+
+    rig = load_rig("panoptic5")
+    guess = estimate_floor_height(rig)
+    # "Your" recording: people on a floor half a metre below where the cameras suggest.
+    mine = tmp_path / "mine.npz"
+    argv = ["generate", "--rig", "panoptic5", "--people", "4", "--frames", "40"]
+    assert main([*argv, "--floor-height", f"{guess - 0.5}", "--out", str(mine)]) == 0
+    assert "guess" not in capsys.readouterr().err  # a floor was given: no warning
+    assert main(["rig", "--rig", "panoptic5", "--detections", str(mine)]) == 0
+    out = capsys.readouterr().out
+    assert "measured from the people" in out and "guessed from the cameras" in out
+    off = float(out.split("the guess is ")[1].split(" m off")[0])
+    assert abs(off - 0.5) < 0.03
+    train = tmp_path / "train"
+    argv = ["generate", "--rig", "panoptic5", "--single-person-recordings", "2", "--frames", "5"]
+    assert main([*argv, "--floor-from", str(mine), "--out", str(train), "--format", "npz"]) == 0
+    captured = capsys.readouterr()
+    assert "floor measured from" in captured.out and "guess" not in captured.err
+    for path in sorted(train.iterdir()):  # the training people stand near the measured floor
+        rec = load_recording(path)
+        h = np.asarray(rec.ground_truth.xyz)[:, :, 15:17] @ np.array([0.0, -1.0, 0.0])
+        # Measured floor +- the training jitter (0.3 m), ankles 0.07 m above it.
+        assert abs(np.median(h.min(-1)) - 0.07 - (guess - 0.5)) < 0.3 + 0.05
+
+
+def test_generate_warns_that_the_floor_is_a_guess(tmp_path, capsys):
+    argv = ["generate", "--rig", "panoptic5", "--people", "1", "--frames", "2"]
+    assert main([*argv, "--out", str(tmp_path / "a.npz")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the floor height is a guess from the camera positions" in err
+    assert "--floor-from DETECTIONS" in err
+    assert main([*argv, "--floor-height", "0", "--out", str(tmp_path / "b.npz")]) == 0
+    assert "guess" not in capsys.readouterr().err
+    # Too few people to measure a floor from: a clear error, nothing written.
+    few = ["--floor-from", str(tmp_path / "a.npz"), "--out", str(tmp_path / "c.npz")]
+    assert main([*argv, *few]) == 2
+    assert "cannot measure the floor" in capsys.readouterr().err
+    assert not (tmp_path / "c.npz").exists()
+    with pytest.raises(SystemExit):  # argparse: not both
+        main([*argv, "--floor-height", "0", *few])
+    assert "not allowed with argument" in capsys.readouterr().err

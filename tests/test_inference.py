@@ -158,6 +158,36 @@ def test_triangulation_on_the_pipeline_groups_matches_direct_call(scene):
     np.testing.assert_allclose(poses.xyz, res.poses.xyz, atol=1e-6)
 
 
+def test_robust_triangulation_survives_a_wrong_skeleton_in_a_group(scene):
+    rig, rec = scene
+    ident = np.asarray(rec.identity)
+    members = members_from_identity(ident, 3)  # the true groups ...
+    gt = rec.ground_truth
+    clean = {
+        m: pose_metrics(poses_of_members(rig, rec.detections, members, method=m)[0], gt)
+        for m in ("dlt", "robust")
+    }
+    # ... then person 0's group holds person 1's skeleton in one of its views, every frame.
+    wrong = members.copy()
+    for f in range(len(members)):
+        cams = np.nonzero((members[f, 0] >= 0) & (members[f, 1] >= 0))[0]
+        if (members[f, 0] >= 0).sum() >= 3 and len(cams):
+            wrong[f, 0, cams[0]] = members[f, 1, cams[0]]
+    assert (wrong != members).any()
+    bad = {
+        m: pose_metrics(poses_of_members(rig, rec.detections, wrong, method=m)[0], gt)
+        for m in ("dlt", "robust")
+    }
+    assert bad["dlt"]["mpjpe_mm"] > clean["dlt"]["mpjpe_mm"] + 20  # DLT is pulled off ...
+    assert bad["robust"]["mpjpe_mm"] < clean["dlt"]["mpjpe_mm"] + 5  # ... robust barely moves
+    assert clean["robust"]["mpjpe_mm"] <= clean["dlt"]["mpjpe_mm"] + 0.5
+    res = run_pipeline(rig, rec.detections, method="robust")
+    poses, _ = poses_of_members(rig, rec.detections, res.members, method="robust")
+    np.testing.assert_allclose(poses.xyz, res.poses.xyz, atol=1e-6)
+    with pytest.raises(ValueError, match="robust"):
+        run_pipeline(rig, rec.detections, method="median")
+
+
 @pytest.mark.slow  # uses the trained `models`
 def test_keypoint_count_mismatch_is_a_clear_error(scene, models):
     rig, rec = scene
@@ -220,7 +250,7 @@ def test_no_nan_leaves_the_pipeline_on_degenerate_input(scene, models, use_estim
     det = _degenerate_detections(rig)
     estimator = models[1] if use_estimator else None
     # threshold 0 so that even the junk frame's skeletons get grouped and reach the 3D stage.
-    for method in ("dlt", "centroid"):
+    for method in ("dlt", "centroid", "robust"):
         res = run_pipeline(rig, det, estimator=estimator, method=method, threshold=0.0)
         assert np.isfinite(res.poses.xyz).all() and np.isfinite(res.confidence).all()
         # Invalid keypoints are zeroed, invalid people have no valid keypoint.
@@ -245,7 +275,7 @@ def test_colinear_cameras_give_invalid_not_nan():
     score = np.full((1, 3, 1, Kp), 0.9, np.float32)
     det = Detections(xy, score, np.ones((1, 3), np.int32))
     members = np.zeros((1, 1, 3), np.int32)
-    for method in ("dlt", "centroid"):
+    for method in ("dlt", "centroid", "robust"):
         poses, conf = poses_of_members(rig, det, members, method=method)
         assert np.isfinite(poses.xyz).all() and np.isfinite(conf).all()
         assert not poses.keypoint_valid.any() and not poses.valid.any()

@@ -13,6 +13,7 @@ from mvpose_jax.cameras import Rig, make_rig, project_points
 from mvpose_jax.data import load_recording
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.checks import check_recording
+from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import COCO18
 from mvpose_jax.synthetic import (
     SyntheticConfig,
@@ -314,3 +315,23 @@ def test_synthetic_figure_command(tmp_path, capsys):
     assert cli.main(argv) == 0
     assert capsys.readouterr().out.strip() == str(out)
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_floor_jitter_gives_each_recording_its_own_floor(panoptic):
+    base = scene_geometry(panoptic).floor_height
+    config = SyntheticConfig(scene=dataclasses.replace(SyntheticConfig().scene, floor_jitter_m=0.3))
+    scenes = simulate(panoptic, num_people=1, num_frames=15, num_scenes=8, config=config, seed=2)
+    floors = np.array([s.geometry.floor_height for s in scenes])
+    assert len(np.unique(floors)) >= 5 and np.abs(floors - base).max() <= 0.3 + 1e-9
+    for s in scenes:  # people stand on their own recording's floor (ankles 6-7 cm above it)
+        h = np.asarray(s.recording.ground_truth.xyz) @ s.geometry.up - s.geometry.floor_height
+        low = np.minimum(h[..., COCO18.index("l_ankle")], h[..., COCO18.index("r_ankle")])
+        assert 0.04 < np.median(low) < 0.09
+    # No jitter (the default) is the generator as it was: one floor, the same recordings.
+    still = dataclasses.replace(config, scene=dataclasses.replace(config.scene, floor_jitter_m=0))
+    a = simulate(panoptic, num_people=1, num_frames=15, num_scenes=2, config=still, seed=2)
+    b = simulate(panoptic, num_people=1, num_frames=15, num_scenes=2, seed=2)
+    np.testing.assert_array_equal(a[1].recording.detections.xy, b[1].recording.detections.xy)
+    bad = dataclasses.replace(config, scene=dataclasses.replace(config.scene, floor_jitter_m=-1))
+    with pytest.raises(InputError, match="floor_jitter_m"):
+        simulate(panoptic, num_people=1, num_frames=5, config=bad)

@@ -159,3 +159,144 @@ def test_junk_in_unseen_views_does_not_leak(ring_rig):
         xyz, ok = fn(ring_rig, jnp.asarray(px), jnp.asarray(w))
         assert bool(ok.all())
         np.testing.assert_allclose(xyz, X, atol=1e-4)
+
+
+# --------------------------------------------------------------------------- robust triangulation
+
+ROBUST = (
+    lambda rig, px, w: triangulate.triangulate_robust(rig, px, w),
+    lambda rig, px, w: triangulate.triangulate_skeletons_robust(rig, px, w),
+)
+
+
+@pytest.mark.parametrize("fn", ROBUST, ids=["per-keypoint", "skeleton"])
+def test_robust_equals_dlt_without_outliers(fn):
+    rig = random_rig(seed=11, num_cameras=5)
+    X = scene_points(rig, 12, (4, 18))
+    px = np.asarray(cameras.project_points(rig, jnp.asarray(X)))
+    px = px + np.random.default_rng(13).normal(scale=1.5, size=px.shape)  # detector noise
+    w = np.random.default_rng(14).uniform(0.3, 1.0, px.shape[:-1]).astype(np.float32)
+    w[0, :, :5] = 0.0  # and some unseen keypoints
+    dlt, ok = triangulate.triangulate_points(rig, jnp.asarray(px, jnp.float32), jnp.asarray(w))
+    xyz, valid, kept = jax.jit(fn)(rig, jnp.asarray(px, jnp.float32), jnp.asarray(w))
+    np.testing.assert_array_equal(kept, w > 0)  # nothing dropped ...
+    np.testing.assert_array_equal(valid, ok)
+    np.testing.assert_allclose(xyz, dlt, atol=1e-6)  # ... so it is the DLT
+
+
+def test_robust_two_views_is_opencv(preset_rig):
+    X = scene_points(preset_rig, 15, (30,))
+    px = np.asarray(cameras.project_points(preset_rig, jnp.asarray(X)))
+    px = px + np.random.default_rng(16).normal(scale=1.0, size=px.shape)
+    w = np.zeros(px.shape[:-1], np.float32)
+    w[[0, 1]] = 1.0
+    xyz, ok, kept = triangulate.triangulate_robust(
+        preset_rig, jnp.asarray(px, jnp.float32), jnp.asarray(w)
+    )
+    assert bool(ok.all()) and bool(kept[:2].all()) and not bool(kept[2:].any())
+    np.testing.assert_allclose(xyz, _cv_two_view(preset_rig, 0, 1, px[0], px[1]), atol=1e-3)
+    # Far off: with two views nothing can say which one is wrong, so both stay (plain DLT).
+    px[1, :10] += 80.0
+    xyz, ok, kept = triangulate.triangulate_robust(
+        preset_rig, jnp.asarray(px, jnp.float32), jnp.asarray(w)
+    )
+    dlt, _ = triangulate.triangulate_points(preset_rig, jnp.asarray(px, jnp.float32), w)
+    assert bool(kept[:2].all())
+    np.testing.assert_allclose(xyz, dlt, atol=1e-6)
+
+
+@pytest.mark.parametrize("num_cameras", [4, 5])
+def test_robust_rejects_a_wild_view_of_each_point(num_cameras):
+    rig = random_rig(seed=17, num_cameras=num_cameras)
+    X = scene_points(rig, 18, (60,))
+    px = np.asarray(cameras.project_points(rig, jnp.asarray(X)))
+    rng = np.random.default_rng(19)
+    px = px + rng.normal(scale=1.0, size=px.shape)
+    bad = rng.integers(0, num_cameras, len(X))  # each point: one view is a wild point
+    wild = rng.uniform([0, 0], [1920, 1080], (len(X), 2))
+    # ... far enough to be an outlier (a few land within 40 px of the truth: those are not).
+    wild = np.where(
+        np.linalg.norm(wild - px[bad, np.arange(len(X))], axis=-1)[:, None] < 150,
+        wild + 300.0,
+        wild,
+    )
+    px[bad, np.arange(len(X))] = wild
+    w = np.ones(px.shape[:-1], np.float32)
+    xyz, ok, kept = triangulate.triangulate_robust(rig, jnp.asarray(px, jnp.float32), w)
+    dlt, _ = triangulate.triangulate_points(rig, jnp.asarray(px, jnp.float32), w)
+    err = np.linalg.norm(np.asarray(xyz) - X, axis=-1)
+    assert bool(ok.all())
+    assert np.median(np.linalg.norm(np.asarray(dlt) - X, axis=-1)) > 0.05  # DLT is pulled off
+    assert err.max() < 0.01  # within a centimetre of the truth
+    expected = np.ones_like(w, bool)
+    expected[bad, np.arange(len(X))] = False
+    np.testing.assert_array_equal(kept, expected)  # exactly the wild views are dropped
+
+
+def test_robust_skeleton_rejects_another_persons_view():
+    rig = random_rig(seed=20, num_cameras=5)
+    X = scene_points(rig, 21, (2, 18))  # two people (random keypoint clouds)
+    X[1] = X[0] + np.array([0.6, 0.0, 0.3], np.float32)  # the other stands beside the first
+    px = np.asarray(cameras.project_points(rig, jnp.asarray(X)))
+    px = px + np.random.default_rng(22).normal(scale=1.0, size=px.shape)
+    # Person 0's group holds person 1's skeleton in camera 2 (a wrong match); camera 3 sees
+    # only a few of person 0's keypoints, so some keypoints have two views, one of them wrong.
+    px[2, 0] = px[2, 1]
+    w = np.ones(px.shape[:-1], np.float32)
+    w[3, 0, 6:] = 0.0
+    w[[0, 1], 0, 12:] = 0.0  # keypoints 12-17: cameras 2 (wrong) and 4 only
+    xyz, ok, kept = triangulate.triangulate_skeletons_robust(
+        rig, jnp.asarray(px, jnp.float32), jnp.asarray(w)
+    )
+    kept = np.asarray(kept)
+    assert not kept[2, 0].any()  # the wrong view is dropped for the whole person ...
+    assert kept[:, 1].all()  # ... and nothing of the other person
+    err = np.linalg.norm(np.asarray(xyz) - X, axis=-1)
+    assert err[0, :12].max() < 0.01 and err[1].max() < 0.01
+    # Keypoints left with one view are invalid, not another person's point.
+    assert not np.asarray(ok)[0, 12:].any()
+    # The per-keypoint stage alone cannot tell which of two views is wrong.
+    only_kp, ok_kp, _ = triangulate.triangulate_robust(
+        rig, jnp.asarray(px, jnp.float32), jnp.asarray(w)
+    )
+    assert (
+        bool(ok_kp[0, 12:].all())
+        and np.linalg.norm(only_kp[0, 12:] - X[0, 12:], axis=-1).min() > 0.05
+    )
+
+
+def test_robust_never_below_two_views_and_respects_masks():
+    rig = random_rig(seed=23, num_cameras=5)
+    X = scene_points(rig, 24, (40,))
+    rng = np.random.default_rng(25)
+    # Every view is garbage: the worst error always exceeds any threshold.
+    px = rng.uniform([0, 0], [1920, 1080], (5, len(X), 2)).astype(np.float32)
+    w = (rng.random((5, len(X))) < 0.7).astype(np.float32)
+    px[w == 0] = np.nan  # junk where unseen must not leak
+    xyz, ok, kept = triangulate.triangulate_robust(rig, jnp.asarray(px), jnp.asarray(w))
+    kept, seen = np.asarray(kept), w > 0
+    assert not (kept & ~seen).any()  # a masked view is never used
+    n = seen.sum(0)
+    np.testing.assert_array_equal(kept.sum(0), np.minimum(n, 2) * (n >= 2) + (n < 2) * n)
+    assert np.isfinite(np.asarray(xyz)).all()
+    xyz, ok, kept = triangulate.triangulate_skeletons_robust(
+        rig, jnp.asarray(px.reshape(5, 4, 10, 2)), jnp.asarray(w.reshape(5, 4, 10))
+    )
+    # Whole views are dropped per person, never below two of the person's views (a keypoint
+    # may then keep one view: it is invalid, not another person's point).
+    kept = np.asarray(kept)
+    assert not (kept.reshape(5, -1) & ~seen).any()
+    person_views = seen.reshape(5, 4, 10).any(-1).sum(0)
+    np.testing.assert_array_equal(kept.any(-1).sum(0), np.minimum(person_views, 2))
+    assert np.isfinite(np.asarray(xyz)).all()
+
+
+def test_robust_thresholds_do_not_recompile(ring_rig):
+    X = scene_points(ring_rig, 26, (3, 18))
+    px = cameras.project_points(ring_rig, jnp.asarray(X))
+    w = jnp.ones(px.shape[:-1])
+    fn = triangulate.triangulate_skeletons_robust
+    fn(ring_rig, px, w, outlier_px=10.0, view_outlier_px=20.0)
+    before = fn._cache_size()
+    fn(ring_rig, px, w, outlier_px=25.0, view_outlier_px=jnp.inf)
+    assert fn._cache_size() == before

@@ -157,6 +157,11 @@ class SceneConfig:
       hull_margin: when the cameras surround the space, the area stays this far inside the
         horizontal convex hull of the camera centres (people do not walk into the cameras).
       camera_clearance: the area keeps this horizontal distance from every camera centre.
+      floor_jitter_m: each generated recording (each scene of `simulate`) gets its own floor,
+        drawn uniformly within this many metres of ``floor_height`` (or of the estimate), in 1 cm
+        steps; its capture area follows (it is derived from the floor). Training recordings made
+        with a jitter teach the models that the floor is not exactly where it was measured or
+        guessed. 0 (the default) keeps one floor.
     """
 
     up: tuple[float, float, float] | None = None
@@ -166,6 +171,7 @@ class SceneConfig:
     cell_size: float = 0.1
     hull_margin: float = 0.5
     camera_clearance: float = 1.0
+    floor_jitter_m: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

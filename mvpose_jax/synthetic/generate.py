@@ -150,21 +150,46 @@ def simulate(
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     geometry = scene_geometry(rig, config.scene)
     per_batch = max(1, _BATCH_FRAMES // (num_frames * num_people))
-    starts = range(0, num_scenes, per_batch)
+    # Scenes simulated together share one floor: with a floor jitter, every scene draws its own
+    # (whole centimetres, so few distinct geometries are built and cached) and scenes are batched
+    # per floor.
+    jobs = [(geometry, list(range(num_scenes)))]
+    jitter = config.scene.floor_jitter_m
+    if not (np.isfinite(jitter) and jitter >= 0):
+        raise InputError(f"floor_jitter_m must be >= 0, not {jitter}", field="floor_jitter_m")
+    if jitter > 0:
+        offsets = np.round(rng.uniform(-jitter, jitter, num_scenes), 2)
+        jobs = [
+            (
+                scene_geometry(
+                    rig,
+                    dataclasses.replace(
+                        config.scene,
+                        floor_height=round(geometry.floor_height + float(o), 4),
+                        floor_jitter_m=0.0,
+                    ),
+                ),
+                np.nonzero(offsets == o)[0].tolist(),
+            )
+            for o in np.unique(offsets)
+        ]
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=num_scenes * num_frames, unit="frame", desc="generating", leave=False)
-    out: list[SyntheticScene] = []
-    for s in starts:
-        b = min(per_batch, num_scenes - s)
-        out.extend(_simulate_batch(rig, geometry, b, num_people, num_frames, config, rng))
-        if bar is not None:
-            bar.update(b * num_frames)
+    out: list[SyntheticScene | None] = [None] * num_scenes
+    for geo, scenes in jobs:
+        for s in range(0, len(scenes), per_batch):
+            batch = scenes[s : s + per_batch]
+            made = _simulate_batch(rig, geo, len(batch), num_people, num_frames, config, rng)
+            for i, scene in zip(batch, made, strict=True):
+                out[i] = scene
+            if bar is not None:
+                bar.update(len(batch) * num_frames)
     if bar is not None:
         bar.close()
-    return out
+    return out  # type: ignore[return-value]
 
 
 def detection_variants(recording: Recording) -> dict[str, Recording]:
