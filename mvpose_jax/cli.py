@@ -579,6 +579,12 @@ def _load_detections(args: argparse.Namespace, rig):
     """The recording of ``--detections`` (any format; an OpenPose folder too) on the rig's cameras."""
     from mvpose_jax.data import load_recording
 
+    rec = load_recording(args.detections, layout=args.layout, rig=rig, **_reading_options(args))
+    return rec, rig.select(list(rec.cameras))
+
+
+def _reading_options(args: argparse.Namespace) -> dict:
+    """The reading options given (OpenPose folders' options and the camera selection)."""
     kwargs = {}
     if getattr(args, "missing_frames", None):
         kwargs["missing_frames"] = args.missing_frames
@@ -588,9 +594,8 @@ def _load_detections(args: argparse.Namespace, rig):
         kwargs["source_layout"] = args.source_layout
     # Cameras are chosen while loading: an OpenPose folder's other folders (a stray or
     # uncalibrated camera) are never read.
-    cameras = getattr(args, "cameras", None) or None
-    rec = load_recording(args.detections, layout=args.layout, rig=rig, cameras=cameras, **kwargs)
-    return rec, rig.select(list(rec.cameras))
+    kwargs["cameras"] = getattr(args, "cameras", None) or None
+    return kwargs
 
 
 def _detection_arguments(p: argparse.ArgumentParser) -> None:
@@ -734,74 +739,192 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         default=30.0,
         help="geometric matcher: epipolar distance (px) that scores 0.5",
     )
-    p.add_argument("--chunk-frames", type=int, default=256, help="frames per batch (bounds memory)")
-    p.add_argument("--out", required=True, help="output folder: poses.json and poses.npz")
+    p.add_argument(
+        "--chunk-frames",
+        type=int,
+        default=256,
+        help="frames per chunk: .npz files and OpenPose folders are read, processed and written "
+        "a chunk at a time, so memory does not grow with the recording (native and original "
+        "JSON are one document and are loaded whole: convert long ones to .npz)",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output folder: poses.json and poses.npz; finished chunks go to OUT/chunks/ while "
+        "the run lasts",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted run from the chunks it finished (OUT/chunks/), with the "
+        "same settings (a changed one is refused, named); without an unfinished run, start over",
+    )
+    p.add_argument(
+        "--keep-chunks",
+        action="store_true",
+        help="keep OUT/chunks/ (each chunk's results and the run's settings) after writing the "
+        "results; default: removed once poses.json and poses.npz are written",
+    )
 
 
 @command(
     "infer",
-    "3D poses from a calibration and 2D detections: matching, proposals, estimator or triangulation.",
+    "3D poses from a calibration and 2D detections: matching, proposals, estimator or "
+    "triangulation; a chunk of frames at a time (Ctrl-C keeps the finished chunks: --resume).",
     _infer_arguments,
 )
 def _infer(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from mvpose_jax.data import open_recording
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.data.poses import PoseResults, save_poses
-    from mvpose_jax.inference import run_pipeline
+    from mvpose_jax.data.chunks import ChunkStore
+    from mvpose_jax.data.poses import PoseResults
+    from mvpose_jax.inference import stream_pipeline
     from mvpose_jax.proposals import read_proposal_threshold
     from mvpose_jax.trained import load_estimator, load_matcher
 
     check_writable(args.out, folder=True)
+    if args.chunk_frames < 1:
+        raise InputError("must be at least 1", field="--chunk-frames")
     rig_all = load_rig(
         args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
     )
-    rec, rig = _load_detections(args, rig_all)
-    matcher = load_matcher(args.matcher, rig) if args.matcher else None
-    estimator = load_estimator(args.estimator, rig) if args.estimator else None
-    if args.chunk_frames < 1:
-        raise InputError("must be at least 1", field="--chunk-frames")
-    threshold = read_proposal_threshold(args.matcher, args.threshold)
-    res = run_pipeline(
-        rig,
-        rec.detections,
-        matcher=matcher,
-        estimator=estimator,
-        method=args.method,
-        threshold=threshold,
-        min_views=args.min_views,
-        half_score_px=args.half_score_px,
-        chunk_frames=args.chunk_frames,
-        progress=True,
+    stream = open_recording(
+        args.detections, layout=args.layout, rig=rig_all, **_reading_options(args)
     )
-    out = PoseResults(
-        res.poses,
-        res.confidence,
-        res.members,
-        res.identity,
-        res.cameras,
-        rec.layout,
-        rec.timestamps,
-    )
-    npz_path, json_path = save_poses(out, args.out)
-    F = len(res.confidence)
-    people = int(np.asarray(res.poses.valid).sum())
-    if people == 0 and F > 0:
-        warnings.warn(_why_nobody(rec, res.cameras, args, threshold), MvposeWarning, stacklevel=1)
+    with stream:
+        rig = rig_all.select(list(stream.cameras))
+        matcher = load_matcher(args.matcher, rig) if args.matcher else None
+        estimator = load_estimator(args.estimator, rig) if args.estimator else None
+        threshold = read_proposal_threshold(args.matcher, args.threshold)
+        F = stream.num_frames
+        store = ChunkStore(
+            os.path.join(args.out, "chunks"),
+            settings=_infer_settings(args, stream, threshold),
+            frames_total=F,
+            chunk_frames=args.chunk_frames,
+        )
+        start = store.begin(resume=args.resume)
+        if store.discarded:
+            warnings.warn(
+                f"{store.folder} held {store.discarded} finished chunk(s) of an earlier unfinished "
+                "run: removed, starting over (--resume continues such a run)",
+                MvposeWarning,
+                stacklevel=1,
+            )
+        if start:
+            print(f"resuming at frame {start} of {F} ({start // args.chunk_frames} chunks done)")
+        # What a chunk's results need of its recording besides the detections, by first frame.
+        timestamps: dict[int, object] = {}
+        counts: dict[int, np.ndarray] = {}
+
+        def chunks():
+            for first, rec in stream.chunks(args.chunk_frames, start=start):
+                timestamps[first] = rec.timestamps
+                counts[first] = np.asarray(rec.detections.count)
+                yield first, rec.detections
+
+        frames = people = views = 0
+        seconds = {"proposals": 0.0, "poses": 0.0}
+        try:
+            for first, res in stream_pipeline(
+                rig,
+                chunks(),
+                matcher=matcher,
+                estimator=estimator,
+                method=args.method,
+                threshold=threshold,
+                min_views=args.min_views,
+                half_score_px=args.half_score_px,
+                num_frames=F - start,
+                progress=True,
+            ):
+                store.save(
+                    first,
+                    PoseResults(
+                        res.poses,
+                        res.confidence,
+                        res.members,
+                        res.identity,
+                        res.cameras,
+                        stream.layout,
+                        timestamps.pop(first),
+                    ),
+                )
+                idx = [stream.cameras.index(c) for c in res.cameras]
+                count = counts.pop(first)[:, idx]
+                views = max(views, int((count > 0).sum(axis=1).max(initial=0)))
+                frames += len(res.confidence)
+                people += int(np.asarray(res.poses.valid).sum())
+                for k in seconds:
+                    seconds[k] += res.seconds[k]
+        except KeyboardInterrupt:
+            done = store.assemble(args.out)
+            print(
+                f"mvpose-jax infer: interrupted: wrote partial results, frames 0-{done.frames - 1} "
+                f"of {F}, to {done.json} and {done.npz}; the same command with --resume continues",
+                file=sys.stderr,
+            )
+            return 130
+        except BaseException:
+            done = store.assemble(args.out)
+            if done.frames:
+                print(
+                    f"mvpose-jax infer: stopped by the error below: wrote partial results, frames "
+                    f"0-{done.frames - 1} of {F}, to {done.json} and {done.npz}; once it is fixed, "
+                    "the same command with --resume continues",
+                    file=sys.stderr,
+                )
+            raise
+        done = store.assemble(args.out)
+        if not args.keep_chunks:
+            store.remove()
+    if people == 0 and frames > 0 and start == 0:
+        warnings.warn(_why_nobody(views, res.cameras, args, threshold), MvposeWarning, stacklevel=1)
     print(
-        f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame); proposals "
-        f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
-        f"ms/frame; wrote {json_path} and {npz_path}"
+        f"{F} frames, {people} people in the {frames} frames run now "
+        f"({people / max(frames, 1):.2f} per frame); proposals "
+        f"{1000 * seconds['proposals'] / max(frames, 1):.2f} ms/frame, 3D "
+        f"{1000 * seconds['poses'] / max(frames, 1):.2f} ms/frame; wrote {done.json} and {done.npz}"
     )
     return 0
 
 
-def _why_nobody(rec, cameras, args: argparse.Namespace, threshold: float) -> str:
-    """Which setting left a whole recording without a single person."""
-    import numpy as np
+def _infer_settings(args: argparse.Namespace, stream, threshold: float) -> dict:
+    """Every input and setting of ``infer`` that changes its results, by option name (what an
+    unfinished run must share with the command that resumes it)."""
+    from pathlib import Path
 
-    idx = [rec.cameras.index(c) for c in cameras]
-    views = int((np.asarray(rec.detections.count)[:, idx] > 0).sum(axis=1).max(initial=0))
+    def where(path):
+        return None if path is None else str(Path(path).resolve())
+
+    rig_file = Path(args.rig)
+    settings = {
+        "--detections": where(args.detections),
+        "--rig": where(rig_file) if rig_file.exists() else args.rig,
+        "--translation-scale": args.translation_scale,
+        "--orthonormalise": args.orthonormalise,
+        "--layout": stream.layout,
+        "--cameras": list(stream.cameras),
+        "--missing-frames": args.missing_frames,
+        "--camera-map": args.camera_map,
+        "--source-layout": args.source_layout,
+        "--matcher": where(args.matcher),
+        "--estimator": where(args.estimator),
+        "--threshold": threshold,
+        "--min-views": args.min_views,
+    }
+    if args.estimator is None:
+        settings["--method"] = args.method
+    if args.matcher is None:
+        settings["--half-score-px"] = args.half_score_px
+    return settings
+
+
+def _why_nobody(views: int, cameras, args: argparse.Namespace, threshold: float) -> str:
+    """Which setting left a whole recording without a single person (``views``: the most
+    proposal cameras with skeletons in any frame)."""
     head = "no person in any frame: "
     if views == 0:
         return head + "the recording has no skeleton in the proposal cameras " + ", ".join(cameras)

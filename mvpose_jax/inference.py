@@ -11,7 +11,7 @@ from __future__ import annotations
 import collections
 import functools
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import NamedTuple
 
 import jax
@@ -728,7 +728,7 @@ def _camera_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> l
 
 def stream_pipeline(
     rig: Rig,
-    detections: Detections,
+    detections: Detections | Iterable[tuple[int, Detections]],
     *,
     matcher: Matcher | None = None,
     estimator: Estimator | None = None,
@@ -738,12 +738,16 @@ def stream_pipeline(
     half_score_px: float = 30.0,
     chunk_frames: int = 256,
     progress: bool = False,
+    num_frames: int | None = None,
 ) -> Iterator[tuple[int, PipelineResult]]:
     """The pipeline over a recording, one chunk of frames at a time: yields (first frame, result).
 
     Args:
       rig: the cameras of the detections, in their order (``rig.names``).
-      detections: xy (F, C, P, K, 2) pixels, score (F, C, P, K), count (F, C).
+      detections: the whole recording, xy (F, C, P, K, 2) pixels, score (F, C, P, K), count
+        (F, C), cut into chunks of ``chunk_frames``; or the chunks themselves, an iterable of
+        (first frame, `Detections`) (e.g. from `mvpose_jax.data.RecordingStream.chunks`: then
+        only one chunk is in memory at a time, and ``chunk_frames`` is not used).
       matcher: proposals from this learned matcher, on its cameras (``matcher.rig.names``); None:
         the geometric matcher (symmetric epipolar distance, ``half_score_px``) on every camera.
       estimator: 3D from this estimator, on its inference cameras (a subset of the proposal
@@ -751,42 +755,63 @@ def stream_pipeline(
         "centroid", the paper's pairwise centroid).
       threshold, min_views: the proposal step (`propose_people`).
       chunk_frames: frames per chunk (memory is bounded by it).
+      progress: show a progress bar.
+      num_frames: frames the chunks hold in all (the progress bar's length) when ``detections``
+        is an iterable of chunks; default: unknown.
+    Raises:
+      InputError: detections whose cameras or keypoints do not fit the rig or the models
+        (checked before the first chunk of a whole recording, on each chunk of an iterable).
     """
     from tqdm.auto import tqdm
 
-    xy = np.asarray(detections.xy, np.float32)
-    score = np.asarray(detections.score, np.float32)
-    count = np.asarray(detections.count)
-    if xy.shape[1] != rig.num_cameras:
-        raise InputError(
-            f"detections have {xy.shape[1]} cameras, the rig {rig.num_cameras}", field="cameras"
-        )
     prop_cams = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
     prop_idx = _camera_columns(rig.names, prop_cams, "the matcher's")
     prop_rig = rig.select(list(prop_cams))
-    K = xy.shape[3]
-    for what, model, k_of in (
-        ("matcher", matcher, _matcher_keypoints),
-        ("estimator", estimator, _estimator_keypoints),
-    ):
-        if model is not None and k_of(model) != K:
-            raise InputError(
-                f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
-                "(convert the layout)",
-                field="keypoints",
-            )
     if estimator is not None:
         _camera_columns(prop_cams, estimator.rig_infer.names, "the estimator's inference")
     elif method not in ("dlt", "centroid"):
         raise ValueError(f"method must be 'dlt' or 'centroid', not {method!r}")
-    F = len(count)
-    bar = tqdm(total=F, desc="pipeline", unit="frame", disable=not progress, dynamic_ncols=True)
-    try:
-        for start in range(0, F, chunk_frames):
-            stop = min(F, start + chunk_frames)
-            det = Detections(
-                xy[start:stop, prop_idx], score[start:stop, prop_idx], count[start:stop, prop_idx]
+    checked_keypoints: list[int] = []
+
+    def check(det: Detections) -> None:
+        _, num_cameras, _, K = np.shape(det.score)
+        if num_cameras != rig.num_cameras:
+            raise InputError(
+                f"detections have {num_cameras} cameras, the rig {rig.num_cameras}",
+                field="cameras",
             )
+        if checked_keypoints == [K]:
+            return  # the models' keypoint counts cost a model merge: checked once
+        for what, model, k_of in (
+            ("matcher", matcher, _matcher_keypoints),
+            ("estimator", estimator, _estimator_keypoints),
+        ):
+            if model is not None and k_of(model) != K:
+                raise InputError(
+                    f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
+                    "(convert the layout)",
+                    field="keypoints",
+                )
+        checked_keypoints[:] = [K]
+
+    if isinstance(detections, Detections):
+        check(detections)
+        chunks = _chunks_of(detections, chunk_frames)
+        num_frames = len(detections.count)
+    else:
+        chunks = iter(detections)
+    bar = tqdm(
+        total=num_frames, desc="pipeline", unit="frame", disable=not progress, dynamic_ncols=True
+    )
+    try:
+        for start, chunk in chunks:
+            check(chunk)
+            det = Detections(
+                np.asarray(chunk.xy, np.float32)[:, prop_idx],
+                np.asarray(chunk.score, np.float32)[:, prop_idx],
+                np.asarray(chunk.count)[:, prop_idx],
+            )
+            stop = start + len(det.count)
             t0 = time.perf_counter()
             if matcher is not None:
                 proposals = propose_with_matcher(
@@ -823,6 +848,16 @@ def stream_pipeline(
             bar.update(stop - start)
     finally:
         bar.close()
+
+
+def _chunks_of(detections: Detections, chunk_frames: int) -> Iterator[tuple[int, Detections]]:
+    """A whole recording's detections as (first frame, chunk) pairs."""
+    xy = np.asarray(detections.xy, np.float32)
+    score = np.asarray(detections.score, np.float32)
+    count = np.asarray(detections.count)
+    for start in range(0, len(count), chunk_frames):
+        stop = start + chunk_frames
+        yield start, Detections(xy[start:stop], score[start:stop], count[start:stop])
 
 
 def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
