@@ -862,8 +862,8 @@ def _infer(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             done = store.assemble(args.out)
             print(
-                f"mvpose-jax infer: interrupted: wrote partial results, frames 0-{done.frames - 1} "
-                f"of {F}, to {done.json} and {done.npz}; the same command with --resume continues",
+                f"mvpose-jax infer: interrupted: wrote partial results, {_covered(done, F)}, to "
+                f"{done.json} and {done.npz}; the same command with --resume continues",
                 file=sys.stderr,
             )
             return 130
@@ -871,13 +871,21 @@ def _infer(args: argparse.Namespace) -> int:
             done = store.assemble(args.out)
             if done.frames:
                 print(
-                    f"mvpose-jax infer: stopped by the error below: wrote partial results, frames "
-                    f"0-{done.frames - 1} of {F}, to {done.json} and {done.npz}; once it is fixed, "
-                    "the same command with --resume continues",
+                    f"mvpose-jax infer: stopped by the error below: wrote partial results, "
+                    f"{_covered(done, F)}, to {done.json} and {done.npz}; once it is fixed, the "
+                    "same command with --resume continues",
                     file=sys.stderr,
                 )
             raise
-        done = store.assemble(args.out)
+        try:
+            done = store.assemble(args.out)
+        except KeyboardInterrupt:
+            print(
+                f"mvpose-jax infer: interrupted while writing the results; every chunk is done "
+                f"({store.folder}): the same command with --resume writes them",
+                file=sys.stderr,
+            )
+            return 130
         if not args.keep_chunks:
             store.remove()
     if people == 0 and frames > 0 and start == 0:
@@ -889,6 +897,13 @@ def _infer(args: argparse.Namespace) -> int:
         f"{1000 * seconds['poses'] / max(frames, 1):.2f} ms/frame; wrote {done.json} and {done.npz}"
     )
     return 0
+
+
+def _covered(done, num_frames: int) -> str:
+    """The frames partial results cover, in words."""
+    if not done.frames:
+        return f"no frame of {num_frames} (no chunk had finished)"
+    return f"frames 0-{done.frames - 1} of {num_frames}"
 
 
 def _infer_settings(args: argparse.Namespace, stream, threshold: float) -> dict:
@@ -969,9 +984,15 @@ def _poses_and_detections(args: argparse.Namespace):
         )
     F, P = rec.num_frames, np.shape(rec.detections.score)[2]
     if len(poses.confidence) != F or poses.identity.shape[2] > P:
+        partial = (
+            f" (partial results of an interrupted infer, {poses.frames_total} frames in all: "
+            "finish them with infer --resume)"
+            if poses.partial
+            else ""
+        )
         raise InputError(
             f"poses have {len(poses.confidence)} frames and {poses.identity.shape[2]} skeletons per "
-            f"view; the detections {F} and {P}",
+            f"view; the detections {F} and {P}{partial}",
             file=args.poses,
             field="frames",
         )

@@ -887,8 +887,10 @@ def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
 
 
 def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
-    """Joins consecutive chunks' results along the frame axis (people padded to the largest G)."""
+    """Joins consecutive chunks' results along the frame axis (people padded to the largest G,
+    skeletons of ``identity`` to the largest P)."""
     G = max(1, max(r.poses.valid.shape[1] for r in parts))
+    P = max(np.shape(r.identity)[2] for r in parts)
 
     def pad(a, fill=0):
         a = np.asarray(a)
@@ -907,10 +909,18 @@ def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
         poses,
         cat(lambda r: r.confidence),
         cat(lambda r: r.members, -1),
-        np.concatenate([r.identity for r in parts]),
+        # Chunks read in ranges may differ in P (the most skeletons in a view of the range).
+        np.concatenate([_pad_skeletons(r.identity, P) for r in parts]),
         parts[0].cameras,
         seconds,
     )
+
+
+def _pad_skeletons(identity: np.ndarray, num_skeletons: int) -> np.ndarray:
+    """(F, C, P) identity padded with -1 to P = ``num_skeletons``."""
+    identity = np.asarray(identity)
+    pad = num_skeletons - identity.shape[2]
+    return np.pad(identity, [(0, 0), (0, 0), (0, pad)], constant_values=-1)
 
 
 def _estimator_keypoints(estimator: Estimator) -> int:

@@ -670,3 +670,24 @@ def test_an_input_error_mid_run_keeps_the_chunks_before_it(long_files, tmp_path,
     assert "resuming at frame 8" in capsys.readouterr().out
     assert main(_infer_args(folder, tmp_path / "whole")) == 0
     _same_results(load_poses(out), load_poses(tmp_path / "whole"))
+
+
+def test_ctrl_c_before_the_first_chunk_and_evaluating_partial_results(
+    long_files, tmp_path, monkeypatch, capsys
+):
+    _, root = long_files
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        _interrupt_on_chunk(m, 0, KeyboardInterrupt())
+        assert main(_infer_args(root / "scene.npz", out)) == 130
+    assert "no frame of 13 (no chunk had finished)" in capsys.readouterr().err
+    empty = load_poses(out)
+    assert empty.partial and empty.frames_total == 13 and len(empty.confidence) == 0
+    with monkeypatch.context() as m:
+        _interrupt_on_chunk(m, 1, KeyboardInterrupt())
+        assert main(_infer_args(root / "scene.npz", out)) == 130
+    capsys.readouterr()
+    args = ["evaluate", "--rig", "panoptic5", "--detections", str(root / "scene.npz")]
+    assert main(args + ["--poses", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "poses have 4 frames" in err and "partial results" in err and "--resume" in err
