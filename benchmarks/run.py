@@ -2,11 +2,12 @@
 
     python -m benchmarks.run [--quick | --smoke] [--out results/benchmarks] [--groups latency,offline]
 
-Runs four groups, each in its own Python process so that its peak memory is its own (`measure`):
+Runs five groups, each in its own Python process so that its peak memory is its own (`measure`):
 ``peaks`` (float32 matmul peak, memory bandwidth), ``latency`` (t_pp, t_3Dg, t_3Di per frame over
 views x people x model size, the triangulation rows, and the time breakdown of the target
-configuration), ``offline`` (a long recording in batches) and ``training`` (train-step
-throughput, compile times). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
+configuration), ``offline`` (a long recording in batches), ``training`` (train-step
+throughput, compile times) and ``infer_memory`` (peak RSS of ``mvpose-jax infer`` against the
+recording's length, `benchmarks.memory`). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
 the git commit, every measurement, the targets with pass/miss, and where the time goes.
 
 ``--quick`` (under 3 minutes on 2 cores) shrinks the grid and the frame counts but keeps every
@@ -55,7 +56,9 @@ def main(argv: list[str] | None = None) -> int:
         "--out", default="results/benchmarks", help="folder for run.json and run.md"
     )
     parser.add_argument(
-        "--groups", default="peaks,latency,offline,training", help="comma-separated groups to run"
+        "--groups",
+        default="peaks,latency,offline,training,infer_memory",
+        help="comma-separated groups to run",
     )
     parser.add_argument(
         "--in-process",

@@ -890,8 +890,9 @@ def _infer(args: argparse.Namespace) -> int:
             store.remove()
     if people == 0 and frames > 0 and start == 0:
         warnings.warn(_why_nobody(views, res.cameras, args, threshold), MvposeWarning, stacklevel=1)
+    resumed = f" ({start} finished before, {frames} now)" if start else ""
     print(
-        f"{F} frames, {people} people in the {frames} frames run now "
+        f"{F} frames{resumed}, {people} people{' in those run now' if start else ''} "
         f"({people / max(frames, 1):.2f} per frame); proposals "
         f"{1000 * seconds['proposals'] / max(frames, 1):.2f} ms/frame, 3D "
         f"{1000 * seconds['poses'] / max(frames, 1):.2f} ms/frame; wrote {done.json} and {done.npz}"
