@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from benchmarks import scenes
+from benchmarks import memory, scenes
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.features import assemble_features, estimator_inputs, single_person_samples
@@ -91,6 +91,9 @@ class Tier:
       model_sizes: model sizes of the offline and training groups.
       matcher_batches: distinct composed batches the matcher's step is timed on (each new graph
         budget among them is compiled during the warm-up).
+      memory_frames: recording lengths of the ``infer_memory`` group (`benchmarks.memory`).
+      memory_chunk: ``infer --chunk-frames`` there.
+      memory_whole_max: lengths up to this also run the whole-recording path, for comparison.
     """
 
     name: str
@@ -110,6 +113,9 @@ class Tier:
     train_steps: int
     model_sizes: tuple[str, ...]
     matcher_batches: int
+    memory_frames: tuple[int, ...]
+    memory_chunk: int
+    memory_whole_max: int
 
 
 TIERS = {
@@ -131,6 +137,9 @@ TIERS = {
         train_steps=10,
         model_sizes=("paper", "quick"),
         matcher_batches=20,
+        memory_frames=(1_000, 10_000, 100_000),
+        memory_chunk=256,
+        memory_whole_max=10_000,
     ),
     "quick": Tier(
         "quick",
@@ -150,6 +159,9 @@ TIERS = {
         train_steps=3,
         model_sizes=("paper", "quick"),
         matcher_batches=4,
+        memory_frames=(1_000, 10_000),
+        memory_chunk=256,
+        memory_whole_max=10_000,
     ),
     "smoke": Tier(
         "smoke",
@@ -169,6 +181,9 @@ TIERS = {
         train_steps=2,
         model_sizes=("quick",),
         matcher_batches=1,
+        memory_frames=(24, 48),
+        memory_chunk=8,
+        memory_whole_max=24,
     ),
 }
 
@@ -892,10 +907,21 @@ def tracking(tier: Tier) -> dict:
     return {"limit_ms_per_person": TRACKING_LIMIT_MS, "rows": rows}
 
 
+# --------------------------------------------------------------------------- infer memory
+
+
+def infer_memory(tier: Tier) -> dict:
+    """Peak RSS of ``mvpose-jax infer`` at each recording length (`benchmarks.memory`)."""
+    return memory.infer_memory(
+        tier.memory_frames, chunk_frames=tier.memory_chunk, whole_max_frames=tier.memory_whole_max
+    )
+
+
 GROUPS: dict[str, Callable[[Tier], dict]] = {
     "peaks": peaks,
     "latency": latency,
     "offline": offline,
     "training": training,
     "tracking": tracking,
+    "infer_memory": infer_memory,
 }

@@ -8,6 +8,7 @@ T_PP_LIMIT_MS = 2.0
 T_3DG_BOUND_FACTOR = 1.3
 OFFLINE_PEAK_FRACTION = 0.70
 PIPELINE_FACTOR = 2.0
+INFER_MEMORY_SPREAD = 0.10  # infer's peak RSS at every recording length within 10 % of each other
 
 
 def _row(rows, **match):
@@ -18,7 +19,8 @@ def _row(rows, **match):
 
 
 def targets(run: dict) -> list[dict]:
-    """The tracker issue's four targets (2 CPU cores, 5 views, 4 people, paper-size models).
+    """The tracker issue's four targets (2 CPU cores, 5 views, 4 people, paper-size models), and
+    the streaming issue's: ``infer``'s peak memory flat with the recording's length.
 
     Each entry: name, measured, limit, unit, status ("pass", "miss" or "n/a" when the run lacks
     what the target needs), and a detail line.
@@ -99,6 +101,20 @@ def targets(run: dict) -> list[dict]:
             f"centroid, {t_tri['centroid']:.2f} ms); against the other rows: {others}"
         )
     add("t_pp + t_3Dg <= 2 x triangulation pipeline", ratio, PIPELINE_FACTOR, "x", detail)
+
+    rows = (run.get("infer_memory") or {}).get("rows") or []
+    peaks_mb = [r["infer"]["maxrss_mb"] for r in rows]
+    spread = max(peaks_mb) / min(peaks_mb) - 1 if len(peaks_mb) > 1 else None
+    add(
+        "infer peak RSS within 10% across lengths",
+        spread,
+        INFER_MEMORY_SPREAD,
+        "fraction",
+        "largest / smallest peak - 1 over "
+        + ", ".join(f"{r['frames']:,} frames {r['infer']['maxrss_mb']:,.0f} MB" for r in rows)
+        if spread is not None
+        else "fewer than two lengths measured",
+    )
     return out
 
 
@@ -288,6 +304,28 @@ def markdown(run: dict) -> str:
             lines.append(
                 f"| {g} | {r['maxrss_mb']:,.0f} | {r['rss_after_import_mb']:,.0f} | "
                 f"{r['maxrss_mb'] - r['rss_after_import_mb']:,.0f} | {dev} | {r['seconds']:.0f} |"
+            )
+
+    im = run.get("infer_memory")
+    if im:
+        lines += [
+            "",
+            f"## Peak memory of infer against the recording's length (chunks of "
+            f"{im['chunk_frames']} frames)",
+            "",
+            "`mvpose-jax infer` (geometric matcher, DLT) on an npz of 4 people, 5 cameras, each length "
+            "in its own process (`benchmarks.memory`); the whole-recording path (load, "
+            "`run_pipeline`, `save_poses`) for comparison.",
+            "",
+            "| frames | npz MB | infer peak RSS MB | infer s | frames/s | whole-recording path peak RSS MB |",
+            "|---|---|---|---|---|---|",
+        ]
+        for r in im["rows"]:
+            whole = "-" if r.get("whole") is None else f"{r['whole']['maxrss_mb']:,.0f}"
+            lines.append(
+                f"| {r['frames']:,} | {r['file_mb']:,.1f} | {r['infer']['maxrss_mb']:,.0f} | "
+                f"{r['infer']['seconds']:.0f} | {r['infer']['frames_per_s']:,.0f} | "
+                f"{whole} |"
             )
 
     bd = (lat or {}).get("breakdown")

@@ -6,7 +6,9 @@ Runs five groups, each in its own Python process so that its peak memory is its 
 ``peaks`` (float32 matmul peak, memory bandwidth), ``latency`` (t_pp, t_3Dg, t_3Di per frame over
 views x people x model size, the triangulation rows, and the time breakdown of the target
 configuration), ``offline`` (a long recording in batches), ``training`` (train-step
-throughput, compile times) and ``tracking`` (the tracker and One-Euro filter per frame). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
+throughput, compile times), ``tracking`` (the tracker and One-Euro filter per frame) and
+``infer_memory`` (peak RSS of ``mvpose-jax infer`` against the recording's length,
+`benchmarks.memory`). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
 the git commit, every measurement, the targets with pass/miss, and where the time goes.
 
 ``--quick`` (under 3 minutes on 2 cores) shrinks the grid and the frame counts but keeps every
@@ -56,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--groups",
-        default="peaks,latency,offline,training,tracking",
+        default="peaks,latency,offline,training,tracking,infer_memory",
         help="comma-separated groups to run",
     )
     parser.add_argument(

@@ -707,6 +707,12 @@ def _load_detections(args: argparse.Namespace, rig):
     """The recording of ``--detections`` (any format; an OpenPose folder too) on the rig's cameras."""
     from mvpose_jax.data import load_recording
 
+    rec = load_recording(args.detections, layout=args.layout, rig=rig, **_reading_options(args))
+    return rec, rig.select(list(rec.cameras))
+
+
+def _reading_options(args: argparse.Namespace) -> dict:
+    """The reading options given (OpenPose folders' options and the camera selection)."""
     kwargs = {}
     if getattr(args, "missing_frames", None):
         kwargs["missing_frames"] = args.missing_frames
@@ -716,9 +722,8 @@ def _load_detections(args: argparse.Namespace, rig):
         kwargs["source_layout"] = args.source_layout
     # Cameras are chosen while loading: an OpenPose folder's other folders (a stray or
     # uncalibrated camera) are never read.
-    cameras = getattr(args, "cameras", None) or None
-    rec = load_recording(args.detections, layout=args.layout, rig=rig, cameras=cameras, **kwargs)
-    return rec, rig.select(list(rec.cameras))
+    kwargs["cameras"] = getattr(args, "cameras", None) or None
+    return kwargs
 
 
 def _detection_arguments(p: argparse.ArgumentParser) -> None:
@@ -878,7 +883,32 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         default=30.0,
         help="geometric matcher: epipolar distance (px) that scores 0.5",
     )
-    p.add_argument("--chunk-frames", type=int, default=256, help="frames per batch (bounds memory)")
+    p.add_argument(
+        "--chunk-frames",
+        type=int,
+        default=256,
+        help="frames per chunk: .npz files and OpenPose folders are read, processed and written "
+        "a chunk at a time, so memory does not grow with the recording (native and original "
+        "JSON are one document and are loaded whole: convert long ones to .npz)",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output folder: poses.json and poses.npz; finished chunks go to OUT/chunks/ while "
+        "the run lasts",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted run from the chunks it finished (OUT/chunks/), with the "
+        "same settings (a changed one is refused, named); without an unfinished run, start over",
+    )
+    p.add_argument(
+        "--keep-chunks",
+        action="store_true",
+        help="keep OUT/chunks/ (each chunk's results and the run's settings) after writing the "
+        "results; default: removed once poses.json and poses.npz are written",
+    )
     p.add_argument(
         "--no-track",
         action="store_true",
@@ -891,7 +921,6 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         help="tracking: a person unseen for up to this many seconds keeps their track id",
     )
     add_smoothing_arguments(p, default_filter="butterworth")
-    p.add_argument("--out", required=True, help="output folder: poses.json and poses.npz")
     p.add_argument(
         "--export",
         action="append",
@@ -967,88 +996,179 @@ def _smoothing(args: argparse.Namespace):
 
 @command(
     "infer",
-    "3D poses from a calibration and 2D detections: matching, proposals, estimator or triangulation.",
+    "3D poses from a calibration and 2D detections: matching, proposals, estimator or "
+    "triangulation; a chunk of frames at a time (Ctrl-C keeps the finished chunks: --resume).",
     _infer_arguments,
 )
 def _infer(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from mvpose_jax.data import open_recording
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.data.poses import PoseResults, save_poses
-    from mvpose_jax.inference import run_pipeline
+    from mvpose_jax.data.chunks import ChunkStore
+    from mvpose_jax.data.poses import PoseResults, load_poses
+    from mvpose_jax.inference import stream_pipeline
     from mvpose_jax.proposals import read_proposal_threshold
-    from mvpose_jax.smoothing import smooth_poses
+    from mvpose_jax.smoothing import smooth_chunk_files
     from mvpose_jax.tracking import TrackingConfig
     from mvpose_jax.trained import load_estimator, load_matcher
 
     check_writable(args.out, folder=True)
-    rig_all = load_rig(
-        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
-    )
-    rec, rig = _load_detections(args, rig_all)
-    export = _export_after_infer(args, rig_all, rec)  # None without --export; checks first
-    matcher = load_matcher(args.matcher, rig) if args.matcher else None
-    estimator = load_estimator(args.estimator, rig) if args.estimator else None
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
-    threshold = read_proposal_threshold(args.matcher, args.threshold)
     one_euro, smooth_kwargs = _smoothing(args)
     if args.max_gap_s < 0:
         raise InputError("must be >= 0", field="--max-gap-s")
-    fps = args.fps or _recording_fps(rec.timestamps)
-    tracking = None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s)
-    res = run_pipeline(
-        rig,
-        rec.detections,
-        matcher=matcher,
-        estimator=estimator,
-        method=args.method,
-        threshold=threshold,
-        min_views=args.min_views,
-        half_score_px=args.half_score_px,
-        chunk_frames=args.chunk_frames,
-        progress=True,
-        tracking=tracking,
-        one_euro=one_euro if tracking is not None and args.filter == "one-euro" else None,
-        fps=fps,
-        **{
-            k: v
-            for k, v in (
-                ("outlier_px", args.outlier_px),
-                ("view_outlier_px", args.view_outlier_px),
+    rig_all = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
+    stream = open_recording(
+        args.detections, layout=args.layout, rig=rig_all, **_reading_options(args)
+    )
+    with stream:
+        rig = rig_all.select(list(stream.cameras))
+        F = stream.num_frames
+        # The frame rate (the tracker's and the filters' clock, and the exports') from the first
+        # frames' timestamps: a long recording is never read whole for it.
+        head = stream.read_frames(0, min(F, 8)) if F else None
+        export = _export_after_infer(args, rig_all, head)  # None without --export; checks first
+        fps = args.fps or _recording_fps(head.timestamps if head is not None else None)
+        matcher = load_matcher(args.matcher, rig) if args.matcher else None
+        estimator = load_estimator(args.estimator, rig) if args.estimator else None
+        threshold = read_proposal_threshold(args.matcher, args.threshold)
+        tracking = None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s)
+        store = ChunkStore(
+            os.path.join(args.out, "chunks"),
+            settings=_infer_settings(args, stream, threshold, fps),
+            frames_total=F,
+            chunk_frames=args.chunk_frames,
+        )
+        start = store.begin(resume=args.resume)
+        if store.discarded:
+            warnings.warn(
+                f"{store.folder} held {store.discarded} finished chunk(s) of an earlier unfinished "
+                "run: removed, starting over (--resume continues such a run)",
+                MvposeWarning,
+                stacklevel=1,
             )
-            if v is not None
-        },
-    )
-    out = PoseResults(
-        res.poses,
-        res.confidence,
-        res.members,
-        res.identity,
-        res.cameras,
-        rec.layout,
-        rec.timestamps,
-        res.track,
-    )
-    if tracking is not None:
-        # One-Euro already ran inside the stream; Butterworth needs each whole track; gaps are
-        # filled (and outliers dropped) here for every filter.
-        filt = "butterworth" if args.filter == "butterworth" else "none"
-        out = smooth_poses(out, fps=fps, filter=filt, **smooth_kwargs)
-    npz_path, json_path = save_poses(out, args.out)
-    F = len(res.confidence)
-    people = int(np.asarray(res.poses.valid).sum())
-    if people == 0 and F > 0:
-        warnings.warn(_why_nobody(rec, res.cameras, args, threshold), MvposeWarning, stacklevel=1)
+        first_track = 0
+        if start:
+            print(f"resuming at frame {start} of {F} ({start // args.chunk_frames} chunks done)")
+            if tracking is not None:
+                # The tracker's memory is not kept with the chunks: tracks restart here, with
+                # ids after every earlier one (never reused).
+                first_track = store.next_track_id()
+        # Tracked results are smoothed (outliers, gap filling, Butterworth) chunk by chunk with
+        # their neighbours while assembling, so memory stays bounded by the chunk.
+        transform = None
+        if tracking is not None:
+            filt = "butterworth" if args.filter == "butterworth" else "none"
+
+            def transform(paths, folder):
+                return smooth_chunk_files(paths, folder, fps=fps, filter=filt, **smooth_kwargs)
+
+        # What a chunk's results need of its recording besides the detections, by first frame.
+        timestamps: dict[int, object] = {}
+        counts: dict[int, np.ndarray] = {}
+
+        def chunks():
+            for first, rec in stream.chunks(args.chunk_frames, start=start):
+                timestamps[first] = rec.timestamps
+                counts[first] = np.asarray(rec.detections.count)
+                yield first, rec.detections
+
+        frames = people = views = 0
+        seconds = {"proposals": 0.0, "poses": 0.0}
+        cameras = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
+        try:
+            for first, res in stream_pipeline(
+                rig,
+                chunks(),
+                matcher=matcher,
+                estimator=estimator,
+                method=args.method,
+                threshold=threshold,
+                min_views=args.min_views,
+                half_score_px=args.half_score_px,
+                num_frames=F - start,
+                progress=True,
+                tracking=tracking,
+                one_euro=one_euro if tracking is not None and args.filter == "one-euro" else None,
+                fps=fps,
+                first_track_id=first_track,
+                **{
+                    k: v
+                    for k, v in (
+                        ("outlier_px", args.outlier_px),
+                        ("view_outlier_px", args.view_outlier_px),
+                    )
+                    if v is not None
+                },
+            ):
+                store.save(
+                    first,
+                    PoseResults(
+                        res.poses,
+                        res.confidence,
+                        res.members,
+                        res.identity,
+                        res.cameras,
+                        stream.layout,
+                        timestamps.pop(first),
+                        res.track,
+                    ),
+                )
+                idx = [stream.cameras.index(c) for c in res.cameras]
+                count = counts.pop(first)[:, idx]
+                views = max(views, int((count > 0).sum(axis=1).max(initial=0)))
+                frames += len(res.confidence)
+                people += int(np.asarray(res.poses.valid).sum())
+                for k in seconds:
+                    seconds[k] += res.seconds[k]
+        except KeyboardInterrupt:
+            done = store.assemble(args.out, transform=transform)
+            print(
+                f"mvpose-jax infer: interrupted: wrote partial results, {_covered(done, F)}, to "
+                f"{done.json} and {done.npz}; the same command with --resume continues",
+                file=sys.stderr,
+            )
+            return 130
+        except BaseException:
+            done = store.assemble(args.out, transform=transform)
+            if done.frames:
+                print(
+                    f"mvpose-jax infer: stopped by the error below: wrote partial results, "
+                    f"{_covered(done, F)}, to {done.json} and {done.npz}; once it is fixed, the "
+                    "same command with --resume continues",
+                    file=sys.stderr,
+                )
+            raise
+        try:
+            done = store.assemble(args.out, transform=transform)
+        except KeyboardInterrupt:
+            print(
+                f"mvpose-jax infer: interrupted while writing the results; every chunk is done "
+                f"({store.folder}): the same command with --resume writes them",
+                file=sys.stderr,
+            )
+            return 130
+        if not args.keep_chunks:
+            store.remove()
+    if people == 0 and frames > 0 and start == 0:
+        warnings.warn(_why_nobody(views, cameras, args, threshold), MvposeWarning, stacklevel=1)
+    resumed = f" ({start} finished before, {frames} now)" if start else ""
     tracks = ""
-    if out.track is not None:
-        n_tracks = len(np.unique(out.track[out.poses.valid]))
-        n_filled = int(out.filled.sum()) if out.filled is not None else 0
-        tracks = f", {n_tracks} tracks, {n_filled} keypoints filled ({args.filter} filter)"
+    if tracking is not None or export:
+        out = load_poses(done.npz)
+        if out.track is not None:
+            n_tracks = len(np.unique(out.track[out.poses.valid]))
+            n_filled = int(out.filled.sum()) if out.filled is not None else 0
+            tracks = f", {n_tracks} tracks, {n_filled} keypoints filled ({args.filter} filter)"
     print(
-        f"{F} frames, {people} people ({people / max(F, 1):.2f} per frame){tracks}; proposals "
-        f"{1000 * res.seconds['proposals'] / max(F, 1):.2f} ms/frame, 3D {1000 * res.seconds['poses'] / max(F, 1):.2f} "
-        f"ms/frame; wrote {json_path} and {npz_path}"
+        f"{F} frames{resumed}, {people} people{' in those run now' if start else ''} "
+        f"({people / max(frames, 1):.2f} per frame){tracks}; proposals "
+        f"{1000 * seconds['proposals'] / max(frames, 1):.2f} ms/frame, 3D "
+        f"{1000 * seconds['poses'] / max(frames, 1):.2f} ms/frame; wrote {done.json} and {done.npz}"
     )
     if export:
         export(out)
@@ -1092,12 +1212,59 @@ def _smooth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _why_nobody(rec, cameras, args: argparse.Namespace, threshold: float) -> str:
-    """Which setting left a whole recording without a single person."""
-    import numpy as np
+def _covered(done, num_frames: int) -> str:
+    """The frames partial results cover, in words."""
+    if not done.frames:
+        return f"no frame of {num_frames} (no chunk had finished)"
+    return f"frames 0-{done.frames - 1} of {num_frames}"
 
-    idx = [rec.cameras.index(c) for c in cameras]
-    views = int((np.asarray(rec.detections.count)[:, idx] > 0).sum(axis=1).max(initial=0))
+
+def _infer_settings(args: argparse.Namespace, stream, threshold: float, fps: float) -> dict:
+    """Every input and setting of ``infer`` that changes its results, by option name (what an
+    unfinished run must share with the command that resumes it)."""
+    from pathlib import Path
+
+    def where(path):
+        return None if path is None else str(Path(path).resolve())
+
+    rig_file = Path(args.rig)
+    settings = {
+        "--detections": where(args.detections),
+        "--rig": where(rig_file) if rig_file.exists() else args.rig,
+        "--translation-scale": args.translation_scale,
+        "--orthonormalise": args.orthonormalise,
+        "--layout": stream.layout,
+        "--cameras": list(stream.cameras),
+        "--missing-frames": args.missing_frames,
+        "--camera-map": args.camera_map,
+        "--source-layout": args.source_layout,
+        "--matcher": where(args.matcher),
+        "--estimator": where(args.estimator),
+        "--threshold": threshold,
+        "--min-views": args.min_views,
+    }
+    if args.estimator is None:
+        settings["--method"] = args.method
+    if args.matcher is None:
+        settings["--half-score-px"] = args.half_score_px
+    if args.method == "robust" and args.estimator is None:
+        settings["--outlier-px"] = args.outlier_px
+        settings["--view-outlier-px"] = args.view_outlier_px
+    # What the chunks hold also depends on the tracker and the streaming filter (Butterworth,
+    # outliers and gap filling act only while assembling: they may change on resume).
+    settings["--no-track"] = args.no_track
+    if not args.no_track:
+        settings["--max-gap-s"] = args.max_gap_s
+        settings["--fps"] = fps
+        if args.filter == "one-euro":
+            settings["--min-cutoff"] = args.min_cutoff
+            settings["--beta"] = args.beta
+    return settings
+
+
+def _why_nobody(views: int, cameras, args: argparse.Namespace, threshold: float) -> str:
+    """Which setting left a whole recording without a single person (``views``: the most
+    proposal cameras with skeletons in any frame)."""
     head = "no person in any frame: "
     if views == 0:
         return head + "the recording has no skeleton in the proposal cameras " + ", ".join(cameras)
@@ -1142,9 +1309,15 @@ def _poses_and_detections(args: argparse.Namespace):
         )
     F, P = rec.num_frames, np.shape(rec.detections.score)[2]
     if len(poses.confidence) != F or poses.identity.shape[2] > P:
+        partial = (
+            f" (partial results of an interrupted infer, {poses.frames_total} frames in all: "
+            "finish them with infer --resume)"
+            if poses.partial
+            else ""
+        )
         raise InputError(
             f"poses have {len(poses.confidence)} frames and {poses.identity.shape[2]} skeletons per "
-            f"view; the detections {F} and {P}",
+            f"view; the detections {F} and {P}{partial}",
             file=args.poses,
             field="frames",
         )
@@ -1511,7 +1684,8 @@ def _export_after_infer(args: argparse.Namespace, rig, rec):
     formats = _export_formats(args.export)
     with warnings.catch_warnings():  # uneven timestamps are warned about once, when exporting
         warnings.simplefilter("ignore", MvposeWarning)
-        frame_times(rec.timestamps, rec.num_frames, args.fps)
+        if rec is not None:
+            frame_times(rec.timestamps, rec.num_frames, args.fps)
     config = ExportConfig(formats, fps=args.fps, up=tuple(float(v) for v in up_vector(rig)))
 
     def export(results) -> None:

@@ -9,9 +9,10 @@ frame.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import functools
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import NamedTuple
 
 import jax
@@ -784,7 +785,7 @@ def _camera_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> l
 
 def stream_pipeline(
     rig: Rig,
-    detections: Detections,
+    detections: Detections | Iterable[tuple[int, Detections]],
     *,
     matcher: Matcher | None = None,
     estimator: Estimator | None = None,
@@ -796,15 +797,20 @@ def stream_pipeline(
     view_outlier_px: float = VIEW_OUTLIER_PX,
     chunk_frames: int = 256,
     progress: bool = False,
+    num_frames: int | None = None,
     tracking: TrackingConfig | None = None,
     one_euro: OneEuroConfig | None = None,
     fps: float = 30.0,
+    first_track_id: int = 0,
 ) -> Iterator[tuple[int, PipelineResult]]:
     """The pipeline over a recording, one chunk of frames at a time: yields (first frame, result).
 
     Args:
       rig: the cameras of the detections, in their order (``rig.names``).
-      detections: xy (F, C, P, K, 2) pixels, score (F, C, P, K), count (F, C).
+      detections: the whole recording, xy (F, C, P, K, 2) pixels, score (F, C, P, K), count
+        (F, C), cut into chunks of ``chunk_frames``; or the chunks themselves, an iterable of
+        (first frame, `Detections`) (e.g. from `mvpose_jax.data.RecordingStream.chunks`: then
+        only one chunk is in memory at a time, and ``chunk_frames`` is not used).
       matcher: proposals from this learned matcher, on its cameras (``matcher.rig.names``); None:
         the geometric matcher (symmetric epipolar distance, ``half_score_px``) on every camera.
       estimator: 3D from this estimator, on its inference cameras (a subset of the proposal
@@ -813,49 +819,70 @@ def stream_pipeline(
       threshold, min_views: the proposal step (`propose_people`).
       outlier_px, view_outlier_px: method "robust"'s thresholds (`triangulate_people`).
       chunk_frames: frames per chunk (memory is bounded by it).
+      progress: show a progress bar.
+      num_frames: frames the chunks hold in all (the progress bar's length) when ``detections``
+        is an iterable of chunks; default: unknown.
       tracking: persistent person ids (`tracking.track_frames`, with each person's 2D skeletons
         as evidence), the tracker's state carried from chunk to chunk; None: no tracks.
       one_euro: with ``tracking``, each track's keypoints are filtered causally by this One-Euro
         filter (`smoothing.one_euro_frames`, its state carried too); None: unfiltered.
       fps: frames per second (the tracker's and the filter's clock: frame i is at i / fps).
+      first_track_id: the first new track's id (a resumed stream continues after the ids it gave).
+    Raises:
+      InputError: detections whose cameras or keypoints do not fit the rig or the models
+        (checked before the first chunk of a whole recording, on each chunk of an iterable).
     """
     from tqdm.auto import tqdm
 
-    xy = np.asarray(detections.xy, np.float32)
-    score = np.asarray(detections.score, np.float32)
-    count = np.asarray(detections.count)
-    if xy.shape[1] != rig.num_cameras:
-        raise InputError(
-            f"detections have {xy.shape[1]} cameras, the rig {rig.num_cameras}", field="cameras"
-        )
     prop_cams = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
     prop_idx = _camera_columns(rig.names, prop_cams, "the matcher's")
     prop_rig = rig.select(list(prop_cams))
-    K = xy.shape[3]
-    for what, model, k_of in (
-        ("matcher", matcher, _matcher_keypoints),
-        ("estimator", estimator, _estimator_keypoints),
-    ):
-        if model is not None and k_of(model) != K:
-            raise InputError(
-                f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
-                "(convert the layout)",
-                field="keypoints",
-            )
     if estimator is not None:
         _camera_columns(prop_cams, estimator.rig_infer.names, "the estimator's inference")
     elif method not in TRIANGULATION_METHODS:
         raise ValueError(f"method must be one of {TRIANGULATION_METHODS}, not {method!r}")
-    F = len(count)
-    tracker = tracker_initial_state(K, len(prop_cams))
-    smoother = one_euro_initial(K)
-    bar = tqdm(total=F, desc="pipeline", unit="frame", disable=not progress, dynamic_ncols=True)
-    try:
-        for start in range(0, F, chunk_frames):
-            stop = min(F, start + chunk_frames)
-            det = Detections(
-                xy[start:stop, prop_idx], score[start:stop, prop_idx], count[start:stop, prop_idx]
+    checked_keypoints: list[int] = []
+
+    def check(det: Detections) -> None:
+        _, num_cameras, _, K = np.shape(det.score)
+        if num_cameras != rig.num_cameras:
+            raise InputError(
+                f"detections have {num_cameras} cameras, the rig {rig.num_cameras}",
+                field="cameras",
             )
+        if checked_keypoints == [K]:
+            return  # the models' keypoint counts cost a model merge: checked once
+        for what, model, k_of in (
+            ("matcher", matcher, _matcher_keypoints),
+            ("estimator", estimator, _estimator_keypoints),
+        ):
+            if model is not None and k_of(model) != K:
+                raise InputError(
+                    f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
+                    "(convert the layout)",
+                    field="keypoints",
+                )
+        checked_keypoints[:] = [K]
+
+    if isinstance(detections, Detections):
+        check(detections)
+        chunks = _chunks_of(detections, chunk_frames)
+        num_frames = len(detections.count)
+    else:
+        chunks = iter(detections)
+    tracker, smoother = None, None  # made at the first chunk, which tells K
+    bar = tqdm(
+        total=num_frames, desc="pipeline", unit="frame", disable=not progress, dynamic_ncols=True
+    )
+    try:
+        for start, chunk in chunks:
+            check(chunk)
+            det = Detections(
+                np.asarray(chunk.xy, np.float32)[:, prop_idx],
+                np.asarray(chunk.score, np.float32)[:, prop_idx],
+                np.asarray(chunk.count)[:, prop_idx],
+            )
+            stop = start + len(det.count)
             t0 = time.perf_counter()
             if matcher is not None:
                 proposals = propose_with_matcher(
@@ -887,6 +914,12 @@ def stream_pipeline(
             identity = _identity_from_members(members, det.score.shape[:3])
             seconds, track = {"proposals": t1 - t0, "poses": t2 - t1}, None
             if tracking is not None:
+                if tracker is None:
+                    K = np.shape(det.score)[3]
+                    tracker = dataclasses.replace(
+                        tracker_initial_state(K, len(prop_cams)), next_id=first_track_id
+                    )
+                    smoother = one_euro_initial(K)
                 tracker, smoother, track, poses = _track_chunk(
                     tracker, smoother, det, members, poses, start, fps, prop_rig, tracking, one_euro
                 )
@@ -925,6 +958,16 @@ def _track_chunk(tracker, smoother, det, members, poses, start, fps, rig, tracki
     return tracker, smoother, track, poses
 
 
+def _chunks_of(detections: Detections, chunk_frames: int) -> Iterator[tuple[int, Detections]]:
+    """A whole recording's detections as (first frame, chunk) pairs."""
+    xy = np.asarray(detections.xy, np.float32)
+    score = np.asarray(detections.score, np.float32)
+    count = np.asarray(detections.count)
+    for start in range(0, len(count), chunk_frames):
+        stop = start + chunk_frames
+        yield start, Detections(xy[start:stop], score[start:stop], count[start:stop])
+
+
 def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
     """`stream_pipeline` over a whole recording, its chunks joined (people padded to the most in
     any frame). Takes the same arguments."""
@@ -953,8 +996,10 @@ def run_pipeline(rig: Rig, detections: Detections, **kwargs) -> PipelineResult:
 
 
 def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
-    """Joins consecutive chunks' results along the frame axis (people padded to the largest G)."""
+    """Joins consecutive chunks' results along the frame axis (people padded to the largest G,
+    skeletons of ``identity`` to the largest P)."""
     G = max(1, max(r.poses.valid.shape[1] for r in parts))
+    P = max(np.shape(r.identity)[2] for r in parts)
 
     def pad(a, fill=0):
         a = np.asarray(a)
@@ -974,11 +1019,19 @@ def concat_results(parts: Sequence[PipelineResult]) -> PipelineResult:
         poses,
         cat(lambda r: r.confidence),
         cat(lambda r: r.members, -1),
-        np.concatenate([r.identity for r in parts]),
+        # Chunks read in ranges may differ in P (the most skeletons in a view of the range).
+        np.concatenate([_pad_skeletons(r.identity, P) for r in parts]),
         parts[0].cameras,
         seconds,
         cat(lambda r: r.track, -1) if tracked else None,
     )
+
+
+def _pad_skeletons(identity: np.ndarray, num_skeletons: int) -> np.ndarray:
+    """(F, C, P) identity padded with -1 to P = ``num_skeletons``."""
+    identity = np.asarray(identity)
+    pad = num_skeletons - identity.shape[2]
+    return np.pad(identity, [(0, 0), (0, 0), (0, pad)], constant_values=-1)
 
 
 def _estimator_keypoints(estimator: Estimator) -> int:

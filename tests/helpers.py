@@ -307,3 +307,52 @@ def read_c3d(path) -> dict:
         residual=residual,
         labels=labels[:num_points],
     )
+
+
+def read_in_chunks(path, chunk_frames: int, **kwargs):
+    """A recording read through `data.open_recording` ``chunk_frames`` frames at a time, its
+    ranges joined again (people padded to the largest range's): what `load_recording` returns,
+    for comparing the two. Returns (Recording, the ranges' person counts P)."""
+    from mvpose_jax.data import Recording, open_recording
+    from mvpose_jax.skeletons import Detections, Poses3D
+
+    with open_recording(path, **kwargs) as stream:
+        parts = [rec for _, rec in stream.chunks(chunk_frames)] or [stream.read_frames(0, 0)]
+        cameras, layout = stream.cameras, stream.layout
+    sizes = [np.shape(r.detections.score)[2] for r in parts]
+    P = max(sizes, default=1)
+
+    def join(get, fill=0, axis=2):
+        arrays = [get(r) for r in parts]
+        if not arrays or arrays[0] is None:
+            return None
+        pad = lambda a: np.pad(  # noqa: E731
+            a,
+            [(0, P - a.shape[axis]) if i == axis else (0, 0) for i in range(a.ndim)],
+            constant_values=fill,
+        )
+        return np.concatenate([pad(np.asarray(a)) if axis is not None else a for a in arrays])
+
+    gt = None
+    if parts and parts[0].ground_truth is not None:
+        gt = Poses3D(
+            *(
+                join(lambda r, i=i: r.ground_truth[i], axis=None)
+                for i in range(len(parts[0].ground_truth))
+            )
+        )
+    rec = Recording(
+        detections=Detections(
+            join(lambda r: r.detections.xy),
+            join(lambda r: r.detections.score),
+            join(lambda r: r.detections.count, axis=None),
+        ),
+        cameras=cameras,
+        layout=layout,
+        ground_truth=gt,
+        identity=join(lambda r: r.identity, fill=-1),
+        timestamps=join(lambda r: r.timestamps, axis=None),
+        image_names=join(lambda r: r.image_names, axis=None),
+        projected=join(lambda r: r.projected),
+    )
+    return rec, sizes

@@ -52,6 +52,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "latency",
         "offline",
         "training",
+        "infer_memory",
         "memory",
         "targets",
         "profile",
@@ -90,10 +91,22 @@ def test_smoke_run_has_every_section(smoke_run):
         _check_stats(row["per_person_ms"])
         assert row["tracks"] == row["people"] and row["status"] in ("pass", "miss")
 
-    assert set(run["memory"]) == {"peaks", "latency", "offline", "training", "tracking"}
+    assert set(run["memory"]) == {
+        "peaks",
+        "latency",
+        "offline",
+        "training",
+        "tracking",
+        "infer_memory",
+    }
     assert all(r["maxrss_mb"] > 0 for r in run["memory"].values())
 
-    assert len(run["targets"]) == 4
+    rows = run["infer_memory"]["rows"]
+    assert [r["frames"] for r in rows] == [24, 48]
+    assert all(r["infer"]["exit"] == 0 and r["infer"]["maxrss_mb"] > 100 for r in rows)
+    assert rows[0]["whole"]["maxrss_mb"] > 100 and "whole" not in rows[1]
+
+    assert len(run["targets"]) == 5
     assert all(t["status"] in ("pass", "miss", "n/a") for t in run["targets"])
     for heading in (
         "## Targets",
@@ -101,6 +114,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "## Offline throughput",
         "## Training throughput",
         "## Peak memory",
+        "## Peak memory of infer against the recording's length",
         "## Breakdown",
         "## Tracking",
     ):
@@ -111,7 +125,9 @@ def _stats(ms: float) -> dict:
     return {"median": ms, "p10": ms, "p90": ms, "iqr": [ms, ms], "mean": ms, "n": 1}
 
 
-def _fake_run(t_pp: float, t_3dg: float, t_tri: float, stage3_gflops: float) -> dict:
+def _fake_run(
+    t_pp: float, t_3dg: float, t_tri: float, stage3_gflops: float, memory_growth: float = 1.05
+) -> dict:
     where = dict(views=5, people=4)
     return {
         "peaks": {"matmul_gflops": 300.0, "bandwidth_gbs": 40.0},
@@ -123,14 +139,21 @@ def _fake_run(t_pp: float, t_3dg: float, t_tri: float, stage3_gflops: float) -> 
             "models": {"5v-paper": {"mlp_bytes": 120_000_000}},  # bound 3 ms at 40 GB/s
         },
         "offline": {"models": {"paper": {"stage3": {"gflops": stage3_gflops}}}},
+        "infer_memory": {
+            "rows": [
+                {"frames": n, "infer": {"maxrss_mb": mb}}
+                for n, mb in ((1_000, 400.0), (10_000, 400.0 * memory_growth))
+            ]
+        },
     }
 
 
 def test_targets_pass_and_miss():
     good = {t["name"]: t["status"] for t in report.targets(_fake_run(1.5, 3.5, 1.5, 250.0))}
     assert set(good.values()) == {"pass"}
-    bad = {t["name"]: t for t in report.targets(_fake_run(2.5, 4.0, 0.5, 100.0))}
-    assert [t["status"] for t in bad.values()] == ["miss", "miss", "miss", "miss"]
+    bad = {t["name"]: t for t in report.targets(_fake_run(2.5, 4.0, 0.5, 100.0, 1.2))}
+    assert [t["status"] for t in bad.values()] == ["miss"] * 5
+    assert bad["infer peak RSS within 10% across lengths"]["measured"] == pytest.approx(0.2)
     assert bad["t_3Dg <= 1.3 x weight-streaming bound"]["limit"] == pytest.approx(3.9)
     assert bad["t_pp + t_3Dg <= 2 x triangulation pipeline"]["measured"] == pytest.approx(6.5 / 3.0)
     assert all(t["status"] == "n/a" for t in report.targets({}))

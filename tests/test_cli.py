@@ -746,3 +746,249 @@ def test_generate_warns_that_the_floor_is_a_guess(tmp_path, capsys):
     with pytest.raises(SystemExit):  # argparse: not both
         main([*argv, "--floor-height", "0", *few])
     assert "not allowed with argument" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- streaming infer
+
+
+@pytest.fixture(scope="module")
+def long_files(tmp_path_factory):
+    """A 13-frame recording as npz and as an OpenPose folder (chunks of 4: 4 + 4 + 4 + 1)."""
+    rec = generate_recording(load_rig("panoptic5"), num_people=3, num_frames=13, seed=5)
+    root = tmp_path_factory.mktemp("long")
+    save_recording(rec, root / "scene.npz")
+    save_openpose(rec, root / "openpose")
+    return rec, root
+
+
+def _infer_args(detections, out, *extra, track=False):
+    """infer in chunks of 4 frames; untracked unless ``track`` (tracks restart on --resume, so
+    exact equality with an uninterrupted run holds for untracked results)."""
+    args = ["infer", "--rig", "panoptic5", "--detections", str(detections), "--out", str(out)]
+    return args + ["--chunk-frames", "4", *extra] + ([] if track else ["--no-track"])
+
+
+def _same_results(a, b):
+    for field in ("confidence", "members", "identity", "timestamps", "cameras", "layout"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    for field in ("xyz", "valid", "keypoint_valid"):
+        np.testing.assert_array_equal(getattr(a.poses, field), getattr(b.poses, field), field)
+
+
+def test_infer_streams_the_recording_and_equals_the_whole_run(
+    long_files, tmp_path, monkeypatch, capsys
+):
+    """infer reads the npz a chunk at a time (never the whole file) and writes what the
+    whole-recording library path writes, array for array and byte for byte in the JSON."""
+    from mvpose_jax.data import npz
+    from mvpose_jax.data.poses import PoseResults, save_poses
+    from mvpose_jax.inference import run_pipeline
+
+    rec, root = long_files
+    rig = load_rig("panoptic5")
+    whole = load_recording(root / "scene.npz")
+    res = run_pipeline(rig, whole.detections, chunk_frames=4)
+    save_poses(
+        PoseResults(
+            res.poses,
+            res.confidence,
+            res.members,
+            res.identity,
+            res.cameras,
+            whole.layout,
+            whole.timestamps,
+        ),
+        tmp_path / "whole",
+    )
+    ranges = []
+    read_frames = npz.NpzStream.read_frames
+
+    def spy(self, start, stop):
+        ranges.append((start, stop))
+        return read_frames(self, start, stop)
+
+    def whole_read(*args, **kwargs):
+        raise AssertionError("infer read the whole recording")
+
+    monkeypatch.setattr(npz.NpzStream, "read_frames", spy)
+    monkeypatch.setattr(npz, "read_npz", whole_read)
+    assert main(_infer_args(root / "scene.npz", tmp_path / "out")) == 0
+    # the first frames once for the frame rate (at most 8), then chunk by chunk
+    assert ranges == [(0, 8), (0, 4), (4, 8), (8, 12), (12, 13)]
+    assert "13 frames" in capsys.readouterr().out
+    streamed = load_poses(tmp_path / "out")
+    assert not streamed.partial and streamed.frames_total is None
+    _same_results(streamed, load_poses(tmp_path / "whole"))
+    text = (tmp_path / "out" / "poses.json").read_text()
+    assert text == (tmp_path / "whole" / "poses.json").read_text()
+    assert not (tmp_path / "out" / "chunks").exists()  # removed once the results are written
+
+
+def _interrupt_on_chunk(monkeypatch, chunk: int, error: BaseException):
+    """The 3D stage raises ``error`` on the given chunk (0-based), once."""
+    from mvpose_jax import inference
+
+    calls = []
+    original = inference.poses_of_members
+
+    def flaky(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == chunk + 1:
+            raise error
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(inference, "poses_of_members", flaky)
+
+
+@pytest.mark.parametrize("source", ["scene.npz", "openpose"])
+def test_ctrl_c_keeps_finished_chunks_as_partial_results_and_resume_finishes(
+    long_files, tmp_path, monkeypatch, capsys, source
+):
+    _, root = long_files
+    detections = root / source
+    assert main(_infer_args(detections, tmp_path / "whole")) == 0
+    full = load_poses(tmp_path / "whole")
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        _interrupt_on_chunk(m, 2, KeyboardInterrupt())
+        assert main(_infer_args(detections, out)) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "frames 0-7 of 13" in err and "--resume" in err
+    # A valid partial result: the two finished chunks, marked partial, in both files.
+    for name in ("poses.npz", "poses.json"):
+        part = load_poses(out / name)
+        assert part.partial and part.frames_total == 13 and len(part.confidence) == 8
+        G = part.poses.valid.shape[1]
+        np.testing.assert_array_equal(part.poses.valid, full.poses.valid[:8, :G])
+        np.testing.assert_allclose(part.poses.xyz, full.poses.xyz[:8, :G], atol=1e-4)
+    doc = json.loads((out / "poses.json").read_text())
+    assert doc["partial"] is True and doc["frames_total"] == 13 and len(doc["frames"]) == 8
+    assert sorted(p.name for p in (out / "chunks").iterdir()) == [
+        "chunk_000000.npz",
+        "chunk_000001.npz",
+        "manifest.json",
+    ]
+
+    computed = []
+    from mvpose_jax import inference
+
+    original = inference.poses_of_members
+    monkeypatch.setattr(
+        inference,
+        "poses_of_members",
+        lambda *a, **k: computed.append(1) or original(*a, **k),
+    )
+    assert main(_infer_args(detections, out, "--resume")) == 0
+    assert "resuming at frame 8 of 13" in capsys.readouterr().out
+    assert len(computed) == 2  # chunks 2 and 3 only
+    resumed = load_poses(out)
+    assert not resumed.partial
+    _same_results(resumed, full)
+    assert (out / "poses.json").read_text() == (tmp_path / "whole" / "poses.json").read_text()
+    assert not (out / "chunks").exists()
+
+
+@pytest.mark.parametrize(
+    "changed, option",
+    [
+        (["--threshold", "0.3"], "--threshold"),
+        (["--chunk-frames", "5"], "--chunk-frames"),
+        (["--min-views", "3"], "--min-views"),
+        (["--cameras", "trackera", "trackerb", "trackerc"], "--cameras"),
+        (["--method", "centroid"], "--method"),
+    ],
+)
+def test_resume_refuses_changed_settings_naming_them(
+    long_files, tmp_path, monkeypatch, capsys, changed, option
+):
+    _, root = long_files
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        _interrupt_on_chunk(m, 1, KeyboardInterrupt())
+        assert main(_infer_args(root / "scene.npz", out)) == 130
+    capsys.readouterr()
+    assert main(_infer_args(root / "scene.npz", out, "--resume", *changed)) == 2
+    err = capsys.readouterr().err
+    assert f"field '{option}'" in err and "unfinished run" in err and "without --resume" in err
+    # Nothing was lost: the chunk and the partial results are still there.
+    assert (out / "chunks" / "chunk_000000.npz").exists() and load_poses(out).partial
+
+
+def test_infer_without_resume_starts_over_and_says_so(long_files, tmp_path, monkeypatch, capsys):
+    _, root = long_files
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        _interrupt_on_chunk(m, 1, KeyboardInterrupt())
+        assert main(_infer_args(root / "scene.npz", out)) == 130
+    capsys.readouterr()
+    assert main(_infer_args(root / "scene.npz", out, "--keep-chunks")) == 0
+    assert "held 1 finished chunk(s) of an earlier unfinished run" in capsys.readouterr().err
+    assert not load_poses(out).partial
+    assert len(list((out / "chunks").glob("chunk_*.npz"))) == 4  # --keep-chunks
+
+
+def test_an_input_error_mid_run_keeps_the_chunks_before_it(long_files, tmp_path, capsys):
+    """A bad OpenPose file in frame 9: the error names frame 9 (not its place in the chunk), the
+    first two chunks are written as partial results, and once fixed --resume finishes."""
+    import shutil
+
+    _, root = long_files
+    folder = tmp_path / "openpose"
+    shutil.copytree(root / "openpose", folder)
+    bad = folder / "trackerc" / f"{9:012d}_keypoints.json"
+    good = bad.read_text()
+    doc = json.loads(good)
+    doc["people"][0]["pose_keypoints_2d"][2] = 7.0  # a score of 7
+    bad.write_text(json.dumps(doc))
+    out = tmp_path / "out"
+    assert main(_infer_args(folder, out)) == 2
+    err = capsys.readouterr().err
+    assert "frame 9, camera 'trackerc'" in err and "score 7.0" in err
+    assert "frames 0-7 of 13" in err and "--resume" in err
+    assert load_poses(out).frames_total == 13 and len(load_poses(out).confidence) == 8
+    bad.write_text(good)
+    assert main(_infer_args(folder, out, "--resume")) == 0
+    assert "resuming at frame 8" in capsys.readouterr().out
+    assert main(_infer_args(folder, tmp_path / "whole")) == 0
+    _same_results(load_poses(out), load_poses(tmp_path / "whole"))
+
+
+def test_ctrl_c_before_the_first_chunk_and_evaluating_partial_results(
+    long_files, tmp_path, monkeypatch, capsys
+):
+    _, root = long_files
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        _interrupt_on_chunk(m, 0, KeyboardInterrupt())
+        assert main(_infer_args(root / "scene.npz", out)) == 130
+    assert "no frame of 13 (no chunk had finished)" in capsys.readouterr().err
+    empty = load_poses(out)
+    assert empty.partial and empty.frames_total == 13 and len(empty.confidence) == 0
+    with monkeypatch.context() as m:
+        _interrupt_on_chunk(m, 1, KeyboardInterrupt())
+        assert main(_infer_args(root / "scene.npz", out)) == 130
+    capsys.readouterr()
+    args = ["evaluate", "--rig", "panoptic5", "--detections", str(root / "scene.npz")]
+    assert main(args + ["--poses", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "poses have 4 frames" in err and "partial results" in err and "--resume" in err
+
+
+def test_infer_tracks_across_a_resume_without_reusing_ids(
+    long_files, tmp_path, monkeypatch, capsys
+):
+    rec, root = long_files
+    out = tmp_path / "out"
+    _interrupt_on_chunk(monkeypatch, 2, KeyboardInterrupt())
+    assert main(_infer_args(root / "scene.npz", out, track=True)) == 130
+    before = load_poses(out)
+    assert before.partial and before.track is not None
+    monkeypatch.undo()
+    assert main(_infer_args(root / "scene.npz", out, "--resume", track=True)) == 0
+    after = load_poses(out)
+    assert not after.partial and len(after.confidence) == rec.num_frames
+    F0 = len(before.confidence)
+    old = set(after.track[:F0][after.poses.valid[:F0]].tolist())
+    new = set(after.track[F0:][after.poses.valid[F0:]].tolist())
+    assert old and new and min(new) > max(old)  # restarted tracks take fresh ids

@@ -804,3 +804,225 @@ def test_fuzz_corrupted_npz(fuzz_dir, cut, flips):
     path.write_bytes(bytes(data))
     _loads_or_input_error(partial(read_npz, path))
     os.remove(path)
+
+
+# --------------------------------------------------------------------------- reading in ranges
+
+
+def _long_recording(seed: int = 0, num_frames: int = 11) -> Recording:
+    from mvpose_jax.synthetic import generate_recording
+
+    return generate_recording(
+        load_preset("panoptic5"), num_people=3, num_frames=num_frames, seed=seed
+    )
+
+
+def _assert_same_recording(got: Recording, want: Recording) -> None:
+    assert got.cameras == want.cameras and got.layout == want.layout
+    for name in ("xy", "score", "count"):
+        a, b = np.asarray(getattr(got.detections, name)), np.asarray(getattr(want.detections, name))
+        assert a.dtype == b.dtype, name
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    for name in ("identity", "timestamps", "image_names", "projected"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            np.testing.assert_array_equal(a, b, err_msg=name)
+    if want.ground_truth is not None:
+        for a, b in zip(got.ground_truth, want.ground_truth, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("storage", ["deflated", "stored", "fortran"])
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"cameras": ["trackerd", "trackera"]}, {"layout": "coco17"}],
+    ids=["all", "cameras", "layout"],
+)
+@pytest.mark.parametrize("chunk", [1, 4, 11, 50])
+def test_npz_read_in_ranges_equals_the_whole_file(tmp_path, storage, options, chunk):
+    """open_recording reads an npz (stored or deflated members, or a Fortran-ordered one) range by
+    range, with camera selection and layout conversion per range: the ranges joined are what
+    load_recording reads (ranges have P of their own; joined, the whole file's)."""
+    from tests.helpers import read_in_chunks
+
+    path = tmp_path / "r.npz"
+    write_npz(_long_recording(), path)
+    if storage != "deflated":
+        arrays = dict(np.load(path))
+        if storage == "fortran":
+            arrays["xy"] = np.asfortranarray(arrays["xy"])
+        np.savez(path, **arrays)
+    whole = load_recording(path, **options)
+    joined, sizes = read_in_chunks(path, chunk, **options)
+    _assert_same_recording(joined, whole)
+    if "cameras" not in options:
+        assert set(sizes) == {np.shape(whole.detections.score)[2]}  # the file's P in every range
+
+
+def test_npz_range_reads_only_its_rows(tmp_path):
+    """A range is read from the members without materialising them: frames never asked for are
+    never checked (a NaN in frame 9 does not stop reading frames 0-7), and the error of the range
+    holding it names frame 9 of the file."""
+    from mvpose_jax.data import open_recording
+
+    rec = _long_recording()
+    path = tmp_path / "r.npz"
+    write_npz(rec, path)
+    arrays = dict(np.load(path))
+    f, c = 9, int(np.argmax(arrays["count"][9] > 0))
+    arrays["xy"][f, c, 0, 3] = np.nan
+    arrays["score"][f, c, 0, 3] = 0.9
+    np.savez_compressed(path, **arrays)
+    with open_recording(path) as stream:
+        assert stream.streamed and stream.num_frames == 11
+        part = stream.read_frames(0, 8)
+        np.testing.assert_array_equal(part.detections.xy, np.asarray(rec.detections.xy)[:8])
+        with pytest.raises(InputError) as e:
+            stream.read_frames(8, 11)
+    assert e.value.frame == 9 and e.value.camera == rec.cameras[c] and e.value.field == "xy"
+    with pytest.raises(InputError) as whole:
+        load_recording(path)
+    assert str(whole.value) == str(e.value)
+
+
+def test_npz_ranges_give_one_clipping_warning_per_file(tmp_path):
+    from mvpose_jax.data import open_recording
+    from mvpose_jax.data.checks import ScoreClippedWarning
+
+    path = tmp_path / "r.npz"
+    write_npz(_long_recording(), path)
+    arrays = dict(np.load(path))
+    for f, value in ((0, 1.01), (5, 1.02), (10, 1.03)):
+        c = int(np.argmax(arrays["count"][f] > 0))
+        arrays["score"][f, c, 0, 0] = value
+    np.savez(path, **arrays)
+    with pytest.warns(ScoreClippedWarning) as caught, open_recording(path) as stream:
+        parts = [r for _, r in stream.chunks(2)]
+    assert len(caught) == 1
+    assert "3 keypoint scores above 1 (largest 1.03)" in str(caught[0].message)
+    assert max(float(np.max(r.detections.score)) for r in parts) == 1.0
+
+
+def test_npz_truncated_member_is_an_error_when_its_range_is_read(tmp_path):
+    """A member whose bytes end early (its zip entry claims more) fails the range that needs
+    them, naming the file and member."""
+    import zipfile
+
+    from mvpose_jax.data import open_recording
+
+    path = tmp_path / "r.npz"
+    write_npz(_long_recording(), path)
+    with zipfile.ZipFile(path) as zf:
+        members = {i.filename: zf.read(i) for i in zf.infolist()}
+    cut = tmp_path / "cut.npz"
+    with zipfile.ZipFile(cut, "w", zipfile.ZIP_STORED) as zf:
+        for name, data in members.items():
+            zf.writestr(name, data)
+    raw = bytearray(cut.read_bytes())
+    # Corrupt the stored bytes of score's last frames: the CRC check at the member's end fails.
+    with zipfile.ZipFile(cut) as zf:
+        info = zf.getinfo("score.npy")
+    end = info.header_offset + len(info.FileHeader()) + info.compress_size
+    raw[end - 8 : end] = b"\xff" * 8
+    cut.write_bytes(bytes(raw))
+    with open_recording(cut) as stream:
+        stream.read_frames(0, 5)
+        with pytest.raises(InputError) as e:
+            stream.read_frames(5, 11)
+    assert e.value.field == "score" and e.value.file == str(cut)
+
+
+@pytest.mark.parametrize("fmt", ["native", "original"])
+def test_json_formats_are_loaded_whole_and_handed_out_in_ranges(tmp_path, fmt):
+    from tests.helpers import read_in_chunks
+
+    path = tmp_path / "r.json"
+    save_recording(_long_recording(), path, format=fmt)
+    from mvpose_jax.data import open_recording
+
+    with open_recording(path) as stream:
+        assert not stream.streamed
+    joined, _ = read_in_chunks(path, 3, cameras=["trackerb", "trackerc"])
+    _assert_same_recording(joined, load_recording(path, cameras=["trackerb", "trackerc"]))
+
+
+def test_assembled_poses_equal_saved_poses_with_every_optional_member(tmp_path):
+    """poses.npz / poses.json assembled chunk by chunk (people padded across chunks) equal
+    save_poses of the joined results, tracks and filled keypoints included; partial when the
+    chunks stop short of the recording."""
+    from mvpose_jax.data.poses import (
+        PoseResults,
+        assemble_poses,
+        load_poses,
+        save_poses,
+        save_poses_chunk,
+    )
+
+    rng = np.random.default_rng(0)
+    K, C = 18, 3
+    parts = []
+    for F, G, P in ((3, 2, 4), (2, 4, 2), (1, 1, 3)):
+        valid = rng.random((F, G)) < 0.7
+        parts.append(
+            PoseResults(
+                Poses3D(
+                    rng.normal(size=(F, G, K, 3)).astype(np.float32),
+                    valid,
+                    (rng.random((F, G, K)) < 0.8) & valid[..., None],
+                ),
+                rng.random((F, G)).astype(np.float32),
+                np.where(valid[..., None], rng.integers(-1, P, (F, G, C)), -1).astype(np.int32),
+                rng.integers(-1, G, (F, C, P)).astype(np.int32),
+                ("a", "b", "c"),
+                "coco18",
+                rng.random(F),
+                np.where(valid, rng.integers(0, 9, (F, G)), -1).astype(np.int32),
+                rng.random((F, G, K)) < 0.1,
+            )
+        )
+    paths, first = [], 0
+    for i, part in enumerate(parts):
+        paths.append(tmp_path / f"chunk_{i}.npz")
+        save_poses_chunk(part, paths[-1], first_frame=first)
+        first += len(part.confidence)
+
+    def pad(a, size, axis, fill):
+        widths = [(0, 0)] * a.ndim
+        widths[axis] = (0, size - a.shape[axis])
+        return np.pad(a, widths, constant_values=fill)
+
+    def joined(parts, frames_total=None):
+        cat = lambda get, fill=0, size=4, axis=1: np.concatenate(  # noqa: E731
+            [pad(np.asarray(get(p)), size, axis, fill) for p in parts]
+        )
+        return PoseResults(
+            Poses3D(
+                cat(lambda p: p.poses.xyz),
+                cat(lambda p: p.poses.valid, False),
+                cat(lambda p: p.poses.keypoint_valid, False),
+            ),
+            cat(lambda p: p.confidence),
+            cat(lambda p: p.members, -1),
+            cat(lambda p: p.identity, -1, size=4, axis=2),
+            ("a", "b", "c"),
+            "coco18",
+            np.concatenate([p.timestamps for p in parts]),
+            cat(lambda p: p.track, -1),
+            cat(lambda p: p.filled, False),
+            frames_total,
+        )
+
+    for chunks, total in ((paths, 6), (paths[:2], 6)):
+        want = joined(parts[: len(chunks)], None if len(chunks) == 3 else total)
+        save_poses(want, tmp_path / "saved")
+        npz_path, json_path, frames = assemble_poses(chunks, tmp_path / "out", frames_total=total)
+        assert frames == len(want.confidence)
+        assert json_path.read_text() == (tmp_path / "saved" / "poses.json").read_text()
+        got = load_poses(npz_path)
+        assert got.frames_total == want.frames_total and got.partial == (len(chunks) < 3)
+        for name in ("confidence", "members", "identity", "timestamps", "track", "filled"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), name)
+        for a, b in zip(got.poses, want.poses, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert load_poses(json_path).frames_total == want.frames_total

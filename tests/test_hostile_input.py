@@ -61,7 +61,7 @@ from mvpose_jax.data.checks import check_recording
 from mvpose_jax.data.poses import PoseResults, load_poses, save_poses
 from mvpose_jax.errors import InputError, MvposeError
 from mvpose_jax.synthetic import generate_recording
-from tests.helpers import Raw, dump_toml, json_paths, panoptic_dict, toml_text
+from tests.helpers import Raw, dump_toml, json_paths, panoptic_dict, read_in_chunks, toml_text
 
 EXAMPLES = int(os.environ.get("MVPOSE_HOSTILE_EXAMPLES", "50"))
 HOSTILE = settings(
@@ -153,7 +153,13 @@ SUFFIX = {
 READERS: dict[str, list[Callable]] = {
     "native": [load_recording, read_native, read_native_rig],
     "original": [load_recording, read_original, partial(read_original, layout="body25")],
-    "npz": [load_recording, read_npz, partial(load_recording, layout="body25")],
+    "npz": [
+        load_recording,
+        read_npz,
+        partial(load_recording, layout="body25"),
+        # Read 3 frames at a time (`data.open_recording`): the same checks, range by range.
+        lambda path: read_in_chunks(path, 3)[0],
+    ],
     "calib_native": [load_rig],
     "calib_panoptic": [load_rig, partial(load_rig, cameras=PANOPTIC_CAMERAS[::-1])],
     "calib_toml": [load_rig, partial(load_rig, translation_scale=1e-3)],
@@ -161,6 +167,7 @@ READERS: dict[str, list[Callable]] = {
 }
 OPENPOSE_READERS: list[Callable] = [
     load_recording,
+    lambda path: read_in_chunks(path, 2, missing_frames="empty")[0],
     partial(read_openpose, missing_frames="empty"),
     partial(read_openpose, layout="body25", missing_frames="empty"),
 ]

@@ -151,6 +151,35 @@ def test_chunks_give_the_same_result_as_one_batch(scene):
     np.testing.assert_array_equal(whole.identity, chunked.identity)
 
 
+def test_stream_pipeline_takes_chunks_from_a_reader(scene, tmp_path):
+    """Chunks handed in one at a time (here from a recording read in ranges, whose person axis
+    is the most people in that range, not the file's) give the whole recording's results, and
+    each chunk's cameras are checked as they arrive."""
+    from mvpose_jax.data import open_recording, save_recording
+    from mvpose_jax.inference import concat_results, stream_pipeline
+    from mvpose_jax.skeletons import Detections
+
+    rig, rec = scene
+    whole = run_pipeline(rig, rec.detections, chunk_frames=3)
+    save_recording(rec, tmp_path / "scene.npz")
+    names = list(rig.names)  # cameras selected: each range's P is its own
+    with open_recording(tmp_path / "scene.npz", cameras=names) as stream:
+        chunks = ((s, r.detections) for s, r in stream.chunks(3))
+        parts = list(stream_pipeline(rig.select(names), chunks, num_frames=stream.num_frames))
+    assert [s for s, _ in parts] == list(range(0, rec.num_frames, 3))
+    joined = concat_results([r for _, r in parts])
+    assert joined.cameras == tuple(names)
+    for a, b in zip(whole.poses, joined.poses, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(whole.members, joined.members)
+    np.testing.assert_array_equal(whole.identity, joined.identity)
+    assert len({r.identity.shape[2] for _, r in parts}) > 1  # the ranges' P differ
+    det = rec.detections
+    two = Detections(det.xy[:2, :2], det.score[:2, :2], det.count[:2, :2])
+    with pytest.raises(InputError, match="detections have 2 cameras, the rig 5"):
+        list(stream_pipeline(rig, iter([(0, two)])))
+
+
 def test_triangulation_on_the_pipeline_groups_matches_direct_call(scene):
     rig, rec = scene
     res = run_pipeline(rig, rec.detections, method="centroid")

@@ -420,3 +420,102 @@ def test_pose2sim_style_folders_map_to_the_rig_and_strays_can_be_skipped(tmp_pat
     with pytest.raises(InputError, match="camera_map applies to OpenPose folders only"):
         save_recording(rec, tmp_path / "r.npz")
         load_recording(tmp_path / "r.npz", camera_map={"a": "b"})
+
+
+# --------------------------------------------------------------------------- reading in ranges
+
+
+@pytest.fixture(scope="module")
+def long_folder(tmp_path_factory):
+    """A 12-frame, 5-camera OpenPose folder (BODY_25 files) with a gap: camera trackerb lacks
+    frames 5 and 6, and no camera sees anybody in frames 0-2 (so the files' layout is learnt
+    only from frame 3 on), plus the folder names tools give (trackera_json ...)."""
+    rec = generate_recording(load_rig("panoptic5"), num_people=3, num_frames=12, seed=2)
+    root = tmp_path_factory.mktemp("long_op") / "op"
+    save_openpose(rec, root, layout="body25")
+    for cam in rec.cameras:
+        for f in range(3):
+            _write_frame(root / cam / f"{f:012d}_keypoints.json", [])
+    for f in (5, 6):
+        (root / "trackerb" / f"{f:012d}_keypoints.json").unlink()
+    for cam in rec.cameras:
+        (root / cam).rename(root / f"{cam}_json")
+    return root
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 5, 12])
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"cameras": ["trackere", "trackerb"]},
+        {"camera_map": {"trackera_json": "A", "trackerb_json": "B"}, "cameras": ["B", "A"]},
+        {"layout": "body25"},
+    ],
+    ids=["rig order", "cameras", "camera map", "body25"],
+)
+def test_openpose_read_in_ranges_equals_the_whole_folder(long_folder, chunk, options):
+    """Range by range (only the range's files parsed), with camera selection, a camera map,
+    missing frames read as empty and the layout learnt from the first person met: the ranges
+    joined are what load_recording reads."""
+    from tests.helpers import read_in_chunks
+
+    if "camera_map" in options:
+        options = {**options, "rig": None}
+    else:
+        options = {**options, "rig": load_rig("panoptic5")}
+    whole = load_recording(long_folder, missing_frames="empty", **options)
+    joined, sizes = read_in_chunks(long_folder, chunk, missing_frames="empty", **options)
+    assert joined.cameras == whole.cameras and joined.layout == whole.layout
+    for a, b in zip(joined.detections, whole.detections, strict=True):
+        np.testing.assert_array_equal(a, np.asarray(b))
+    assert max(sizes) == np.shape(whole.detections.score)[2]
+
+
+def test_openpose_ranges_parse_only_their_files_and_name_frames_absolutely(
+    long_folder, tmp_path, monkeypatch
+):
+    import shutil
+
+    from mvpose_jax.data import open_recording, openpose
+
+    root = tmp_path / "op"
+    shutil.copytree(long_folder, root)
+    bad = root / "trackerd_json" / f"{10:012d}_keypoints.json"
+    doc = json.loads(bad.read_text())
+    doc["people"][0]["pose_keypoints_2d"][0] = float("nan")
+    doc["people"][0]["pose_keypoints_2d"][2] = 0.5
+    bad.write_text(json.dumps(doc))
+    parsed = []
+    people = openpose._people
+    monkeypatch.setattr(
+        openpose, "_people", lambda path, *a: parsed.append(path) or people(path, *a)
+    )
+    rig = load_rig("panoptic5")
+    with open_recording(root, rig=rig, missing_frames="empty") as stream:
+        assert stream.streamed and stream.num_frames == 12
+        assert not parsed  # opening lists the folders, it reads no frame
+        stream.read_frames(4, 8)
+        assert sorted({int(p.name[:12]) for p in parsed}) == [4, 5, 6, 7]
+        with pytest.raises(InputError) as e:
+            stream.read_frames(8, 12)
+    assert e.value.frame == 10 and e.value.camera == "trackerd_json"
+    assert e.value.file == str(bad)
+    with pytest.raises(InputError) as whole:
+        load_recording(root, rig=rig, missing_frames="empty")
+    assert str(whole.value) == str(e.value)
+
+
+def test_openpose_ranges_give_one_clipping_warning_per_folder(tmp_path):
+    from mvpose_jax.data import open_recording
+    from mvpose_jax.data.checks import ScoreClippedWarning
+
+    person = {**COCO_PERSON, 0: (10.0, 20.0, 1.037)}
+    root = _tiny_folder(tmp_path / "op", 18, person)
+    with pytest.warns(ScoreClippedWarning) as caught, open_recording(root) as stream:
+        parts = [r for _, r in stream.chunks(1)]
+    assert len(parts) == 2 and len(caught) == 1  # one for the folder, not one per range
+    with pytest.warns(ScoreClippedWarning) as whole:
+        load_recording(root)
+    assert str(caught[0].message) == str(whole[0].message)
+    assert "3 keypoint scores above 1" in str(caught[0].message)

@@ -13,6 +13,7 @@ The readers (`native`, `original`, `npz`, `openpose`) import from here; `formats
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -34,6 +35,33 @@ MAX_SCORE = 1.5
 
 class ScoreClippedWarning(MvposeWarning):
     """Keypoint scores slightly above 1 were clipped to 1 while reading."""
+
+
+@dataclasses.dataclass
+class ClippedScores:
+    """A tally of scores clipped to 1 over several checks (a recording read a chunk at a time), so
+    that the reader warns once per file (`warn_clipped`) rather than once per chunk."""
+
+    count: int = 0
+    largest: float = 0.0
+
+    def add(self, scores: np.ndarray) -> None:
+        """Counts the scores above 1 in ``scores`` (any shape)."""
+        above = scores > 1
+        if above.any():
+            self.count += int(above.sum())
+            self.largest = max(self.largest, float(scores.max()))
+
+
+def warn_clipped(where: object, clipped: ClippedScores, *, stacklevel: int = 2) -> None:
+    """The one `ScoreClippedWarning` of a file (nothing when no score was clipped)."""
+    if clipped.count:
+        warnings.warn(
+            f"{where}: {clipped.count} keypoint scores above 1 (largest {clipped.largest:.4g}) "
+            "were clipped to 1",
+            ScoreClippedWarning,
+            stacklevel=stacklevel + 1,
+        )
 
 
 # Where a row of a flat batch of skeletons comes from: row index -> (frame, camera, person).
@@ -62,6 +90,7 @@ def check_keypoints(
     count_field: str = "skeleton[{p}].keypoints",
     reading: bool = False,
     source: object = None,
+    clipped: ClippedScores | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """THE keypoint check of every reader and writer: count, finite coordinates, score range.
 
@@ -72,6 +101,8 @@ def check_keypoints(
       reading: the values come from a file: a non-finite coordinate with score 0 is then a
         missing keypoint (set to 0), as several detectors write one; a writer refuses it.
       source: what the clipping warning names (default ``file``; a folder of files, say).
+      clipped: a tally to add the clipped scores to instead of warning (the caller warns once,
+        `warn_clipped`, after the last chunk of a file).
       num_keypoints: K, the number of keypoints the layout has; K' must equal it.
       locate: maps a row index to its (frame, camera, person), called only to report an error.
       file: the file the values came from.
@@ -119,16 +150,16 @@ def check_keypoints(
             score_field,
             f"score {_number(np.asarray(score)[i, k])} is outside [0, {MAX_SCORE}]",
         )
-    above = score32 > 1
-    if above.any():
-        # Heatmap peaks exceed 1 (OpenPose writes up to about 1.04): clipped, said once per call.
-        where = next((w for w in (source, file) if w is not None), "detections")
-        warnings.warn(
-            f"{where}: {int(above.sum())} keypoint scores above 1 (largest {float(score32.max()):.4g}) "
-            "were clipped to 1",
-            ScoreClippedWarning,
-            stacklevel=2,
-        )
+    if (score32 > 1).any():
+        # Heatmap peaks exceed 1 (OpenPose writes up to about 1.04): clipped, said once per call
+        # (or once per file, by the caller that passed a tally).
+        if clipped is None:
+            where = next((w for w in (source, file) if w is not None), "detections")
+            tally = ClippedScores()
+            tally.add(score32)
+            warn_clipped(where, tally, stacklevel=2)
+        else:
+            clipped.add(score32)
         score32 = np.minimum(score32, 1.0)
     return coords32, score32
 
@@ -141,12 +172,15 @@ def _number(v) -> str:
         return repr(v)
 
 
-def check_recording(rec: Recording, *, file: object = None) -> None:
+def check_recording(
+    rec: Recording, *, file: object = None, clipped: ClippedScores | None = None
+) -> None:
     """Validates the values of a `Recording` (writers call it before writing, the npz reader after).
 
     Checks: counts within [0, P]; padding rows with score 0; detections through `check_keypoints`;
     identities in [-1, G) and pointing at a person present in that frame; ground truth finite
     where valid and keypoint_valid only where valid; finite timestamps and projections.
+    ``clipped``: as in `check_keypoints`.
 
     Raises:
       InputError naming file, frame, camera and field (the `Recording` attribute).
@@ -199,6 +233,7 @@ def check_recording(rec: Recording, *, file: object = None) -> None:
         field="xy",
         score_field="score",
         count_field="xy",
+        clipped=clipped,
     )
     if rec.projected is not None:
         check_keypoints(

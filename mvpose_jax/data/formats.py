@@ -10,6 +10,10 @@ Formats (each module documents its schema):
     holding one OpenPose JSON file per frame (``{"people": [{"pose_keypoints_2d": [...]}]}``), as
     OpenPose, Pose2Sim and many detectors write; detections only.
 
+`open_recording` opens a recording to be read a range of frames at a time
+(`mvpose_jax.data.stream`): npz files and OpenPose folders are then read range by range, the JSON
+formats are loaded whole (one JSON document each).
+
 `load_recording` picks the format from the path: a folder is OpenPose, a ``.npz`` suffix npz, and
 for JSON the content decides (an object with ``"frames"`` is native, a list is original);
 `save_recording` picks it from the suffix (``.npz``; anything else is native JSON) unless
@@ -26,9 +30,12 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from mvpose_jax.data import native, npz, openpose, original
 from mvpose_jax.data.checks import load_json
 from mvpose_jax.data.recording import Recording, convert_layout, select_cameras
+from mvpose_jax.data.stream import InMemoryStream, RecordingStream
 from mvpose_jax.errors import InputError
 
 FORMATS = ("native", "original", "npz", "openpose")
@@ -79,6 +86,119 @@ def load_recording(
             missing_frames=missing_frames,
             camera_map=camera_map,
         )
+    _only_for_folders(path, source_layout, missing_frames, camera_map)
+    rec = _load_file(path, layout=layout, cameras=cameras)
+    _check_rig_cameras(rec.cameras, rig, path)
+    return rec
+
+
+def open_recording(
+    path: str | os.PathLike,
+    *,
+    layout: str | None = None,
+    cameras: Sequence[str] | None = None,
+    rig: Any = None,
+    source_layout: str | None = None,
+    missing_frames: str = "error",
+    camera_map: Mapping[str, str] | None = None,
+) -> RecordingStream:
+    """Opens a recording in any supported format to be read a range of frames at a time.
+
+    Arguments as `load_recording`; camera selection and layout conversion apply to every range,
+    and a range holds what `load_recording` would hold for those frames (its person axis may be
+    shorter: the most people in a view of the range). ``.npz`` files and OpenPose folders are
+    read range by range (memory bounded by the range); native and original JSON are one JSON
+    document each and are loaded whole (memory grows with the recording).
+
+    Returns:
+      A `RecordingStream` (close it, or use it in a ``with`` block).
+    Raises:
+      InputError naming the file, frame, camera and field of the first problem; problems in the
+      values of a frame are found when its range is read.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return openpose.OpenPoseStream(
+            path,
+            layout=layout or "coco18",
+            source_layout=source_layout,
+            cameras=cameras,
+            rig=rig,
+            missing_frames=missing_frames,
+            camera_map=camera_map,
+        )
+    if path.suffix.lower() != ".npz":
+        return InMemoryStream(
+            load_recording(
+                path,
+                layout=layout,
+                cameras=cameras,
+                rig=rig,
+                source_layout=source_layout,
+                missing_frames=missing_frames,
+                camera_map=camera_map,
+            ),
+            path,
+        )
+    _only_for_folders(path, source_layout, missing_frames, camera_map)
+    stream = npz.NpzStream(path)
+    try:
+        if cameras is not None:
+            # Checked as select_cameras checks them, before any frame is read.
+            select_cameras(_empty_like(stream), cameras, file=path)
+        _check_rig_cameras(tuple(cameras) if cameras is not None else stream.cameras, rig, path)
+    except BaseException:
+        stream.close()
+        raise
+    return _EditedStream(stream, cameras=cameras, layout=layout)
+
+
+class _EditedStream(RecordingStream):
+    """A stream with `select_cameras` and `convert_layout` applied to every range."""
+
+    def __init__(self, inner: RecordingStream, *, cameras, layout):
+        super().__init__(
+            inner.path,
+            cameras=tuple(cameras) if cameras is not None else inner.cameras,
+            layout=layout or inner.layout,
+            num_frames=inner.num_frames,
+            streamed=inner.streamed,
+        )
+        self.inner = inner
+        self._select = None if cameras is None else [str(c) for c in cameras]
+
+    def read_frames(self, start: int, stop: int) -> Recording:
+        rec = self.inner.read_frames(start, stop)
+        if self._select is not None:
+            rec = select_cameras(rec, self._select, file=self.path)
+        if rec.layout != self.layout:
+            rec = convert_layout(rec, self.layout)
+        return rec
+
+    def finish(self) -> None:
+        self.inner.finish()
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def _empty_like(stream: RecordingStream) -> Recording:
+    from mvpose_jax.skeletons import Detections, get_layout
+
+    K = get_layout(stream.layout).num_keypoints
+    C = len(stream.cameras)
+    return Recording(
+        detections=Detections(
+            np.zeros((0, C, 1, K, 2), np.float32),
+            np.zeros((0, C, 1, K), np.float32),
+            np.zeros((0, C), np.int32),
+        ),
+        cameras=stream.cameras,
+        layout=stream.layout,
+    )
+
+
+def _only_for_folders(path: Path, source_layout, missing_frames, camera_map) -> None:
     for name, value, default in (
         ("source_layout", source_layout, None),
         ("missing_frames", missing_frames, "error"),
@@ -88,18 +208,20 @@ def load_recording(
             raise InputError(
                 f"{name} applies to OpenPose folders only; this is a file", file=path, field=name
             )
-    rec = _load_file(path, layout=layout, cameras=cameras)
-    if rig is not None:
-        unknown = [name for name in rec.cameras if name not in rig.names]
-        if unknown:
-            raise InputError(
-                f"cameras {unknown} are not cameras of the rig. Recording: {list(rec.cameras)}; "
-                f"rig: {list(rig.names)}",
-                file=path,
-                camera=unknown[0],
-                field="cameras",
-            )
-    return rec
+
+
+def _check_rig_cameras(cameras: Sequence[str], rig: Any, path: Path) -> None:
+    if rig is None:
+        return
+    unknown = [name for name in cameras if name not in rig.names]
+    if unknown:
+        raise InputError(
+            f"cameras {unknown} are not cameras of the rig. Recording: {list(cameras)}; "
+            f"rig: {list(rig.names)}",
+            file=path,
+            camera=unknown[0],
+            field="cameras",
+        )
 
 
 def _load_file(path: Path, *, layout: str | None, cameras: Sequence[str] | None) -> Recording:

@@ -29,15 +29,16 @@ from __future__ import annotations
 import math
 import os
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mvpose_jax.data.checks import check_recording
+from mvpose_jax.data.checks import ClippedScores, check_recording
 from mvpose_jax.data.files import atomic_open
 from mvpose_jax.data.recording import Recording
+from mvpose_jax.data.stream import RecordingStream
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import LAYOUTS, Detections, Poses3D, get_layout
 
@@ -45,6 +46,7 @@ VERSION = 1
 _REQUIRED = ("version", "layout", "cameras", "xy", "score", "count")
 _GT = ("gt_xyz", "gt_valid", "gt_keypoint_valid")
 _OPTIONAL = ("identity", *_GT, "timestamps", "image_names", "projected")
+_SMALL = ("version", "layout", "cameras")  # the members without a frame axis
 
 
 def write_npz(recording: Recording, path: str | os.PathLike) -> None:
@@ -90,28 +92,147 @@ def read_npz(path: str | os.PathLike) -> Recording:
       inconsistent counts or identities.
     """
     arrays = _load_members(path)
+    _check_members({name: (a.shape, a.dtype) for name, a in arrays.items()}, arrays, path)
+    return _recording_of(arrays, path)
+
+
+class NpzStream(RecordingStream):
+    """A ``.npz`` recording read a range of frames at a time (`mvpose_jax.data.stream`).
+
+    Opening reads and checks every member's ``.npy`` header (names, dtypes, shapes, sizes: the
+    checks of `read_npz`) and the small members (version, layout, cameras); `read_frames` then
+    reads only the rows of the range from each per-frame member, stored or deflated alike (a
+    deflated member is decompressed from its start up to the range: read ranges in order). The
+    values of a range get `read_npz`'s checks, frames named by their place in the recording. A
+    member written in Fortran order (numpy writes one for a Fortran-contiguous array) has no
+    contiguous rows: it is read whole when opened.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        archive = _open_archive(path)
+        try:
+            members: dict[str, tuple[zipfile.ZipInfo, tuple, np.dtype, bool, int]] = {}
+            for info in archive.infolist():
+                name = _member_name(info, path, _REQUIRED + _OPTIONAL, members)
+                try:
+                    with archive.open(info) as f:
+                        shape, fortran, dtype = _check_header(f, info.file_size)
+                        members[name] = (info, shape, dtype, fortran, f.tell())
+                except InputError as e:
+                    raise e.at(file=path, field=name) from None
+                except Exception as e:
+                    raise _unreadable(e, path, name) from None
+            _check_names(members, path)
+            small = {name: self._whole(archive, members[name], path, name) for name in _SMALL}
+            _check_members({n: (m[1], m[2]) for n, m in members.items()}, small, path)
+            cameras = tuple(small["cameras"].tolist())
+        except BaseException:
+            archive.close()
+            raise
+        super().__init__(
+            path,
+            cameras=cameras,
+            layout=str(small["layout"]),
+            num_frames=members["xy"][1][0],
+            streamed=True,
+        )
+        self._archive = archive
+        self._members = members
+        self._small = small
+        self._open: dict[str, tuple[object, int]] = {}  # name -> (member file, next row)
+        # Fortran order: rows are not contiguous in the member's bytes; read those whole.
+        self._loaded = {
+            name: self._whole(archive, m, path, name)
+            for name, m in members.items()
+            if name not in _SMALL and m[3] and len(m[1]) > 1
+        }
+
+    def read_frames(self, start: int, stop: int) -> Recording:
+        start, stop = max(0, start), min(self.num_frames, stop)
+        arrays = dict(self._small)
+        for name in self._members:
+            if name in _SMALL:
+                continue
+            if name in self._loaded:
+                arrays[name] = self._loaded[name][start:stop]
+            else:
+                arrays[name] = self._rows(name, start, stop)
+        return _recording_of(arrays, self.path, first_frame=start, clipped=self.clipped)
+
+    def close(self) -> None:
+        for f, _ in self._open.values():
+            f.close()
+        self._open.clear()
+        self._archive.close()
+        super().close()
+
+    def _rows(self, name: str, start: int, stop: int) -> np.ndarray:
+        """Rows ``start:stop`` of a per-frame member, read from the archive."""
+        info, shape, dtype, _, header = self._members[name]
+        out = np.empty((stop - start, *shape[1:]), dtype)
+        row = math.prod(shape[1:]) * dtype.itemsize
+        try:
+            f, at = self._open.get(name, (None, -1))
+            if f is None:
+                f = self._archive.open(info)
+                f.seek(header)
+                at = 0
+            if at != start:  # a deflated member re-reads from its start to go back
+                f.seek(header + start * row)
+            view = out.reshape(-1).view(np.uint8)
+            done = 0
+            while done < view.size:
+                n = f.readinto(view[done:])
+                if not n:
+                    raise InputError(
+                        f"member ends after {header + start * row + done} of the "
+                        f"{info.file_size} bytes its size says"
+                    )
+                done += n
+            self._open[name] = (f, stop)
+        except InputError as e:
+            raise e.at(file=self.path, field=name) from None
+        except Exception as e:
+            raise _unreadable(e, self.path, name) from None
+        return out
+
+    @staticmethod
+    def _whole(archive, member, path, name: str) -> np.ndarray:
+        try:
+            with archive.open(member[0]) as f:
+                return np.lib.format.read_array(f, allow_pickle=False)
+        except Exception as e:
+            raise _unreadable(e, path, name) from None
+
+
+def _check_members(
+    meta: dict[str, tuple[tuple, np.dtype]], small: dict[str, np.ndarray], path
+) -> None:
+    """The members' dtypes and shapes (``meta``: name -> (shape, dtype)), and the version and
+    layout (``small``: their values), as `read_npz` checks them."""
     err = lambda reason, field: InputError(reason, file=path, field=field)  # noqa: E731
 
-    def need(name: str, kinds: str, ndim: int) -> np.ndarray:
-        a = arrays[name]
-        if a.dtype.kind not in kinds or a.ndim != ndim:
+    def need(name: str, kinds: str, ndim: int) -> tuple:
+        shape, dtype = meta[name]
+        if dtype.kind not in kinds or len(shape) != ndim:
             raise err(
-                f"expected a {ndim}-d array of kind {kinds!r}, got {a.dtype} with shape {a.shape}",
+                f"expected a {ndim}-d array of kind {kinds!r}, got {dtype} with shape {shape}",
                 name,
             )
-        return a
+        return shape
 
-    version = need("version", "iu", 0)
+    need("version", "iu", 0)
+    version = small["version"]
     if int(version) != VERSION:
         raise err(
             f"unsupported version {int(version)}; this reader knows version {VERSION}", "version"
         )
-    layout = str(need("layout", "U", 0))
+    need("layout", "U", 0)
+    layout = str(small["layout"])
     if layout not in LAYOUTS:
         raise err(f"unknown keypoint layout {layout!r}; known: {sorted(LAYOUTS)}", "layout")
     K = get_layout(layout).num_keypoints
-    xy = need("xy", "f", 5)
-    F, C, P = xy.shape[:3]
+    F, C, P = need("xy", "f", 5)[:3]
     shapes = {
         "xy": (F, C, P, K, 2),
         "score": (F, C, P, K),
@@ -122,8 +243,8 @@ def read_npz(path: str | os.PathLike) -> Recording:
         "image_names": (F, C),
         "projected": (F, C, P, K, 2),
     }
-    if "gt_xyz" in arrays:
-        G = need("gt_xyz", "f", 4).shape[1]
+    if "gt_xyz" in meta:
+        G = need("gt_xyz", "f", 4)[1]
         shapes.update(gt_xyz=(F, G, K, 3), gt_valid=(F, G), gt_keypoint_valid=(F, G, K))
     kinds = {
         "xy": "f",
@@ -139,20 +260,43 @@ def read_npz(path: str | os.PathLike) -> Recording:
         "projected": "f",
     }
     for name, shape in shapes.items():
-        if name in arrays:
+        if name in meta:
             need(name, kinds[name], len(shape))
-            if arrays[name].shape != shape:
+            if tuple(meta[name][0]) != shape:
                 raise err(
-                    f"expected shape {shape} (layout {layout!r}), got {arrays[name].shape}", name
+                    f"expected shape {shape} (layout {layout!r}), got {tuple(meta[name][0])}", name
                 )
 
+
+def _recording_of(
+    arrays: dict[str, np.ndarray],
+    path,
+    *,
+    first_frame: int = 0,
+    clipped: ClippedScores | None = None,
+) -> Recording:
+    """The checked `Recording` of members whose shapes `_check_members` accepted (a whole file,
+    or a range of its frames starting at ``first_frame``, which errors then count from)."""
+    err = lambda reason, field: InputError(reason, file=path, field=field)  # noqa: E731
+    try:
+        return _values_of(arrays, path, err, clipped)
+    except InputError as e:
+        if e.frame is None or not first_frame:
+            raise
+        raise InputError(
+            e.reason, file=e.file, frame=e.frame + first_frame, camera=e.camera, field=e.field
+        ) from None
+
+
+def _values_of(arrays, path, err, clipped) -> Recording:
+    layout = str(arrays["layout"])
     cameras = tuple(arrays["cameras"].tolist())
     if any(not name for name in cameras) or len(set(cameras)) != len(cameras):
         raise err(f"camera names must be unique and non-empty, got {list(cameras)}", "cameras")
     count = arrays["count"]
     if count.size and (count.min() < 0 or count.max() > np.iinfo(np.int32).max):
         raise err("count must be non-negative int32", "count")
-    score = arrays["score"]
+    xy, score = arrays["xy"], arrays["score"]
     with np.errstate(over="ignore", invalid="ignore"):
         det = Detections(
             # Coordinates of missing keypoints are meaningless (NaN, say): zero them as every
@@ -185,7 +329,7 @@ def read_npz(path: str | os.PathLike) -> Recording:
     except InputError as e:
         raise e.at(file=path) from None
     # Values: ranges, finiteness, padding, identities (frame and camera named), then exact dtypes.
-    check_recording(rec, file=path)
+    check_recording(rec, file=path, clipped=clipped)
     f32 = lambda a: None if a is None else np.asarray(a, np.float32)  # noqa: E731
     return Recording(
         # Scores in (1, MAX_SCORE] passed the check with a warning; clipped like every reader.
@@ -218,6 +362,43 @@ def load_npz_members(
       truncated or non-zip file, a single ``.npy``, an unknown or repeated member, a header that
       does not describe the member's bytes, object arrays, a member that does not read.
     """
+    archive = _open_archive(path)
+    out: dict[str, Any] = {}
+    with archive:
+        for info in archive.infolist():
+            name = _member_name(info, path, names, out)
+            try:
+                with archive.open(info) as f:
+                    _check_header(f, info.file_size)
+                with archive.open(info) as f:
+                    out[name] = np.lib.format.read_array(f, allow_pickle=False)
+            except InputError as e:
+                raise e.at(file=path, field=name) from None
+            except Exception as e:
+                raise _unreadable(e, path, name) from None
+    return out
+
+
+def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """A recording's members: known names only, the required ones (and ground truth) complete."""
+    out = load_npz_members(path, _REQUIRED + _OPTIONAL)
+    _check_names(out, path)
+    return out
+
+
+def _check_names(members: Collection[str], path) -> None:
+    """The required members are there, and ground truth is whole or absent."""
+    for name in _REQUIRED:
+        if name not in members:
+            raise InputError("missing member", file=path, field=name)
+    present = [name for name in _GT if name in members]
+    if present and len(present) != len(_GT):
+        missing = next(name for name in _GT if name not in members)
+        raise InputError(f"ground truth needs all of {list(_GT)}", file=path, field=missing)
+
+
+def _open_archive(path: str | os.PathLike) -> zipfile.ZipFile:
+    """The archive at ``path``, opened (its directory read); InputError when it is none."""
     p = Path(path)
     try:
         size = p.stat().st_size
@@ -232,7 +413,7 @@ def load_npz_members(
     # The file is untrusted bytes: zipfile and numpy raise many kinds of errors on corrupt input
     # (BadZipFile, zlib.error, EOFError, ValueError, struct.error ...); all of them mean "bad file".
     try:
-        archive = zipfile.ZipFile(p)
+        return zipfile.ZipFile(p)
     except Exception as e:
         with open(p, "rb") as f:
             magic = f.read(6)
@@ -241,50 +422,35 @@ def load_npz_members(
         raise InputError(
             f"not a readable .npz archive ({type(e).__name__}: {e})", file=path
         ) from None
-    out: dict[str, Any] = {}
-    with archive:
-        for info in archive.infolist():
-            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-            if names is not None and name not in names:
-                raise InputError(
-                    f"unknown member; members are {list(names)}", file=path, field=name
-                )
-            if name in out:
-                raise InputError("member appears twice", file=path, field=name)
-            try:
-                with archive.open(info) as f:
-                    _check_header(f, info.file_size)
-                with archive.open(info) as f:
-                    out[name] = np.lib.format.read_array(f, allow_pickle=False)
-            except InputError as e:
-                raise e.at(file=path, field=name) from None
-            except Exception as e:
-                raise InputError(
-                    f"cannot read member ({type(e).__name__}: {e})", file=path, field=name
-                ) from None
-    return out
 
 
-def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """A recording's members: known names only, the required ones (and ground truth) complete."""
-    out = load_npz_members(path, _REQUIRED + _OPTIONAL)
-    for name in _REQUIRED:
-        if name not in out:
-            raise InputError("missing member", file=path, field=name)
-    present = [name for name in _GT if name in out]
-    if present and len(present) != len(_GT):
-        missing = next(name for name in _GT if name not in out)
-        raise InputError(f"ground truth needs all of {list(_GT)}", file=path, field=missing)
-    return out
+def _member_name(
+    info: zipfile.ZipInfo, path, names: Sequence[str] | None, seen: Collection[str]
+) -> str:
+    """A member's name without ``.npy``; refuses unknown (not in ``names``) and repeated ones."""
+    name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+    if names is not None and name not in names:
+        raise InputError(f"unknown member; members are {list(names)}", file=path, field=name)
+    if name in seen:
+        raise InputError("member appears twice", file=path, field=name)
+    return name
 
 
-def _check_header(f, member_size: int) -> None:
-    """Reads a member's .npy header; its shape and dtype must describe exactly the bytes left."""
+def _unreadable(e: Exception, path, name: str) -> InputError:
+    return InputError(f"cannot read member ({type(e).__name__}: {e})", file=path, field=name)
+
+
+def _check_header(f, member_size: int) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """Reads a member's .npy header; its shape and dtype must describe exactly the bytes left.
+
+    Returns:
+      (shape, fortran order, dtype); ``f`` is left at the first byte of the data.
+    """
     version = np.lib.format.read_magic(f)
     if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
     elif version == (2, 0):
-        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
     else:
         raise InputError(f".npy format version {version} is not supported (1.0 and 2.0 are)")
     if dtype.hasobject:
@@ -298,3 +464,4 @@ def _check_header(f, member_size: int) -> None:
             f"the header declares a {dtype} array of shape {shape} ({declared} bytes), but the "
             f"member holds {held} bytes"
         )
+    return shape, fortran, dtype

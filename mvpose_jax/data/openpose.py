@@ -63,6 +63,7 @@ from mvpose_jax.data.checks import (
 )
 from mvpose_jax.data.files import atomic_open
 from mvpose_jax.data.recording import Recording, convert_layout
+from mvpose_jax.data.stream import RecordingStream
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import get_layout
 
@@ -122,99 +123,150 @@ def read_openpose(
     Raises:
       InputError naming the file, frame (its number), camera and field of the first problem.
     """
-    root = Path(folder)
-    get_layout(layout)  # an unknown target layout fails before any file is read
-    if missing_frames not in MISSING_FRAMES:
-        raise InputError(
-            f"missing_frames must be one of {list(MISSING_FRAMES)}, got {missing_frames!r}",
-            field="missing_frames",
-        )
-    if source_layout is not None:
-        get_layout(source_layout)
-    names, camera_names = _camera_folders(root, cameras, rig, camera_map)
-    files = {name: _frame_files(root / name, name) for name in names}
-    frame_of = _frame_numbers(root, files)  # camera -> {frame number: file}
-    numbers = sorted(set().union(*(set(per_cam) for per_cam in frame_of.values())))
-    if not numbers:
-        raise InputError(
-            f"no frame files (*.json) in any camera folder {names}", file=root, field="frames"
-        )
-    if missing_frames == "error":
-        for name in names:
-            lacking = [n for n in numbers if n not in frame_of[name]]
-            if lacking:
-                other = next(c for c in names if lacking[0] in frame_of[c])
-                raise InputError(
-                    f"no file for this frame, which camera {other!r} has "
-                    f"({frame_of[other][lacking[0]].name}); {len(lacking)} frame(s) missing here "
-                    "in all. Pass missing_frames='empty' to read them as frames without people",
-                    file=root / name,
-                    frame=lacking[0],
-                    camera=name,
-                    field="frames",
-                )
+    with OpenPoseStream(
+        folder,
+        layout=layout,
+        source_layout=source_layout,
+        cameras=cameras,
+        rig=rig,
+        missing_frames=missing_frames,
+        camera_map=camera_map,
+    ) as stream:
+        return stream.read_frames(0, stream.num_frames)
 
-    # Every skeleton, in file order, with where it goes (frame position, camera, person).
-    rows: list[np.ndarray] = []  # (3K,) float64 each
-    where: list[tuple[int, int, int]] = []
-    origin: list[tuple[Path, int]] = []  # its file and frame number, for error messages
-    K = None if source_layout is None else get_layout(source_layout).num_keypoints
-    first: tuple[Path, int, int] | None = None  # file, frame and person where K was first seen
-    for fi, number in enumerate(numbers):
-        for c, name in enumerate(names):
-            path = frame_of[name].get(number)
-            if path is None:
-                continue
-            for p, flat in enumerate(_people(path, number, name)):
-                if K is None:
-                    first = (path, number, p)
-                    K = _detect_count(flat.size, path, number, name, p)
-                if flat.size != 3 * K:
-                    why = (
-                        f"layout {source_layout!r} has {K} keypoints"
-                        if first is None
-                        else f"{first[0]} (frame {first[1]}, person {first[2]}) has {K}"
-                    )
+
+class OpenPoseStream(RecordingStream):
+    """An OpenPose folder read a range of frames at a time (`mvpose_jax.data.stream`).
+
+    Opening lists the camera folders and their file names, numbers the frames and checks that
+    every camera has every frame (all as `read_openpose`, which reads through here); `read_frames`
+    then parses only the files of the range. The files' keypoint count (their layout) is taken
+    from the first person met, in the order the ranges are read, and every later person must have
+    it. Arguments as `read_openpose`.
+    """
+
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        *,
+        layout: str = "coco18",
+        source_layout: str | None = None,
+        cameras: Sequence[str] | None = None,
+        rig: Any = None,
+        missing_frames: str = "error",
+        camera_map: Mapping[str, str] | None = None,
+    ):
+        root = Path(folder)
+        get_layout(layout)  # an unknown target layout fails before any file is read
+        if missing_frames not in MISSING_FRAMES:
+            raise InputError(
+                f"missing_frames must be one of {list(MISSING_FRAMES)}, got {missing_frames!r}",
+                field="missing_frames",
+            )
+        if source_layout is not None:
+            get_layout(source_layout)
+        names, camera_names = _camera_folders(root, cameras, rig, camera_map)
+        files = {name: _frame_files(root / name, name) for name in names}
+        frame_of = _frame_numbers(root, files)  # camera -> {frame number: file}
+        numbers = sorted(set().union(*(set(per_cam) for per_cam in frame_of.values())))
+        if not numbers:
+            raise InputError(
+                f"no frame files (*.json) in any camera folder {names}", file=root, field="frames"
+            )
+        if missing_frames == "error":
+            for name in names:
+                lacking = [n for n in numbers if n not in frame_of[name]]
+                if lacking:
+                    other = next(c for c in names if lacking[0] in frame_of[c])
                     raise InputError(
-                        f"{flat.size // 3} keypoints ({flat.size} numbers), but {why}",
-                        file=path,
-                        frame=number,
+                        f"no file for this frame, which camera {other!r} has "
+                        f"({frame_of[other][lacking[0]].name}); {len(lacking)} frame(s) missing "
+                        "here in all. Pass missing_frames='empty' to read them as frames without "
+                        "people",
+                        file=root / name,
+                        frame=lacking[0],
                         camera=name,
-                        field=f"people[{p}].pose_keypoints_2d",
+                        field="frames",
                     )
-                rows.append(flat)
-                where.append((fi, c, p))
-                origin.append((path, number))
-
-    src = source_layout or (layout if K is None else LAYOUT_OF_COUNT[K])
-    K = get_layout(src).num_keypoints
-    values = np.stack(rows).reshape(-1, K, 3) if rows else np.zeros((0, K, 3))
-    failed: list[int] = []
-
-    def locate(i: int):  # called by the check only for the first bad row
-        failed.append(i)
-        return origin[i][1], names[where[i][1]], where[i][2]
-
-    try:
-        xy, score = check_keypoints(
-            values[..., :2],
-            values[..., 2],
-            num_keypoints=K,
-            locate=locate,
-            field="people[{p}].pose_keypoints_2d[keypoint {k}]",
-            score_field="people[{p}].pose_keypoints_2d[keypoint {k}].c",
-            count_field="people[{p}].pose_keypoints_2d",
-            reading=True,
-            source=root,
+        super().__init__(
+            root, cameras=tuple(camera_names), layout=layout, num_frames=len(numbers), streamed=True
         )
-    except InputError as e:
-        raise e.at(file=origin[failed[-1]][0]) from None
-    index = tuple(np.array(where, np.int64).reshape(-1, 3).T)
-    det = pack_detections(
-        xy, score, index, num_frames=len(numbers), num_cameras=len(names), file=root
-    )
-    rec = Recording(detections=det, cameras=tuple(camera_names), layout=src)
-    return rec if src == layout else convert_layout(rec, layout)
+        self._folders = names
+        self._frame_of = frame_of
+        self._numbers = numbers
+        self._source_layout = source_layout
+        # The files' keypoint count, and the file, frame and person where it was first seen.
+        self._K = None if source_layout is None else get_layout(source_layout).num_keypoints
+        self._first: tuple[Path, int, int] | None = None
+
+    def read_frames(self, start: int, stop: int) -> Recording:
+        root, names, layout = Path(self.path), self._folders, self.layout
+        numbers = self._numbers[max(0, start) : stop]
+        source_layout = self._source_layout
+        # Every skeleton, in file order, with where it goes (frame position, camera, person).
+        rows: list[np.ndarray] = []  # (3K,) float64 each
+        where: list[tuple[int, int, int]] = []
+        origin: list[tuple[Path, int]] = []  # its file and frame number, for error messages
+        for fi, number in enumerate(numbers):
+            for c, name in enumerate(names):
+                path = self._frame_of[name].get(number)
+                if path is None:
+                    continue
+                for p, flat in enumerate(_people(path, number, name)):
+                    if self._K is None:
+                        self._first = (path, number, p)
+                        self._K = _detect_count(flat.size, path, number, name, p)
+                    K = self._K
+                    if flat.size != 3 * K:
+                        first = self._first
+                        why = (
+                            f"layout {source_layout!r} has {K} keypoints"
+                            if first is None
+                            else f"{first[0]} (frame {first[1]}, person {first[2]}) has {K}"
+                        )
+                        raise InputError(
+                            f"{flat.size // 3} keypoints ({flat.size} numbers), but {why}",
+                            file=path,
+                            frame=number,
+                            camera=name,
+                            field=f"people[{p}].pose_keypoints_2d",
+                        )
+                    rows.append(flat)
+                    where.append((fi, c, p))
+                    origin.append((path, number))
+
+        # Before any person is met, the files' layout is unknown: an empty range is built in
+        # the target layout (converting empty detections gives the same).
+        src = source_layout or (layout if self._K is None else LAYOUT_OF_COUNT[self._K])
+        K = get_layout(src).num_keypoints
+        values = np.stack(rows).reshape(-1, K, 3) if rows else np.zeros((0, K, 3))
+        failed: list[int] = []
+
+        def locate(i: int):  # called by the check only for the first bad row
+            failed.append(i)
+            return origin[i][1], names[where[i][1]], where[i][2]
+
+        try:
+            xy, score = check_keypoints(
+                values[..., :2],
+                values[..., 2],
+                num_keypoints=K,
+                locate=locate,
+                field="people[{p}].pose_keypoints_2d[keypoint {k}]",
+                score_field="people[{p}].pose_keypoints_2d[keypoint {k}].c",
+                count_field="people[{p}].pose_keypoints_2d",
+                reading=True,
+                source=root,
+                clipped=self.clipped,
+            )
+        except InputError as e:
+            raise e.at(file=origin[failed[-1]][0]) from None
+        index = tuple(np.array(where, np.int64).reshape(-1, 3).T)
+        det = pack_detections(
+            xy, score, index, num_frames=len(numbers), num_cameras=len(names), file=root
+        )
+        rec = Recording(detections=det, cameras=self.cameras, layout=src)
+        return rec if src == layout else convert_layout(rec, layout)
 
 
 def save_openpose(

@@ -23,7 +23,13 @@ Two files with the same content:
 ``person`` is a slot within one frame; ``track`` is the same person across frames (tracking).
 ``filled`` lists the keypoints interpolated over a gap rather than reconstructed from detections.
 
-Both are written atomically (temporary file, then rename).
+Partial results (an interrupted ``infer``) cover the first F frames of a longer recording: the
+JSON then has ``"partial": true, "frames_total": N`` before ``"frames"``, the npz a member
+``frames_total`` () int64, and `PoseResults.frames_total` is N (None when complete).
+
+Both are written atomically (temporary file, then rename). `save_poses` writes results held in
+memory; `assemble_poses` writes them from chunk files (`save_poses_chunk`), one chunk in memory at
+a time, so a recording of any length is written in bounded memory.
 """
 
 from __future__ import annotations
@@ -31,7 +37,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import zipfile
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 
@@ -45,7 +54,11 @@ FORMAT = "mvpose-jax.poses"
 
 @dataclasses.dataclass(frozen=True)
 class PoseResults:
-    """People in 3D over F frames and the detections each came from (see the module docstring)."""
+    """People in 3D over F frames and the detections each came from (see the module docstring).
+
+    ``frames_total``: None for complete results; for partial ones (an interrupted run), the
+    recording's frame count N, of which these are the first F frames.
+    """
 
     poses: Poses3D
     confidence: np.ndarray
@@ -56,6 +69,12 @@ class PoseResults:
     timestamps: np.ndarray | None = None
     track: np.ndarray | None = None
     filled: np.ndarray | None = None
+    frames_total: int | None = None
+
+    @property
+    def partial(self) -> bool:
+        """Whether these are the first frames of a longer recording (an interrupted run)."""
+        return self.frames_total is not None
 
     def __post_init__(self):
         F, G, K = np.shape(self.poses.keypoint_valid)
@@ -85,6 +104,203 @@ def save_poses(results: PoseResults, folder: str | os.PathLike) -> tuple[Path, P
     """Writes ``folder/poses.npz`` and ``folder/poses.json``; returns their paths."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    npz_path, json_path = folder / "poses.npz", folder / "poses.json"
+    with atomic_open(npz_path, "wb") as f:
+        np.savez_compressed(f, **_arrays_of(results))
+    with atomic_open(json_path, "w") as f:
+        _write_json(f, _json_head(results), _frames_json(results))
+    return npz_path, json_path
+
+
+def poses_to_json(results: PoseResults) -> dict:
+    """The JSON form (see the module docstring); coordinates rounded to 0.1 mm."""
+    return {**_json_head(results), "frames": list(_frames_json(results))}
+
+
+def save_poses_chunk(results: PoseResults, path: str | os.PathLike, *, first_frame: int) -> None:
+    """Writes the results of frames ``first_frame ..`` as one chunk file (a poses npz with the
+    member ``first_frame``; uncompressed, atomically), for `assemble_poses`."""
+    arrays = {**_arrays_of(results), "first_frame": np.asarray(first_frame, np.int64)}
+    with atomic_open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def load_poses_chunk(path: str | os.PathLike) -> tuple[int, PoseResults]:
+    """A chunk file written by `save_poses_chunk`: (its first frame, its results), checked as
+    `load_poses` checks a poses file."""
+    results = load_poses(path)
+    data = load_npz_members(path, _CHUNK_MEMBERS)
+    first = data.get("first_frame")
+    if first is None or first.shape != () or first.dtype.kind not in "iu" or first < 0:
+        raise InputError("not a chunk file (no first frame)", file=path, field="first_frame")
+    return int(first), results
+
+
+def assemble_poses(
+    chunks: Sequence[str | os.PathLike], folder: str | os.PathLike, *, frames_total: int
+) -> tuple[Path, Path, int]:
+    """Writes ``folder/poses.npz`` and ``folder/poses.json`` from consecutive chunk files.
+
+    One chunk is in memory at a time: a first pass reads the chunks' ``.npy`` headers (people
+    axis G and skeleton axis P of the whole are the largest of any chunk's), then each npz member
+    is written chunk by chunk into the archive, and the JSON frame by frame. The result equals
+    `save_poses` of the chunks' results joined along frames (people padded as
+    `inference.concat_results` pads them). Both files are written atomically.
+
+    Args:
+      chunks: chunk files (`save_poses_chunk`), in order, the first starting at frame 0 and each
+        where the previous ends.
+      folder: the output folder.
+      frames_total: the recording's frame count; when the chunks cover fewer frames the results
+        are written as partial (`PoseResults.frames_total`).
+    Returns:
+      (npz path, json path, frames covered).
+    Raises:
+      InputError: a chunk that does not start where the previous one ends, or that does not go
+        with the first (cameras, layout, optional members).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    heads = [_chunk_head(p) for p in chunks]
+    F = 0
+    for path, head in zip(chunks, heads, strict=True):
+        if head["first_frame"] != F:
+            raise InputError(
+                f"the chunk starts at frame {head['first_frame']}, the previous chunks end at {F}",
+                file=path,
+                field="first_frame",
+            )
+        for key in ("cameras", "layout", "optional"):
+            if head[key] != heads[0][key]:
+                raise InputError(
+                    f"{key} {head[key]} differ from the first chunk's {heads[0][key]}",
+                    file=path,
+                    field=key,
+                )
+        F += head["frames"]
+    if heads:
+        cameras, layout, optional = heads[0]["cameras"], heads[0]["layout"], heads[0]["optional"]
+    else:  # nothing finished: an empty (partial) result
+        cameras, layout, optional = (), "coco18", ()
+    G = max([1] + [h["people"] for h in heads])
+    P = max([1] + [h["skeletons"] for h in heads])
+    K = get_layout(layout).num_keypoints
+    C = len(cameras)
+    partial = frames_total > F
+    # name -> (dtype, shape of the whole, padding value); the order of `save_poses`.
+    members: dict[str, tuple[Any, tuple[int, ...], Any]] = {
+        "xyz": (np.float32, (F, G, K, 3), 0),
+        "valid": (bool, (F, G), False),
+        "keypoint_valid": (bool, (F, G, K), False),
+        "confidence": (np.float32, (F, G), 0),
+        "members": (np.int32, (F, G, C), -1),
+        "identity": (np.int32, (F, C, P), -1),
+    }
+    for name, dtype, shape, fill in _optional_members(F, G, K):
+        if name in optional:
+            members[name] = (dtype, shape, fill)
+    npz_path, json_path = folder / "poses.npz", folder / "poses.json"
+    with atomic_open(npz_path, "wb") as raw, zipfile.ZipFile(raw, "w", zipfile.ZIP_DEFLATED) as zf:
+        for name, (dtype, shape, fill) in members.items():
+            dtype = np.dtype(dtype)
+            with zf.open(name + ".npy", "w", force_zip64=True) as f:
+                header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False}
+                np.lib.format.write_array_header_2_0(f, {**header, "shape": shape})
+                for path in chunks:
+                    with np.load(path, allow_pickle=False) as chunk:
+                        a = np.asarray(chunk[name], dtype)
+                    if name != "timestamps":  # pad the people (skeletons) axis to the whole's
+                        axis, size = (2, P) if name == "identity" else (1, G)
+                        pad = [(0, 0)] * a.ndim
+                        pad[axis] = (0, size - a.shape[axis])
+                        a = np.pad(a, pad, constant_values=fill)
+                    f.write(np.ascontiguousarray(a).tobytes())
+        small = {"cameras": np.asarray(cameras, dtype=str), "layout": np.asarray(layout, dtype=str)}
+        if partial:
+            small["frames_total"] = np.asarray(frames_total, np.int64)
+        for name, a in small.items():
+            with zf.open(name + ".npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, a, allow_pickle=False)
+
+    def frames() -> Iterable[dict]:
+        for path in chunks:
+            first, results = load_poses_chunk(path)
+            yield from _frames_json(results, first_frame=first)
+
+    head = {
+        "format": FORMAT,
+        "version": 1,
+        "units": "metres",
+        "layout": layout,
+        "keypoints": list(get_layout(layout).keypoints),
+        "cameras": list(cameras),
+    }
+    if partial:
+        head.update(partial=True, frames_total=int(frames_total))
+    with atomic_open(json_path, "w") as f:
+        _write_json(f, head, frames())
+    return npz_path, json_path, F
+
+
+def _optional_members(F: int, G: int, K: int):
+    """The optional per-frame members of a poses npz: (name, dtype, shape, padding value)."""
+    return (
+        ("timestamps", np.float64, (F,), 0),
+        ("track", np.int32, (F, G), -1),
+        ("filled", bool, (F, G, K), False),
+    )
+
+
+_CHUNK_MEMBERS = (
+    "xyz",
+    "valid",
+    "keypoint_valid",
+    "confidence",
+    "members",
+    "identity",
+    "cameras",
+    "layout",
+    "timestamps",
+    "track",
+    "filled",
+    "first_frame",
+)
+
+
+def _chunk_head(path) -> dict:
+    """What `assemble_poses` needs of a chunk before reading its arrays: its first frame, frame
+    count, people G, skeletons P, cameras, layout and optional members (from the headers)."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            shapes = {}
+            for info in zf.infolist():
+                with zf.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    read = (
+                        np.lib.format.read_array_header_1_0
+                        if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0
+                    )
+                    shapes[info.filename.removesuffix(".npy")] = read(f)[0]
+        with np.load(path, allow_pickle=False) as chunk:
+            small = {k: chunk[k] for k in ("first_frame", "cameras", "layout")}
+    except Exception as e:
+        raise InputError(
+            f"not a readable chunk file ({type(e).__name__}: {e})", file=path
+        ) from None
+    return {
+        "first_frame": int(small["first_frame"]),
+        "frames": shapes["valid"][0],
+        "people": shapes["valid"][1],
+        "skeletons": shapes["identity"][2],
+        "cameras": tuple(str(c) for c in np.atleast_1d(small["cameras"])),
+        "layout": str(small["layout"]),
+        "optional": tuple(n for n, *_ in _optional_members(0, 0, 0) if n in shapes),
+    }
+
+
+def _arrays_of(results: PoseResults) -> dict[str, np.ndarray]:
+    """The npz members of results (module docstring)."""
     arrays = {
         "xyz": np.asarray(results.poses.xyz, np.float32),
         "valid": np.asarray(results.poses.valid, bool),
@@ -101,25 +317,38 @@ def save_poses(results: PoseResults, folder: str | os.PathLike) -> tuple[Path, P
         arrays["track"] = np.asarray(results.track, np.int32)
     if results.filled is not None:
         arrays["filled"] = np.asarray(results.filled, bool)
-    npz_path, json_path = folder / "poses.npz", folder / "poses.json"
-    with atomic_open(npz_path, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    with atomic_open(json_path, "w") as f:
-        json.dump(poses_to_json(results), f, separators=(",", ":"))
-    return npz_path, json_path
+    if results.frames_total is not None:
+        arrays["frames_total"] = np.asarray(results.frames_total, np.int64)
+    return arrays
 
 
-def poses_to_json(results: PoseResults) -> dict:
-    """The JSON form (see the module docstring); coordinates rounded to 0.1 mm."""
-    xyz = np.round(np.asarray(results.poses.xyz, np.float64), 4)
+def _json_head(results: PoseResults) -> dict:
+    head = {
+        "format": FORMAT,
+        "version": 1,
+        "units": "metres",
+        "layout": results.layout,
+        "keypoints": list(get_layout(results.layout).keypoints),
+        "cameras": list(results.cameras),
+    }
+    if results.frames_total is not None:
+        head.update(partial=True, frames_total=int(results.frames_total))
+    return head
+
+
+def _frames_json(results: PoseResults, *, first_frame: int = 0) -> Iterable[dict]:
+    """Each frame's JSON object (coordinates rounded to 0.1 mm), frames numbered from
+    ``first_frame``."""
+    # From the float32 values the npz holds, so that the two files say the same.
+    xyz = np.round(np.asarray(results.poses.xyz, np.float32).astype(np.float64), 4)
+    confidence = np.asarray(results.confidence, np.float32)
     kv = np.asarray(results.poses.keypoint_valid)
-    frames = []
     for f in range(len(xyz)):
         people = []
         for g in np.nonzero(np.asarray(results.poses.valid[f]))[0]:
             person = {
                 "person": int(g),
-                "confidence": round(float(results.confidence[f, g]), 4),
+                "confidence": round(float(confidence[f, g]), 4),
             }
             if results.track is not None:
                 person["track"] = int(results.track[f, g])
@@ -134,23 +363,25 @@ def poses_to_json(results: PoseResults) -> dict:
                 if s >= 0
             }
             people.append(person)
-        frame = {"frame": f, "people": people}
+        frame = {"frame": first_frame + f, "people": people}
         if results.timestamps is not None:
             frame["timestamp"] = float(results.timestamps[f])
-        frames.append(frame)
-    return {
-        "format": FORMAT,
-        "version": 1,
-        "units": "metres",
-        "layout": results.layout,
-        "keypoints": list(get_layout(results.layout).keypoints),
-        "cameras": list(results.cameras),
-        "frames": frames,
-    }
+        yield frame
+
+
+def _write_json(out: IO[str], head: dict, frames: Iterable[dict]) -> None:
+    """``{**head, "frames": [...]}`` as compact JSON, written one frame at a time."""
+    compact = {"separators": (",", ":")}
+    text = json.dumps({**head, "frames": []}, **compact)
+    out.write(text[: -len("]}")])
+    for i, frame in enumerate(frames):
+        out.write(("," if i else "") + json.dumps(frame, **compact))
+    out.write("]}")
 
 
 def load_poses(path: str | os.PathLike) -> PoseResults:
-    """Reads ``poses.npz`` (or a folder holding it) written by `save_poses`.
+    """Reads ``poses.npz`` (or a folder holding it, or ``poses.json``) written by `save_poses`
+    or `assemble_poses`; partial results have `PoseResults.frames_total` set.
 
     Raises:
       InputError naming the file and field when it is not such a file.
@@ -191,6 +422,17 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
             continue
         if data[field].dtype.kind not in "biu":
             raise InputError(f"expected booleans, got {data[field].dtype}", file=path, field=field)
+    frames_total = None
+    if "frames_total" in data:
+        total = data["frames_total"]
+        frames = data["valid"].shape[0] if data["valid"].ndim else 0
+        if total.shape != () or total.dtype.kind not in "iu" or total < frames:
+            raise InputError(
+                "expected the recording's frame count, at least the frames here",
+                file=path,
+                field="frames_total",
+            )
+        frames_total = int(total)
     try:
         return PoseResults(
             Poses3D(
@@ -206,6 +448,7 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
             data.get("timestamps"),
             data["track"].astype(np.int32) if "track" in data else None,
             data["filled"].astype(bool) if "filled" in data else None,
+            frames_total,
         )
     except InputError as e:
         raise e.at(file=path) from None
@@ -253,6 +496,16 @@ def _poses_from_json(path: Path) -> PoseResults:
     timestamps = None
     if frames and all("timestamp" in fr for fr in frames):
         timestamps = np.array([float(fr["timestamp"]) for fr in frames])
+    frames_total = None
+    if data.get("partial", False) is not False:
+        frames_total = data.get("frames_total")
+        if data["partial"] is not True or type(frames_total) is not int or frames_total < F:
+            raise InputError(
+                'partial results need "partial": true and "frames_total": the recording\'s '
+                "frame count, at least the frames here",
+                file=path,
+                field="frames_total",
+            )
     return PoseResults(
         Poses3D(xyz, valid, kv),
         conf,
@@ -263,4 +516,5 @@ def _poses_from_json(path: Path) -> PoseResults:
         timestamps,
         track,
         filled if filled.any() else None,
+        frames_total,
     )

@@ -2,7 +2,8 @@
 
 Host-side container (numpy arrays) that every reader returns and every writer takes. The padded
 arrays follow the contracts in `mvpose_jax.skeletons` (letters F, C, P, K, G). Two edits that
-every format and caller may need: `select_cameras` and `convert_layout`.
+every format and caller may need: `select_cameras` and `convert_layout`; `slice_frames` cuts a
+range of frames.
 """
 
 from __future__ import annotations
@@ -131,4 +132,22 @@ def convert_layout(rec: Recording, layout: str) -> Recording:
         timestamps=rec.timestamps,
         image_names=rec.image_names,
         projected=projected,
+    )
+
+
+def slice_frames(rec: Recording, start: int, stop: int) -> Recording:
+    """Frames ``start`` to ``stop`` (exclusive) of a recording, every per-frame field sliced."""
+    cut = lambda a: None if a is None else np.asarray(a)[start:stop]  # noqa: E731
+    det, gt = rec.detections, rec.ground_truth
+    return Recording(
+        detections=Detections(cut(det.xy), cut(det.score), cut(det.count)),
+        cameras=rec.cameras,
+        layout=rec.layout,
+        ground_truth=None
+        if gt is None
+        else Poses3D(cut(gt.xyz), cut(gt.valid), cut(gt.keypoint_valid)),
+        identity=cut(rec.identity),
+        timestamps=cut(rec.timestamps),
+        image_names=cut(rec.image_names),
+        projected=cut(rec.projected),
     )
