@@ -1006,7 +1006,7 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.data import open_recording
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.data.chunks import ChunkStore
-    from mvpose_jax.data.poses import PoseResults, load_poses
+    from mvpose_jax.data.poses import PoseResults, load_poses, load_poses_chunk
     from mvpose_jax.inference import stream_pipeline
     from mvpose_jax.proposals import read_proposal_threshold
     from mvpose_jax.smoothing import smooth_chunk_files
@@ -1061,11 +1061,18 @@ def _infer(args: argparse.Namespace) -> int:
         # Tracked results are smoothed (outliers, gap filling, Butterworth) chunk by chunk with
         # their neighbours while assembling, so memory stays bounded by the chunk.
         transform = None
+        summary = {"tracks": set(), "filled": 0}
         if tracking is not None:
             filt = "butterworth" if args.filter == "butterworth" else "none"
 
             def transform(paths, folder):
-                return smooth_chunk_files(paths, folder, fps=fps, filter=filt, **smooth_kwargs)
+                out = smooth_chunk_files(paths, folder, fps=fps, filter=filt, **smooth_kwargs)
+                summary.update(tracks=set(), filled=0)
+                for path in out:  # the summary line's counts, one chunk in memory at a time
+                    res = load_poses_chunk(path)[1]
+                    summary["tracks"].update(res.track[res.poses.valid].tolist())
+                    summary["filled"] += int(res.filled.sum()) if res.filled is not None else 0
+                return out
 
         # What a chunk's results need of its recording besides the detections, by first frame.
         timestamps: dict[int, object] = {}
@@ -1158,12 +1165,11 @@ def _infer(args: argparse.Namespace) -> int:
         warnings.warn(_why_nobody(views, cameras, args, threshold), MvposeWarning, stacklevel=1)
     resumed = f" ({start} finished before, {frames} now)" if start else ""
     tracks = ""
-    if tracking is not None or export:
-        out = load_poses(done.npz)
-        if out.track is not None:
-            n_tracks = len(np.unique(out.track[out.poses.valid]))
-            n_filled = int(out.filled.sum()) if out.filled is not None else 0
-            tracks = f", {n_tracks} tracks, {n_filled} keypoints filled ({args.filter} filter)"
+    if tracking is not None:
+        tracks = (
+            f", {len(summary['tracks'])} tracks, {summary['filled']} keypoints filled "
+            f"({args.filter} filter)"
+        )
     print(
         f"{F} frames{resumed}, {people} people{' in those run now' if start else ''} "
         f"({people / max(frames, 1):.2f} per frame){tracks}; proposals "
@@ -1171,7 +1177,7 @@ def _infer(args: argparse.Namespace) -> int:
         f"{1000 * seconds['poses'] / max(frames, 1):.2f} ms/frame; wrote {done.json} and {done.npz}"
     )
     if export:
-        export(out)
+        export(load_poses(done.npz))  # exports read the whole result (memory grows with it)
     return 0
 
 
