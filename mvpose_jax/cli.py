@@ -34,6 +34,17 @@ def command(name: str, help: str, arguments: Callable[[argparse.ArgumentParser],
     return register
 
 
+# The layouts --source-layout takes (mvpose_jax.skeletons.LAYOUTS, written out so that --help
+# does not import the library; tests/test_cli.py holds them equal) and what the count says.
+SOURCE_LAYOUT_HELP = (
+    "the files' keypoint layout: body25, body25b (OpenPose's experimental BODY_25B), body135, "
+    "openpose_coco18, coco18, coco17, coco133 (COCO-WholeBody), halpe26, halpe68, halpe136, "
+    "mpii, blazepose (MediaPipe). Default: from the keypoint count (25 body25, 18 "
+    "openpose_coco18, 17 coco17, 26 halpe26, 68 halpe68, 136 halpe136, 133 coco133, 135 body135, "
+    "33 blazepose, 16 mpii); BODY_25B files, 25 keypoints too, need --source-layout body25b"
+)
+
+
 def check_writable(path: str, *, folder: bool) -> object:
     """`data.files.check_writable` of an output option (imported when used: `--help` stays fast)."""
     from mvpose_jax.data.files import check_writable as check
@@ -139,8 +150,7 @@ def add_detection_options(p: argparse.ArgumentParser, *, what: str) -> None:
     p.add_argument(
         "--source-layout",
         default=None,
-        help=f"OpenPose folders ({what}): the files' keypoint layout (body25, openpose_coco18, "
-        "coco17, halpe26), when their keypoint count does not say it (default: from the count)",
+        help=f"OpenPose folders ({what}): {SOURCE_LAYOUT_HELP}",
     )
 
 
@@ -464,8 +474,7 @@ def add_training_arguments(p: argparse.ArgumentParser, *, dev_help: str | None =
     p.add_argument(
         "--source-layout",
         default=None,
-        help="OpenPose folders: the files' keypoint layout (body25, openpose_coco18, coco17, "
-        "halpe26), when their keypoint count does not say it (default: from the count)",
+        help=f"OpenPose folders: {SOURCE_LAYOUT_HELP}",
     )
     p.add_argument(
         "--seed", type=int, default=0, help="seeds initialisation, sample order and augmentation"
@@ -757,8 +766,7 @@ def _detection_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--source-layout",
         default=None,
-        help="OpenPose folders: the files' keypoint layout (body25, openpose_coco18, coco17, "
-        "halpe26), when their keypoint count does not say it (default: from the count)",
+        help=f"OpenPose folders: {SOURCE_LAYOUT_HELP}",
     )
 
 
@@ -803,8 +811,7 @@ def _convert_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--source-layout",
         default=None,
-        help="OpenPose folders: the files' keypoint layout (body25, openpose_coco18, coco17, "
-        "halpe26), when their keypoint count does not say it (default: from the count)",
+        help=f"OpenPose folders: {SOURCE_LAYOUT_HELP}",
     )
     p.add_argument("--out", required=True, help="output file (a folder for --format openpose)")
 

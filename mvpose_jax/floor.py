@@ -30,7 +30,8 @@ from mvpose_jax.triangulate import triangulate_skeletons_robust
 # right keypoints of these names are used where it has them). Ankle: the malleolus is 0.039 of the
 # standing height above the sole (Drillis & Contini; 0.065-0.075 m for adults of 1.65-1.90 m; the
 # simulator's ankle keypoint sits there), plus 1-2 cm of shoe sole, and detectors mark the ankle a
-# little above the joint. Heel and big toe (BODY_25, HALPE_26): a few cm above the sole.
+# little above the joint. Heel and big toe (BODY_25(B), HALPE, COCO-WholeBody): a few cm above the
+# sole.
 FOOT_KEYPOINT_HEIGHTS_M = {"ankle": 0.08, "heel": 0.03, "big_toe": 0.02}
 # A foot keypoint counts when robust triangulation kept three or more views of it, each within
 # this many pixels of the reprojected point: a confidently matched, consistent person.

@@ -13,6 +13,18 @@ Layouts:
     order (0 nose, 1 neck, 2-4 right arm, 5-7 left arm, 8-10 right leg, 11-13 left leg, 14 r_eye,
     15 l_eye, 16 r_ear, 17 l_ear). OpenPose JSON files hold this order; `convert_keypoints` maps it
     to ``coco18`` by name.
+  * ``body25b``: OpenPose's experimental BODY_25B: COCO's 17, upper neck, head top, feet.
+  * ``body135``: OpenPose's experimental BODY_135: BODY_25B, 2 x 20 finger points, a 70-point face.
+  * ``halpe68``, ``halpe136``: HALPE_26 with both hands (68), and with the face and hands (136).
+  * ``coco133``: COCO-WholeBody: COCO's 17, the feet, a 68-point face, 2 x 21 hand points.
+  * ``mpii``: MPII Human Pose's 16 joints (no eyes, ears or nose: missing after conversion).
+  * ``blazepose``: MediaPipe Pose's 33 landmarks.
+
+Keypoints are matched between layouts by name; ``neck`` and ``mid_hip`` are the mean of the
+shoulders or hips where a layout lacks them (`conversion_matrix`). Names: ``head`` is the top of the
+head, ``upper_neck`` the neck below the chin (BODY_25B, MPII; not coco18's ``neck``), ``face_0`` ...
+``face_67`` the 68-point face of the iBUG 300-W scheme, ``{l,r}_hand_root`` a hand's own wrist point
+and ``{l,r}_{thumb,index,middle,ring,pinky}_{1..4}`` its finger joints from the palm out.
 
 The number of keypoints is always read from a layout (``layout.num_keypoints``), never assumed.
 """
@@ -84,6 +96,8 @@ def _layout(name: str, keypoints: tuple[str, ...], bones: tuple[tuple[str, str],
     index = {k: i for i, k in enumerate(keypoints)}
 
     def mirror(k: str) -> str:
+        if k in _FACE68_MIRROR:
+            return _FACE68_MIRROR[k]
         for a, b in (("l_", "r_"), ("r_", "l_")):
             if k.startswith(a):
                 return b + k[len(a) :]
@@ -154,6 +168,75 @@ _BODY25 = (
     "r_heel",
 )
 
+# The 68-point face of the iBUG 300-W scheme (COCO-WholeBody, HALPE_136 and OpenPose's face hold
+# it in this order), 0-based: 0-16 jaw line from the person's right to left, 17-21 right brow,
+# 22-26 left brow, 27-30 nose bridge, 31-35 nostrils, 36-41 right eye, 42-47 left eye, 48-59 outer
+# lips, 60-67 inner lips. The points have no side prefix, so their mirror pairs are listed.
+_FACE68 = tuple(f"face_{i}" for i in range(68))
+_FACE68_PAIRS = (
+    *((i, 16 - i) for i in range(8)),  # jaw
+    *((17 + i, 26 - i) for i in range(5)),  # brows
+    (31, 35),
+    (32, 34),  # nostrils
+    (36, 45),
+    (37, 44),
+    (38, 43),
+    (39, 42),
+    (40, 47),
+    (41, 46),  # eyes
+    (48, 54),
+    (49, 53),
+    (50, 52),
+    (55, 59),
+    (56, 58),  # outer lips
+    (60, 64),
+    (61, 63),
+    (65, 67),  # inner lips
+)
+_FACE68_MIRROR = {f"face_{a}": f"face_{b}" for p in _FACE68_PAIRS for a, b in (p, p[::-1])}
+
+
+def _chain(names: tuple[str, ...], *, closed: bool = False) -> tuple[tuple[str, str], ...]:
+    pairs = tuple(zip(names[:-1], names[1:], strict=True))
+    return pairs + ((names[-1], names[0]),) if closed else pairs
+
+
+def _face(indices: range, *, closed: bool = False) -> tuple[tuple[str, str], ...]:
+    return _chain(tuple(_FACE68[i] for i in indices), closed=closed)
+
+
+# The face's contours, joined to the body at the nose tip (face_30 is the nose's tip too).
+_FACE68_BONES = (
+    _face(range(0, 17))
+    + _face(range(17, 22))
+    + _face(range(22, 27))
+    + _face(range(27, 31))
+    + _face(range(31, 36))
+    + (("face_30", "face_33"), ("nose", "face_30"))
+    + _face(range(36, 42), closed=True)
+    + _face(range(42, 48), closed=True)
+    + _face(range(48, 60), closed=True)
+    + _face(range(60, 68), closed=True)
+)
+# A hand of 21 points (COCO-WholeBody, HALPE, OpenPose's hand model): 0 the wrist as the hand
+# model sees it, then 4 per finger from the palm out (thumb: CMC, MCP, IP, tip; the others: MCP,
+# PIP, DIP, tip). OpenPose's BODY_135 has the 20 finger points alone (its body's wrist is the root).
+_FINGERS = ("thumb", "index", "middle", "ring", "pinky")
+
+
+def _hand(side: str, *, root: bool = True) -> tuple[str, ...]:
+    fingers = tuple(f"{side}_{f}_{j}" for f in _FINGERS for j in range(1, 5))
+    return ((f"{side}_hand_root",) if root else ()) + fingers
+
+
+def _hand_bones(side: str, *, root: bool = True) -> tuple[tuple[str, str], ...]:
+    base = f"{side}_hand_root" if root else f"{side}_wrist"
+    bones = ((f"{side}_wrist", base),) if root else ()
+    for f in _FINGERS:
+        bones += _chain((base,) + tuple(f"{side}_{f}_{j}" for j in range(1, 5)))
+    return bones
+
+
 COCO17 = _layout(
     "coco17",
     _COCO17,
@@ -201,14 +284,8 @@ OPENPOSE_COCO18 = _layout(
     ),
     _COCO18_BONES,
 )
-# The trunk (neck, mid hip) and feet of the layouts that have them (BODY_25, HALPE_26).
-_TRUNK_AND_FEET_BONES = (
-    ("neck", "nose"),
-    ("neck", "l_shoulder"),
-    ("neck", "r_shoulder"),
-    ("neck", "mid_hip"),
-    ("mid_hip", "l_hip"),
-    ("mid_hip", "r_hip"),
+# The feet of the layouts that have them, and the trunk (neck, mid hip) of BODY_25 and HALPE_26.
+_FEET_BONES = (
     ("l_ankle", "l_heel"),
     ("l_ankle", "l_big_toe"),
     ("l_big_toe", "l_small_toe"),
@@ -216,6 +293,14 @@ _TRUNK_AND_FEET_BONES = (
     ("r_ankle", "r_big_toe"),
     ("r_big_toe", "r_small_toe"),
 )
+_TRUNK_AND_FEET_BONES = (
+    ("neck", "nose"),
+    ("neck", "l_shoulder"),
+    ("neck", "r_shoulder"),
+    ("neck", "mid_hip"),
+    ("mid_hip", "l_hip"),
+    ("mid_hip", "r_hip"),
+) + _FEET_BONES
 BODY25 = _layout("body25", _BODY25, _LIMBS + _TRUNK_AND_FEET_BONES)
 
 # HALPE_26 (Halpe-FullBody's body keypoints; Pose2Sim's default with RTMPose/AlphaPose): COCO's 17,
@@ -237,8 +322,168 @@ HALPE26 = _layout(
     _LIMBS + (("neck", "head"),) + _TRUNK_AND_FEET_BONES,
 )
 
+# The six foot points of BODY_25B, BODY_135 and COCO-WholeBody, in their order.
+_FEET = ("l_big_toe", "l_small_toe", "l_heel", "r_big_toe", "r_small_toe", "r_heel")
+# COCO 17's bones (coco17's, named): limbs, torso, ears to shoulders.
+_COCO17_BONES = tuple((_COCO17[a], _COCO17[b]) for a, b in COCO17.bones)
+# OpenPose's experimental BODY_25B (openpose_train's experimental_models README): COCO's 17, then
+# the upper neck (below the chin: not coco18's neck, which is built from the shoulders) and the
+# head top, then the feet. Its 25 points are BODY_25's count: files need --source-layout body25b.
+_BODY25B = _COCO17 + ("upper_neck", "head") + _FEET
+_BODY25B_BONES = (
+    # The head hangs from the upper neck, not from the shoulders.
+    tuple(b for b in _COCO17_BONES if b not in (("l_ear", "l_shoulder"), ("r_ear", "r_shoulder")))
+    + (
+        ("l_shoulder", "upper_neck"),
+        ("r_shoulder", "upper_neck"),
+        ("upper_neck", "head"),
+        ("upper_neck", "nose"),
+    )
+    + _FEET_BONES
+)
+BODY25B = _layout("body25b", _BODY25B, _BODY25B_BONES)
+# OpenPose's experimental BODY_135: BODY_25B, the left and right hands' 20 finger points, and the
+# face's 68 points plus the right and left pupils.
+BODY135 = _layout(
+    "body135",
+    _BODY25B + _hand("l", root=False) + _hand("r", root=False) + _FACE68 + ("r_pupil", "l_pupil"),
+    _BODY25B_BONES
+    + _hand_bones("l", root=False)
+    + _hand_bones("r", root=False)
+    + _FACE68_BONES
+    + (("face_37", "r_pupil"), ("face_44", "l_pupil")),
+)
+# HALPE_68 (AlphaPose's Halpe-FullBody without the face) and HALPE_136 (Halpe-FullBody: the HALPE
+# dataset's README): HALPE_26's body, then the face (136 only), the left hand, the right hand.
+HALPE68 = _layout(
+    "halpe68",
+    HALPE26.keypoints + _hand("l") + _hand("r"),
+    tuple((HALPE26.keypoints[a], HALPE26.keypoints[b]) for a, b in HALPE26.bones)
+    + _hand_bones("l")
+    + _hand_bones("r"),
+)
+HALPE136 = _layout(
+    "halpe136",
+    HALPE26.keypoints + _FACE68 + _hand("l") + _hand("r"),
+    tuple((HALPE26.keypoints[a], HALPE26.keypoints[b]) for a, b in HALPE26.bones)
+    + _FACE68_BONES
+    + _hand_bones("l")
+    + _hand_bones("r"),
+)
+# COCO-WholeBody (COCO_133; RTMPose's whole-body models): COCO's 17, the feet, the face, the left
+# hand, the right hand.
+COCO133 = _layout(
+    "coco133",
+    _COCO17 + _FEET + _FACE68 + _hand("l") + _hand("r"),
+    _COCO17_BONES + _FEET_BONES + _FACE68_BONES + _hand_bones("l") + _hand_bones("r"),
+)
+# MPII Human Pose's 16 joints (its joint ids; AlphaPose's MPII output): no face but the upper neck
+# and the head top, so coco18's eyes, ears and nose are missing after conversion.
+MPII = _layout(
+    "mpii",
+    (
+        "r_ankle",
+        "r_knee",
+        "r_hip",
+        "l_hip",
+        "l_knee",
+        "l_ankle",
+        "pelvis",
+        "thorax",
+        "upper_neck",
+        "head",
+        "r_wrist",
+        "r_elbow",
+        "r_shoulder",
+        "l_shoulder",
+        "l_elbow",
+        "l_wrist",
+    ),
+    _LIMBS[:8]
+    + (
+        ("pelvis", "l_hip"),
+        ("pelvis", "r_hip"),
+        ("pelvis", "thorax"),
+        ("thorax", "l_shoulder"),
+        ("thorax", "r_shoulder"),
+        ("thorax", "upper_neck"),
+        ("upper_neck", "head"),
+    ),
+)
+# MediaPipe Pose (BlazePose)'s 33 landmarks. Its "foot index" is the tip of the foot (second toe),
+# not the big toe, so it keeps its own name.
+BLAZEPOSE = _layout(
+    "blazepose",
+    (
+        "nose",
+        "l_eye_inner",
+        "l_eye",
+        "l_eye_outer",
+        "r_eye_inner",
+        "r_eye",
+        "r_eye_outer",
+        "l_ear",
+        "r_ear",
+        "l_mouth",
+        "r_mouth",
+        "l_shoulder",
+        "r_shoulder",
+        "l_elbow",
+        "r_elbow",
+        "l_wrist",
+        "r_wrist",
+        "l_pinky",
+        "r_pinky",
+        "l_index",
+        "r_index",
+        "l_thumb",
+        "r_thumb",
+        "l_hip",
+        "r_hip",
+        "l_knee",
+        "r_knee",
+        "l_ankle",
+        "r_ankle",
+        "l_heel",
+        "r_heel",
+        "l_foot_index",
+        "r_foot_index",
+    ),
+    _COCO17_BONES
+    + tuple(
+        bone
+        for s in ("l", "r")
+        for bone in (
+            (f"{s}_eye_inner", f"{s}_eye"),
+            (f"{s}_eye", f"{s}_eye_outer"),
+            (f"{s}_wrist", f"{s}_pinky"),
+            (f"{s}_wrist", f"{s}_index"),
+            (f"{s}_pinky", f"{s}_index"),
+            (f"{s}_wrist", f"{s}_thumb"),
+            (f"{s}_ankle", f"{s}_heel"),
+            (f"{s}_heel", f"{s}_foot_index"),
+            (f"{s}_ankle", f"{s}_foot_index"),
+        )
+    )
+    + (("l_mouth", "r_mouth"),),
+)
+
 LAYOUTS: dict[str, Layout] = {
-    lay.name: lay for lay in (COCO18, COCO17, BODY25, OPENPOSE_COCO18, HALPE26)
+    lay.name: lay
+    for lay in (
+        COCO18,
+        COCO17,
+        BODY25,
+        OPENPOSE_COCO18,
+        HALPE26,
+        BODY25B,
+        BODY135,
+        HALPE68,
+        HALPE136,
+        COCO133,
+        MPII,
+        BLAZEPOSE,
+    )
 }
 DEFAULT_LAYOUT = "coco18"
 

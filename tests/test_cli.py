@@ -482,6 +482,18 @@ def test_source_layout_reaches_the_openpose_reader(tmp_path, capsys):
     assert "body25" in capsys.readouterr().err
 
 
+def test_source_layout_help_names_every_layout_and_count():
+    from mvpose_jax.cli import SOURCE_LAYOUT_HELP
+    from mvpose_jax.data.openpose import LAYOUT_OF_COUNT
+    from mvpose_jax.skeletons import LAYOUTS
+
+    named = set(re.findall(r"[a-z][a-z0-9_]*\d[a-z0-9_]*|blazepose|mpii", SOURCE_LAYOUT_HELP))
+    assert set(LAYOUTS) <= named
+    for count, layout in LAYOUT_OF_COUNT.items():
+        assert f"{count} {layout}" in SOURCE_LAYOUT_HELP
+    assert "--source-layout body25b" in SOURCE_LAYOUT_HELP
+
+
 # --------------------------------------------------------------------------- export
 
 

@@ -137,6 +137,70 @@ def test_hand_written_folder_lands_in_coco18(tmp_path, K, person, mapping):
         assert det.score[0, 0, 0, 17] == np.float32(0.8)
 
 
+# Files of the other layouts Pose2Sim reads, by their documented indices (the sources are cited
+# in tests/test_skeletons.py, DOCUMENTED_INDICES): K, the source layout passed (None: from the
+# count), the layout they are read as, {file index: coco18 keypoint}, and a point coco18 has no
+# slot for (a face, hand, foot or head point).
+WHOLE_BODY_FILES = [
+    (133, None, "coco133", {0: "nose", 5: "l_shoulder", 6: "r_shoulder", 15: "l_ankle"}, 100),
+    (135, None, "body135", {0: "nose", 5: "l_shoulder", 6: "r_shoulder", 9: "l_wrist"}, 70),
+    (136, None, "halpe136", {0: "nose", 5: "l_shoulder", 6: "r_shoulder", 18: "neck"}, 120),
+    (68, None, "halpe68", {3: "l_ear", 5: "l_shoulder", 6: "r_shoulder", 18: "neck"}, 50),
+    (33, None, "blazepose", {0: "nose", 11: "l_shoulder", 12: "r_shoulder", 28: "r_ankle"}, 31),
+    (16, None, "mpii", {0: "r_ankle", 12: "r_shoulder", 13: "l_shoulder", 15: "l_wrist"}, 9),
+    (25, "body25b", "body25b", {2: "r_eye", 5: "l_shoulder", 6: "r_shoulder"}, 18),
+]
+
+
+@pytest.mark.parametrize(
+    "K, source_layout, layout, mapping, extra",
+    WHOLE_BODY_FILES,
+    ids=[row[2] for row in WHOLE_BODY_FILES],
+)
+def test_whole_body_files_are_read_by_count_or_source_layout(
+    tmp_path, K, source_layout, layout, mapping, extra
+):
+    rng = np.random.default_rng(K)
+    person = {k: (*rng.uniform(0, 1000, 2).round(2), 0.5 + 0.1 * i) for i, k in enumerate(mapping)}
+    person[extra] = (7.0, 8.0, 0.99)
+    root = _tiny_folder(tmp_path / "op", K, person)
+    kwargs = {"source_layout": source_layout} if source_layout else {}
+    rec = load_recording(root, **kwargs)
+    assert rec.layout == "coco18"
+    xy, score = rec.detections.xy[0, 0, 0], rec.detections.score[0, 0, 0]
+    for k, name in mapping.items():
+        np.testing.assert_allclose(xy[COCO18.index(name)], person[k][:2], rtol=1e-6)
+        assert score[COCO18.index(name)] == np.float32(person[k][2])
+    present = set(mapping.values())
+    if "neck" not in present:  # the neck is the shoulders' midpoint, at the lower score
+        ls, rs = (
+            next(k for k, n in mapping.items() if n == s) for s in ("l_shoulder", "r_shoulder")
+        )
+        mid = (np.array(person[ls][:2]) + np.array(person[rs][:2])) / 2
+        np.testing.assert_allclose(xy[COCO18.index("neck")], mid, rtol=1e-6)
+        assert score[COCO18.index("neck")] == np.float32(min(person[ls][2], person[rs][2]))
+        present.add("neck")
+    # The extra point is dropped: only the mapped keypoints (and the built neck) are present.
+    assert {COCO18.keypoints[k] for k in np.flatnonzero(score)} == present
+    # Read in the files' own layout, every point is carried.
+    own = read_openpose(root, layout=layout, **kwargs)
+    assert own.layout == layout and own.detections.xy.shape[-2] == K
+    np.testing.assert_array_equal(own.detections.xy[0, 0, 0, extra], [7.0, 8.0])
+    assert own.detections.score[0, 0, 0, extra] == np.float32(0.99)
+
+
+def test_a_wrong_source_layout_names_the_file_and_the_layouts_of_the_count(tmp_path):
+    root = _tiny_folder(tmp_path / "op", 133, {0: (1.0, 2.0, 0.9)})
+    with pytest.raises(InputError, match="files of 133 keypoints are coco133") as e:
+        read_openpose(root, source_layout="body135")
+    assert "layout 'body135' has 135 keypoints" in str(e.value)
+    assert (e.value.camera, e.value.frame) == ("a", 0)
+    assert e.value.file.endswith("clipA_000000000000_keypoints.json")
+    body = _tiny_folder(tmp_path / "body", 25, {0: (1.0, 2.0, 0.9)})
+    with pytest.raises(InputError, match="files of 25 keypoints are body25 or body25b"):
+        read_openpose(body, source_layout="mpii")
+
+
 def test_layout_options(tmp_path):
     body = _tiny_folder(tmp_path / "body", 25, BODY25_PERSON)
     as_body25 = read_openpose(body, layout="body25")

@@ -25,13 +25,17 @@ frames). A frame number that some cameras have and another lacks is an error nam
 and frame, unless ``missing_frames="empty"``: that camera then saw nobody in that frame. Errors
 name frames by their number (as in the file names), not by their position in the recording.
 
-Keypoint layout. The number of keypoints in the files says which layout they hold: 25 is
-``body25`` (BODY_25), 18 is ``openpose_coco18`` (OpenPose's COCO model, whose order differs from
-the project's ``coco18``: OpenPose's index 1, the neck, is coco18's 17, its 2, the right shoulder,
-coco18's 6, ...), 17 is ``coco17`` (COCO's own order, as other detectors write it).
-``source_layout=`` overrides the detection (e.g. ``"coco18"`` for 18-keypoint files that already use
-the project's order). Keypoints are then converted to ``layout`` (default ``coco18``) with
-`mvpose_jax.skeletons.convert_keypoints`.
+Keypoint layout. The number of keypoints in the files says which layout they hold
+(`LAYOUT_OF_COUNT`): 25 is ``body25`` (BODY_25), 18 is ``openpose_coco18`` (OpenPose's COCO model,
+whose order differs from the project's ``coco18``: OpenPose's index 1, the neck, is coco18's 17, its
+2, the right shoulder, coco18's 6, ...), 17 is ``coco17`` (COCO's own order, as other detectors
+write it), 26 ``halpe26``, 68 ``halpe68``, 136 ``halpe136``, 133 ``coco133`` (COCO-WholeBody), 135
+``body135``, 33 ``blazepose`` and 16 ``mpii``. A count two layouts share is read as the first
+(`SHARED_COUNTS`): 25-keypoint files of OpenPose's experimental BODY_25B need
+``source_layout="body25b"``, and 18-keypoint files already in the project's order ``"coco18"``.
+``source_layout=`` overrides the detection. Keypoints are then converted to ``layout`` (default
+``coco18``) with `mvpose_jax.skeletons.convert_keypoints`: a target layout with fewer points drops
+the others (face, hands, feet for ``coco18``); reading in the files' own layout keeps them all.
 
 Cameras. Subfolder names are camera names (hidden ones, starting with ``.``, are skipped). With a
 ``rig``, every camera read must be one of its cameras (else an error lists both) and cameras
@@ -70,7 +74,20 @@ from mvpose_jax.skeletons import get_layout
 SUFFIX = "_keypoints.json"
 MISSING_FRAMES = ("error", "empty")
 # Layout of files holding this many keypoints (module docstring).
-LAYOUT_OF_COUNT = {25: "body25", 18: "openpose_coco18", 17: "coco17", 26: "halpe26"}
+LAYOUT_OF_COUNT = {
+    25: "body25",
+    18: "openpose_coco18",
+    17: "coco17",
+    26: "halpe26",
+    68: "halpe68",
+    136: "halpe136",
+    133: "coco133",
+    135: "body135",
+    33: "blazepose",
+    16: "mpii",
+}
+# Counts that another layout shares with the default above: its files need source_layout=.
+SHARED_COUNTS = {25: ("body25b",), 18: ("coco18",)}
 # What `save_openpose` writes for a recording in the project's coco18: OpenPose's own order.
 _WRITE_LAYOUT = {"coco18": "openpose_coco18"}
 # The keys OpenPose (1.3 and later) writes for each person, all but the pose left empty.
@@ -219,8 +236,9 @@ class OpenPoseStream(RecordingStream):
                     K = self._K
                     if flat.size != 3 * K:
                         first = self._first
+                        hint = _count_hint(flat.size // 3)
                         why = (
-                            f"layout {source_layout!r} has {K} keypoints"
+                            f"layout {source_layout!r} has {K} keypoints{hint}"
                             if first is None
                             else f"{first[0]} (frame {first[1]}, person {first[2]}) has {K}"
                         )
@@ -526,11 +544,19 @@ def _people(path: Path, frame: int, camera: str) -> list[np.ndarray]:
     return out
 
 
+def _count_hint(K: int) -> str:
+    """What files of K keypoints hold, for the error naming a wrong source layout."""
+    if K not in LAYOUT_OF_COUNT:
+        return ""
+    names = (LAYOUT_OF_COUNT[K], *SHARED_COUNTS.get(K, ()))
+    return f"; files of {K} keypoints are {' or '.join(names)}"
+
+
 def _detect_count(size: int, path: Path, frame: int, camera: str, person: int) -> int:
     K = size // 3
     if K not in LAYOUT_OF_COUNT:
         raise InputError(
-            f"{K} keypoints per person: no known OpenPose layout has that many "
+            f"{K} keypoints per person: no known layout has that many "
             f"({', '.join(f'{k}: {v}' for k, v in LAYOUT_OF_COUNT.items())}); pass source_layout=",
             file=path,
             frame=frame,
