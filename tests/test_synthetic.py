@@ -24,6 +24,8 @@ from mvpose_jax.synthetic import (
     simulate,
 )
 from mvpose_jax.synthetic import body as bm
+from mvpose_jax.synthetic.detector import MIX_LIMBS, behind_boxes
+from mvpose_jax.synthetic.shifts import SHIFTS, perturb_rig
 
 
 @pytest.fixture(scope="module")
@@ -335,3 +337,269 @@ def test_floor_jitter_gives_each_recording_its_own_floor(panoptic):
     bad = dataclasses.replace(config, scene=dataclasses.replace(config.scene, floor_jitter_m=-1))
     with pytest.raises(InputError, match="floor_jitter_m"):
         simulate(panoptic, num_people=1, num_frames=5, config=bad)
+
+
+# --------------------------------------------------------------------------- domain shifts
+
+
+def _digest(recordings) -> str:
+    """A hash of recordings' arrays, rounded well below the generator's precision (so that a
+    different BLAS's last bits do not change it)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for r in recordings:
+        for a in (
+            np.round(np.asarray(r.detections.xy, np.float64), 2),
+            np.round(np.asarray(r.detections.score, np.float64), 4),
+            np.asarray(r.detections.count),
+            np.asarray(r.identity),
+            np.round(np.asarray(r.ground_truth.xyz, np.float64), 4),
+        ):
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def test_default_recordings_unchanged_by_the_shift_settings(panoptic):
+    # Hashes of the default generator's output taken before the domain-shift settings existed
+    # (commit 544c729): every new setting is off by default and draws no random numbers then.
+    scene = generate_recording(panoptic, num_people=4, num_frames=40, seed=[0, 5, 4])
+    train = generate_single_person_recordings(
+        panoptic, num_recordings=3, num_frames=20, seed=[0, 1]
+    )
+    assert _digest([scene]) == DEFAULT_SCENE_DIGEST
+    assert _digest(train) == DEFAULT_TRAIN_DIGEST
+
+
+DEFAULT_SCENE_DIGEST = "fb174ab1e4c46c7ddc4dd209fccbb44123548c2f4af3368d3684c3cb9308ed23"
+DEFAULT_TRAIN_DIGEST = "c629826205ce52642af8af87c7e77ff4840140d2d36735a2392e76e4385dfa8b"
+
+
+@pytest.mark.filterwarnings("ignore::mvpose_jax.data.checks.ScoreClippedWarning")
+@pytest.mark.parametrize("name", sorted(SHIFTS))
+def test_shifts_reproduce_from_the_seed(panoptic, name):
+    def make():
+        rig, config = SHIFTS[name].apply(panoptic, seed=[1, 2])
+        return generate_recording(rig, num_people=3, num_frames=8, config=config, seed=5)
+
+    a, b = make(), make()
+    np.testing.assert_array_equal(a.detections.xy, b.detections.xy)
+    np.testing.assert_array_equal(a.detections.score, b.detections.score)
+    np.testing.assert_array_equal(a.identity, b.identity)
+    check_recording(a)
+
+
+def _quiet(config: SyntheticConfig) -> SyntheticConfig:
+    """Only pixel noise (and the effect under test): no offsets, swaps, false positives."""
+    return config.with_detector(
+        offset_scale=0.0,
+        noise_floor_px=0.0,
+        occluded_noise_factor=1.0,
+        swap_rate=0.0,
+        false_positive_rate=0.0,
+        miss_rate=0.0,
+    )
+
+
+def test_coco_sigmas_heavy_tailed_noise_per_keypoint(panoptic):
+    from scipy import stats
+
+    config = _quiet(SHIFTS["coco-sigmas"].config(SyntheticConfig()))
+    sc = simulate(panoptic, num_people=2, num_frames=400, config=config, seed=11)[0]
+    tr, rec = sc.truth, sc.recording
+    xy = _per_person(rec, rec.detections.xy)
+    has = _per_person(rec, rec.detections.score) > 0
+    scale = np.asarray(config.detector.keypoint_noise_scale)
+    # Normalised errors: (reported - projection) / (noise_relative * image height * scale_k).
+    sigma = config.detector.noise_relative * tr.height_px[..., None] * scale
+    z = (xy - tr.projected) / sigma[..., None]
+    # Truncation at the image border removes a few large errors; keep keypoints well inside.
+    size = np.asarray(panoptic.size)[None, :, None, None]
+    central = has & (tr.projected > 50).all(-1) & (tr.projected < size - 50).all(-1)
+    z = z[central].ravel()
+    assert z.size > 20000
+    q = np.array([0.5, 0.9, 0.99, 0.999])
+    np.testing.assert_allclose(np.quantile(np.abs(z), q), stats.t.ppf(0.5 + q / 2, df=3), rtol=0.08)
+    # Heavier tails than a Gaussian's: 1 in 1000 beyond 12.9 scales, not 3.3.
+    assert np.quantile(np.abs(z), 0.999) > 2.5 * stats.norm.ppf(0.9995)
+    # The sigmas' order survives: hips are noisier than eyes by their ratio 1.07 / 0.25.
+    raw = np.abs(xy - tr.projected) / tr.height_px[..., None, None]
+    ratio = np.median(raw[..., 11, :][central[..., 11]]) / np.median(
+        raw[..., 1, :][central[..., 1]]
+    )
+    assert ratio == pytest.approx(0.107 / 0.025, rel=0.1)
+
+
+def test_part_mixing_takes_the_nearest_persons_limb(panoptic):
+    config = _quiet(SyntheticConfig()).with_detector(
+        limb_mix_rate=0.3, mix_distance=1.0, duplicate_rate=0.1, fragment_rate=0.1
+    )
+    sc = simulate(panoptic, num_people=4, num_frames=150, config=config, seed=4)[0]
+    tr, rec = sc.truth, sc.recording
+    xy = _per_person(rec, rec.detections.xy)
+    mixed = tr.mixed
+    assert mixed.sum() > 300
+    f, c, g, limb = np.nonzero(mixed)
+    kps = MIX_LIMBS[limb]  # (n, 2)
+    fi, ci, gi = f[:, None], c[:, None], g[:, None]
+    reported = xy[fi, ci, gi, kps]  # (n, 2, 2)
+    present = _per_person(rec, rec.detections.score)[fi, ci, gi, kps] > 0
+    # Each mixed limb lies on another person's true projection, not on the person's own.
+    proj = tr.projected[f, c]  # (n, G, K, 2)
+    limb_proj = np.take_along_axis(proj, kps[:, None, :, None], axis=2)  # (n, G, 2, 2)
+    dist = np.linalg.norm(reported[:, None] - limb_proj, axis=-1)  # (n, G, 2)
+    own = dist[np.arange(len(g)), g]  # (n, 2)
+    dist[np.arange(len(g)), g] = np.inf
+    other = dist.min(1)
+    assert present.sum() > 300
+    assert np.mean(other[present] < 20) > 0.95
+    assert np.mean(own[present] > other[present]) > 0.95
+    # The rate among the eligible (reported, another person near) is the setting; it cannot be
+    # read back exactly without the eligibility, so: at most the rate, and not far below it.
+    rate = mixed.any(-1).mean() / tr.reported.mean()
+    assert 0.05 < rate < 1 - (1 - 0.3) ** 4 + 0.02
+    # Duplicates and fragments: extra rows with identity -1, at their rates.
+    for flag, p in ((tr.duplicated, 0.1), (tr.fragmented, 0.1)):
+        assert flag[tr.reported].mean() == pytest.approx(
+            p, rel=0.2 if flag is tr.duplicated else 0.4
+        )
+    extra = tr.duplicated.sum(-1) + tr.fragmented.sum(-1)
+    rows_minus_one = (rec.identity == -1).sum(-1) - (
+        np.arange(rec.identity.shape[-1]) >= rec.detections.count[..., None]
+    ).sum(-1)
+    np.testing.assert_array_equal(rows_minus_one, extra + sc.num_false_positives)
+
+
+def test_behind_boxes_closed_form():
+    # A unit box at the origin; cameras at z = 5 (above) and x = 5 (beside), points at z = -3.
+    origins = np.array([[0.0, 0.0, 5.0], [5.0, 0.0, -3.0]])
+    points = np.array([[0.0, 0.0, -3.0], [3.0, 0.0, -3.0], [0.3, 0.2, 0.1], [0.0, 0.0, 0.6]])
+    points = points[None, None]  # (F=1, G=1, K=4, 3)
+    centre, axes, half = np.zeros((1, 1, 3)), np.eye(3)[None, None], np.full((1, 1, 3), 0.5)
+    hidden = behind_boxes(origins, points, centre, axes, half)[:, 0, 0]  # (C, K)
+    # Above: straight through the box; beside the box's x range at x = 3 (the ray from (0, 0, 5)
+    # to (3, 0, -3) crosses z = 0.5 at x = 1.69); inside the box; just above its top face.
+    np.testing.assert_array_equal(hidden[0], [True, False, True, False])
+    # Beside: the rays at z = -3 pass below the box (z in [-0.5, 0.5]); the point inside it is
+    # hidden; the ray rising to (0, 0, 0.6) enters the box at x = 0.5, z = 0.24.
+    np.testing.assert_array_equal(hidden[1], [False, False, True, True])
+    # Rotating the box about z by 45 degrees keeps the vertical ray's answers.
+    c45 = np.sqrt(0.5)
+    rot = np.array([[c45, c45, 0], [-c45, c45, 0], [0, 0, 1]])[None, None]
+    np.testing.assert_array_equal(
+        behind_boxes(origins[:1], points, centre, rot, half)[0, 0, 0], hidden[0]
+    )
+
+
+def test_occluders_hide_keypoints_behind_boxes(panoptic):
+    config = SHIFTS["occluders"].config(SyntheticConfig())
+    sc = simulate(panoptic, num_people=3, num_frames=120, config=config, seed=2)[0]
+    tr, rec, occ = sc.truth, sc.recording, sc.occluders
+    assert occ is not None and occ.centre.shape == (3, 3)
+    behind = tr.behind_occluder
+    assert 0.002 < behind[tr.in_image].mean() < 0.6
+    # Hidden keypoints are never reported.
+    has = _per_person(rec, rec.detections.score) > 0
+    assert not (has & behind).any()
+    # Independent check: points sampled along camera-to-keypoint segments fall inside a box.
+    rng = np.random.default_rng(0)
+    f, c, g, k = (a[:400] for a in np.nonzero(tr.in_image))
+    pick = rng.permutation(len(f))[:400]
+    f, c, g, k = f[pick], c[pick], g[pick], k[pick]
+    cam = sc.geometry.cameras.centres[c]  # (n, 3)
+    kp = sc.points[f, g, k]
+    s = np.linspace(0, 1, 2001)[None, :, None]
+    path = cam[:, None] + s * (kp - cam)[:, None]  # (n, S, 3)
+    local = np.einsum("oij,nsoj->nsoi", occ.axes, path[:, :, None] - occ.centre)
+    inside = (np.abs(local) <= occ.half).all(-1).any((-1, -2))
+    np.testing.assert_array_equal(inside, behind[f, c, g, k])
+    # Boxes stand on the floor outside the capture area.
+    geo = sc.geometry
+    rel = occ.centre - geo.origin
+    np.testing.assert_allclose(rel @ geo.up, occ.half[:, 2], atol=1e-9)
+    assert not geo.contains(np.stack([rel @ geo.e1, rel @ geo.e2], -1)).any()
+    # Border margin: nothing reported within 5 % of the image height of the border.
+    xy = np.asarray(rec.detections.xy)
+    size = np.asarray(panoptic.size)[None, :, None, None]
+    m = 0.05 * size[..., 1]
+    present = (rec.detections.score > 0) & (rec.identity >= 0)[..., None]  # not false positives
+    assert ((xy[..., 0] >= m) & (xy[..., 0] < size[..., 0] - m) & (xy[..., 1] >= m))[present].all()
+
+
+def test_score_shift_distribution(panoptic):
+    from scipy import stats
+
+    config = SHIFTS["scores"].config(SyntheticConfig()).with_detector(false_positive_rate=0.0)
+    rec = generate_recording(panoptic, num_people=3, num_frames=100, config=config, seed=9)
+    s = np.asarray(rec.detections.score)
+    s = s[s > 0]
+    assert 1.0 < s.max() <= 1.04 + 1e-6
+    # Scores are 1.04 Beta(4, 1.5), clipped below at 0.05 (a negligible mass), whatever the
+    # keypoint's occlusion or the person's size.
+    ks = stats.kstest(s / 1.04, stats.beta(4.0, 1.5).cdf)
+    assert ks.statistic < 0.02
+
+
+def test_world_shift_children_and_poses(panoptic):
+    config = SHIFTS["world"].config(SyntheticConfig())
+    sc = simulate(panoptic, num_people=1, num_frames=60, num_scenes=40, config=config, seed=3)
+    h = np.array([s.bodies.height[0] for s in sc])
+    child = h < 1.45
+    assert 0.3 < child.mean() < 0.7
+    assert np.all((h[child] >= 1.1) & (h[child] <= 1.4))
+    # Bones stay rigid for children too, and feet stay on the floor.
+    geo = sc[0].geometry
+    for s in sc[:5]:
+        up = (s.points - geo.origin) @ geo.up
+        ankle = up[..., [bm.L_ANKLE, bm.R_ANKLE]].min(-1)
+        np.testing.assert_allclose(
+            ankle, np.broadcast_to(s.bodies.ankle_height, ankle.shape), atol=1e-6
+        )
+    # Wrists above the top of the head happen (arms straight up).
+    wrist_up = max(
+        (((s.points - geo.origin) @ geo.up)[..., [9, 10]].max() - s.bodies.height[0]) for s in sc
+    )
+    assert wrist_up > 0.1
+
+
+@pytest.mark.parametrize("offset", [0.3, -0.6])
+def test_floor_shift_moves_the_scene(panoptic, offset):
+    base = scene_geometry(panoptic).floor_height
+    rig, config = SHIFTS[f"floor{offset:+.1f}"].apply(panoptic)
+    sc = simulate(rig, num_people=2, num_frames=30, config=config, seed=1)[0]
+    assert sc.geometry.floor_height == pytest.approx(base + offset)
+    up = sc.points @ sc.geometry.up - sc.geometry.floor_height
+    ankle = up[..., [bm.L_ANKLE, bm.R_ANKLE]].min(-1)
+    np.testing.assert_allclose(
+        ankle, np.broadcast_to(sc.bodies.ankle_height, ankle.shape), atol=1e-6
+    )
+
+
+def test_calibration_shift_size(panoptic):
+    bad = perturb_rig(panoptic, rotation_px=(0.5, 1.0), translation_m=0.01, seed=[0, 1])
+    R0, R1 = np.asarray(panoptic.R, np.float64), np.asarray(bad.R, np.float64)
+    fx = np.asarray(panoptic.K)[:, 0, 0]
+    delta = np.einsum("cij,ckj->cik", R1, R0)  # R1 R0^T
+    axis = np.stack(
+        [
+            delta[:, 2, 1] - delta[:, 1, 2],
+            delta[:, 0, 2] - delta[:, 2, 0],
+            delta[:, 1, 0] - delta[:, 0, 1],
+        ],
+        -1,
+    )  # 2 sin(angle) times the unit axis (float32 rotations: no arccos of the trace)
+    angle = np.arcsin(np.linalg.norm(axis, axis=-1) / 2)
+    assert np.all((angle * fx > 0.5 - 0.05) & (angle * fx < 1.0 + 0.05))
+    c0 = -np.einsum("cji,cj->ci", R0, np.asarray(panoptic.t, np.float64))
+    c1 = -np.einsum("cji,cj->ci", R1, np.asarray(bad.t, np.float64))
+    np.testing.assert_allclose(np.linalg.norm(c1 - c0, axis=-1), 0.01, atol=2e-4)
+    # In pixels: a far point on each optical axis moves by fx * angle * sin(axis, optical axis).
+    far = c0 + 1e4 * R0[:, 2]  # (C, 3)
+    p0 = np.asarray(project_points(panoptic, jnp.asarray(far, jnp.float32)))  # (C, C, 2)
+    p1 = np.asarray(project_points(bad, jnp.asarray(far, jnp.float32)))
+    moved = np.linalg.norm(p1 - p0, axis=-1).diagonal()
+    # delta = R1 R0^T is the rotation in the camera's frame: its axis is in camera coordinates.
+    axis_cam = axis / np.linalg.norm(axis, axis=-1, keepdims=True)
+    sin = np.linalg.norm(axis_cam[:, :2], axis=-1)
+    np.testing.assert_allclose(moved, fx * angle * sin, atol=0.05)
+    assert np.all(moved <= 1.0 + 0.05)

@@ -26,6 +26,7 @@ from mvpose_jax.synthetic.scene import (
     estimate_floor_height,
     scene_geometry,
 )
+from mvpose_jax.synthetic.shifts import SHIFTS, Shift, perturb_rig
 
 __all__ = [
     "BodyConfig",
@@ -35,10 +36,13 @@ __all__ = [
     "SyntheticConfig",
     "SyntheticScene",
     "SceneGeometry",
+    "SHIFTS",
+    "Shift",
     "detection_variants",
     "estimate_floor_height",
     "generate_recording",
     "generate_single_person_recordings",
+    "perturb_rig",
     "scene_geometry",
     "simulate",
 ]

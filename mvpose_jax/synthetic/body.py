@@ -118,6 +118,11 @@ def sample_bodies(
             break
         height[bad] = mean[bad] + config.height_std * rng.standard_normal(bad.sum())
     height = np.clip(height, lo, hi)
+    # Children (a domain shift; off by default, and then no random numbers are drawn for it).
+    child = np.zeros(n, bool)
+    if config.child_fraction > 0:
+        child = rng.random(n) < config.child_fraction
+        height = np.where(child, rng.uniform(*config.child_height_range, n), height)
 
     def factor(std: float, size=n) -> np.ndarray:
         return np.exp(std * rng.standard_normal(size))
@@ -125,6 +130,8 @@ def sample_bodies(
     ps = config.proportion_std
     leg, leg_ratio, trunk_f, arm, arm_ratio = (factor(ps) for _ in range(5))
     head = factor(config.head_std)
+    if child.any():
+        head = np.where(child, head * config.child_head_factor, head)
     # Vertical chain of a straight standing body (fractions of H), then rescaled to height H.
     ankle = 0.039 * leg
     shin = 0.246 * leg / np.sqrt(leg_ratio)

@@ -24,6 +24,11 @@ class BodyConfig:
       width_std: relative standard deviation of shoulder and hip widths.
       head_std: relative standard deviation of head size.
       girth_std: relative standard deviation of the limb and torso radii (body mass).
+      child_fraction: probability that a body is a child's instead (0: adults only, the default):
+        height uniform in ``child_height_range``, head ``child_head_factor`` times larger
+        relative to the height (children's heads are relatively larger).
+      child_height_range: (min, max) height of children, metres.
+      child_head_factor: head size of children relative to an adult of the same height.
     """
 
     height_range: tuple[float, float] = (1.50, 1.95)
@@ -34,6 +39,9 @@ class BodyConfig:
     width_std: float = 0.06
     head_std: float = 0.05
     girth_std: float = 0.12
+    child_fraction: float = 0.0
+    child_height_range: tuple[float, float] = (1.10, 1.40)
+    child_head_factor: float = 1.15
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +63,13 @@ class MotionConfig:
       max_turn_rate: fastest turn of a person's heading, degrees per second.
       acceleration: largest change of walking velocity, m/s^2.
       sim_dt: time step of the path planner, seconds (paths are then interpolated to frames).
+      crouch_depth: (min, max) depth of a crouch: hips flex to 95 deg and knees to 118 deg times
+        it, the trunk leans forward 30 deg times it.
+      crouch_trunk_deg: forward lean of the trunk in a crouch of depth 1, degrees (0: sitting
+        upright, as on a stool).
+      bend_deg: (min, max) forward bend of the trunk in a bend, degrees.
+      reach_up_deg: (min, max) shoulder flexion of an upward reach, degrees (180: arm straight
+        up).
     """
 
     fps: float = 30.0
@@ -74,11 +89,18 @@ class MotionConfig:
     max_turn_rate: float = 150.0
     acceleration: float = 1.5
     sim_dt: float = 0.2
+    crouch_depth: tuple[float, float] = (0.6, 1.0)
+    crouch_trunk_deg: float = 30.0
+    bend_deg: tuple[float, float] = (50.0, 85.0)
+    reach_up_deg: tuple[float, float] = (140.0, 170.0)
 
 
 @dataclasses.dataclass(frozen=True)
 class DetectorConfig:
     """Behaviour of the simulated 2D skeleton detector (OpenPose-like). Rates are probabilities.
+
+    The fields from ``keypoint_noise_scale`` on are other detectors' behaviour, all off by
+    default; `synthetic.shifts` combines them into the domain shifts the models are tested on.
 
     Attributes:
       noise_relative: pixel noise, standard deviation per axis, as a fraction of the person's
@@ -106,6 +128,30 @@ class DetectorConfig:
         (leftover limbs); the rest fall anywhere in the image.
       swap_rate: probability that a detection has its left and right limbs exchanged (an arm
         pair, a leg pair or the whole body).
+      keypoint_noise_scale: per-keypoint multipliers (K,) of the pixel noise; None: 1 for all.
+      noise_tail_dof: degrees of freedom of a Student-t pixel noise (heavy tails; its scale is
+        the Gaussian's standard deviation); None: Gaussian.
+      border_margin: keypoints closer than this fraction of the image height to the image border
+        are not reported (detectors lose people cut by the border); 0: only keypoints outside
+        the image are lost.
+      num_occluders: static boxes (furniture) standing on the floor just outside the capture
+        area, between a camera and the people; keypoints behind a box (the ray from the camera
+        to the keypoint passes through it) are not reported. 0: none.
+      occluder_size: ((min, max) width, (min, max) depth, (min, max) height) of the boxes, m.
+      limb_mix_rate: bottom-up part mixing: probability, per detection and lower limb (forearm:
+        elbow and wrist; shin: knee and ankle), that the limb is replaced by the same limb of
+        the nearest other person detected in the view (when that person's skeleton centre lies
+        within ``mix_distance`` of the person's image height).
+      mix_distance: how near (in the person's image heights) another person must be to mix.
+      duplicate_rate: probability that a detection is reported a second time, with its own
+        noise (``duplicate_noise`` of the person's image height per axis) and lower scores.
+      duplicate_noise: noise of duplicates, fraction of the person's image height.
+      fragment_rate: probability that a detection comes with a fragment: a second skeleton
+        holding only a limb or a few keypoints of the person.
+      score_beta: (a, b): keypoint scores are ``score_max * Beta(a, b)`` draws instead of the
+        default model (falling with size and occlusion); None: the default model.
+      score_max: the largest score (OpenPose's peaks reach about 1.04); scores are clipped to
+        [0.05, score_max].
     """
 
     noise_relative: float = 0.004
@@ -124,6 +170,22 @@ class DetectorConfig:
     false_positive_rate: float = 0.1
     false_positive_near_fraction: float = 0.5
     swap_rate: float = 0.02
+    keypoint_noise_scale: tuple[float, ...] | None = None
+    noise_tail_dof: float | None = None
+    border_margin: float = 0.0
+    num_occluders: int = 0
+    occluder_size: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] = (
+        (0.6, 1.5),
+        (0.4, 0.8),
+        (0.8, 1.8),
+    )
+    limb_mix_rate: float = 0.0
+    mix_distance: float = 1.0
+    duplicate_rate: float = 0.0
+    duplicate_noise: float = 0.01
+    fragment_rate: float = 0.0
+    score_beta: tuple[float, float] | None = None
+    score_max: float = 1.0
 
     def clean(self) -> DetectorConfig:
         """A detector with every effect off: exact projections, all in-image keypoints."""
@@ -162,6 +224,8 @@ class SceneConfig:
         steps; its capture area follows (it is derived from the floor). Training recordings made
         with a jitter teach the models that the floor is not exactly where it was measured or
         guessed. 0 (the default) keeps one floor.
+      floor_offset_m: added to the floor height (given or estimated), metres: scenes on a
+        floor other than the one the models were trained on (a domain shift). 0: none.
     """
 
     up: tuple[float, float, float] | None = None
@@ -172,6 +236,7 @@ class SceneConfig:
     hull_margin: float = 0.5
     camera_clearance: float = 1.0
     floor_jitter_m: float = 0.0
+    floor_offset_m: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,3 +259,11 @@ class SyntheticConfig:
     def with_motion(self, **fields) -> SyntheticConfig:
         """Returns a copy with some motion fields changed."""
         return dataclasses.replace(self, motion=dataclasses.replace(self.motion, **fields))
+
+    def with_body(self, **fields) -> SyntheticConfig:
+        """Returns a copy with some body fields changed."""
+        return dataclasses.replace(self, body=dataclasses.replace(self.body, **fields))
+
+    def with_scene(self, **fields) -> SyntheticConfig:
+        """Returns a copy with some scene fields changed."""
+        return dataclasses.replace(self, scene=dataclasses.replace(self.scene, **fields))

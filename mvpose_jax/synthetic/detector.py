@@ -26,12 +26,13 @@ memory, never one at a time).
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import numpy as np
 
 from mvpose_jax.synthetic import body as bm
 from mvpose_jax.synthetic.config import DetectorConfig
-from mvpose_jax.synthetic.scene import MIN_DEPTH, CameraModel
+from mvpose_jax.synthetic.scene import MIN_DEPTH, CameraModel, SceneGeometry
 
 K = bm.NUM_KEYPOINTS
 
@@ -116,6 +117,19 @@ _PARTS[5, [11, 13, 15]] = True  # a leg
 _PARTS[6, [12, 14, 16]] = True
 
 
+# Lower limbs that bottom-up part mixing exchanges between people: forearms (elbow, wrist) and
+# shins (knee, ankle), left and right.
+MIX_LIMBS = np.array([[7, 9], [8, 10], [13, 15], [14, 16]])
+
+
+class Occluders(NamedTuple):
+    """Static boxes of B scenes, O per scene (world coordinates, metres)."""
+
+    centre: np.ndarray  # (B, O, 3)
+    axes: np.ndarray  # (B, O, 3, 3) rows: the box's width, depth and height directions
+    half: np.ndarray  # (B, O, 3) half the width, depth and height
+
+
 @dataclasses.dataclass(frozen=True)
 class DetectorOutput:
     """Per-person detector results, F frames, C cameras, G people (before assembly into rows)."""
@@ -131,6 +145,10 @@ class DetectorOutput:
     missed: np.ndarray  # (F, C, G) bool: dropped by the miss rate
     swapped: np.ndarray  # (F, C, G) int: 0 none, 1 arms, 2 legs, 3 whole body
     height_px: np.ndarray  # (F, C, G) the person's height in the image, pixels
+    behind_occluder: np.ndarray  # (F, C, G, K) bool: the keypoint is hidden by a static box
+    mixed: np.ndarray  # (F, C, G, 4) bool: the lower limb (`MIX_LIMBS`) is another person's
+    duplicated: np.ndarray  # (F, C, G) bool: the detection is reported twice
+    fragmented: np.ndarray  # (F, C, G) bool: the detection comes with a fragment skeleton
 
 
 def detect_people(
@@ -142,6 +160,7 @@ def detect_people(
     group: np.ndarray,
     config: DetectorConfig,
     rng: np.random.Generator,
+    occluders: Occluders | None = None,
 ) -> DetectorOutput:
     """Runs the detector model on the true poses.
 
@@ -154,6 +173,7 @@ def detect_people(
       group: (G,) scene of each person; people occlude only people of their own scene.
       config: detector settings.
       rng: random generator.
+      occluders: static boxes of each scene (indexed by ``group``); None: none.
     """
     F, G = points.shape[:2]
     C = cams.num_cameras
@@ -180,6 +200,7 @@ def detect_people(
             exempt,
             config,
             rng,
+            occluders,
         )
         for s in range(0, F, chunk)
     ]
@@ -189,7 +210,7 @@ def detect_people(
 
 
 def _detect_chunk(
-    cams, points, offsets, heights, radii, group, exempt, config: DetectorConfig, rng
+    cams, points, offsets, heights, radii, group, exempt, config: DetectorConfig, rng, occluders
 ):
     F, G = points.shape[:2]
     C = cams.num_cameras
@@ -211,9 +232,28 @@ def _detect_chunk(
     # Pixel noise: relative to the person's image height, plus a floor scaled by image size.
     sigma = config.noise_relative * height_px + config.noise_floor_px * diag / np.hypot(1920, 1080)
     sigma = sigma[..., None] * np.where(occluded, config.occluded_noise_factor, 1.0)
-    xy = px_bias + sigma[..., None] * rng.standard_normal(px_bias.shape)
+    if config.keypoint_noise_scale is not None:
+        sigma = sigma * np.asarray(config.keypoint_noise_scale, np.float64)
+    noise = (
+        rng.standard_normal(px_bias.shape)
+        if config.noise_tail_dof is None
+        else rng.standard_t(config.noise_tail_dof, px_bias.shape)
+    )
+    xy = px_bias + sigma[..., None] * noise
     w, h = cams.size[:, 0].reshape(C, 1, 1, 1), cams.size[:, 1].reshape(C, 1, 1, 1)
-    inside = in_img & (xy[..., 0] >= 0) & (xy[..., 0] < w) & (xy[..., 1] >= 0) & (xy[..., 1] < h)
+    m = config.border_margin * h  # 0 by default: only keypoints outside the image are lost
+    inside = (
+        in_img & (xy[..., 0] >= m) & (xy[..., 0] < w - m) & (xy[..., 1] >= m) & (xy[..., 1] < h - m)
+    )
+    behind = np.zeros_like(inside)
+    if occluders is not None and occluders.centre.shape[1]:
+        behind = behind_boxes(
+            cams.centres,
+            points[..., :K, :],
+            occluders.centre[group],
+            occluders.axes[group],
+            occluders.half[group],
+        )
 
     # Scores: fall with size (half at size_half_score of the image height) and with occlusion.
     size_factor = 1.0 / (1.0 + (config.size_half_score * img_h / np.maximum(height_px, 1e-6)) ** 2)
@@ -225,10 +265,17 @@ def _detect_chunk(
         * np.where(occluded, config.occluded_score_factor, 1.0)
     )
     score = np.clip(score + config.score_noise * rng.standard_normal(score.shape), 0.05, 1.0)
+    if config.score_beta is not None:
+        # Another detector's calibration: scores from a Beta distribution, up to score_max
+        # (OpenPose's reach about 1.04), that know nothing of size (and, with
+        # occluded_score_factor 1, nothing of occlusion).
+        score = config.score_max * rng.beta(*config.score_beta, score.shape)
+        score = score * np.where(occluded, config.occluded_score_factor, 1.0)
+        score = np.clip(score, 0.05, config.score_max)
 
     u = rng.random(score.shape)
     dropped = np.where(occluded, u < config.occluded_drop_rate, u < config.keypoint_drop_rate)
-    kept = inside & ~dropped
+    kept = inside & ~dropped & ~behind
     n_in = in_img.sum(-1)
     in_view = n_in >= config.min_keypoints_in_view
     candidate = n_in >= max(config.min_keypoints, 1)
@@ -265,7 +312,166 @@ def _detect_chunk(
         tr(missed),
         tr(swap),
         tr(height_px),
+        tr(behind),
+        np.zeros((F, C, G, len(MIX_LIMBS)), bool),
+        np.zeros((F, C, G), bool),
+        np.zeros((F, C, G), bool),
     )
+
+
+def behind_boxes(
+    origins: np.ndarray,
+    points: np.ndarray,
+    centre: np.ndarray,
+    axes: np.ndarray,
+    half: np.ndarray,
+) -> np.ndarray:
+    """Whether the segment from each camera centre to each point passes through a box.
+
+    Slab test in each box's frame: the segment's parameter intervals inside the three slabs
+    overlap somewhere in [0, 1] (a point inside a box counts as hidden).
+
+    Args:
+      origins: (C, 3) camera centres, world.
+      points: (F, G, K, 3) world points.
+      centre, axes, half: each person's boxes, (G, O, 3), (G, O, 3, 3) (rows: box axes in the
+        world), (G, O, 3).
+    Returns:
+      (C, F, G, K) bool.
+    """
+    # Box frames: a the camera centre, d the segment, (C, F, G, K, O, 3).
+    a = np.einsum("goij,cgoj->cgoi", axes, origins[:, None, None] - centre[None])
+    a = a[:, None, :, None]  # (C, 1, G, 1, O, 3)
+    d = np.einsum("goij,cfgkj->cfgkoi", axes, points[None] - origins[:, None, None, None])
+    h = half[None, None, :, None]  # (1, 1, G, 1, O, 3)
+    parallel = np.abs(d) < 1e-12
+    d_safe = np.where(parallel, 1.0, d)
+    t1, t2 = (-h - a) / d_safe, (h - a) / d_safe
+    # A segment parallel to a slab is inside it everywhere or nowhere.
+    inside_slab = np.abs(a) <= h
+    lo = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
+    hi = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
+    t_in, t_out = lo.max(-1), hi.min(-1)  # (C, F, G, K, O)
+    return ((t_in <= t_out) & (t_out >= 0.0) & (t_in <= 1.0)).any(-1)
+
+
+def place_occluders(
+    geometry: SceneGeometry, num_scenes: int, config: DetectorConfig, rng: np.random.Generator
+) -> Occluders:
+    """Boxes on the floor just outside the capture area, each between a camera and the people.
+
+    Each box: pick a camera and a capture-area cell, walk from the cell towards the camera's
+    floor point until leaving the capture area, and stand the box 0.3 m further on, facing the
+    camera. People walk in the capture area, so they do not walk into the boxes (a crowd can
+    push someone out of the area; their keypoints inside a box count as hidden).
+    """
+    B, per_scene = num_scenes, config.num_occluders
+    cams = geometry.cameras
+    n = B * per_scene
+    cam = rng.integers(0, cams.num_cameras, n)
+    cell = geometry.cells[rng.integers(0, len(geometry.cells), n)]  # (n, 2)
+    rel = cams.centres[cam] - geometry.origin
+    cam_ab = np.stack([rel @ geometry.e1, rel @ geometry.e2], -1)
+    toward = cam_ab - cell
+    toward /= np.maximum(np.linalg.norm(toward, axis=-1, keepdims=True), 1e-9)
+    steps = np.arange(0, 15.0, 0.5 * geometry.cell_size)  # metres
+    path = cell[:, None] + steps[None, :, None] * toward[:, None]  # (n, S, 2)
+    outside = ~geometry.contains(path)
+    leave = steps[np.argmax(outside, axis=-1)]  # first step out of the area (0 if never)
+    (w_lo, w_hi), (d_lo, d_hi), (h_lo, h_hi) = config.occluder_size
+    width, depth, height = (
+        rng.uniform(lo, hi, n) for lo, hi in ((w_lo, w_hi), (d_lo, d_hi), (h_lo, h_hi))
+    )
+    ab = cell + (leave + 0.5 * depth + 0.3)[:, None] * toward
+    centre = geometry.to_world(np.concatenate([ab, 0.5 * height[:, None]], -1))
+    side = np.stack([-toward[:, 1], toward[:, 0]], -1)
+    to_world = lambda v: v[:, :1] * geometry.e1 + v[:, 1:] * geometry.e2  # noqa: E731
+    axes = np.stack([to_world(side), to_world(toward), np.broadcast_to(geometry.up, (n, 3))], 1)
+    half = 0.5 * np.stack([width, depth, height], -1)
+    return Occluders(
+        centre.reshape(B, per_scene, 3),
+        axes.reshape(B, per_scene, 3, 3),
+        half.reshape(B, per_scene, 3),
+    )
+
+
+def mix_parts(
+    det: DetectorOutput, group: np.ndarray, config: DetectorConfig, rng: np.random.Generator
+) -> DetectorOutput:
+    """Bottom-up part mixing: lower limbs taken from the nearest other person of the view.
+
+    Per reported detection and lower limb (`MIX_LIMBS`), with probability ``limb_mix_rate``,
+    the limb's keypoints (pixels and scores, missing ones too) become those of the nearest other
+    reported person of the same scene in that view, when that person's skeleton centre (mean of
+    the reported keypoints) lies within ``mix_distance`` image heights of the person's.
+    """
+    xy, score = det.xy, det.score  # (F, C, G, K, 2), (F, C, G, K)
+    F, C, G = det.reported.shape
+    present = score > 0
+    centre = (xy * present[..., None]).sum(-2) / np.maximum(present.sum(-1), 1)[..., None]
+    dist = np.linalg.norm(centre[:, :, :, None] - centre[:, :, None], axis=-1)  # (F, C, G, G)
+    other = (
+        det.reported[:, :, None, :] & (group[:, None] == group[None, :]) & ~np.eye(G, dtype=bool)
+    )
+    dist = np.where(other, dist, np.inf)
+    nearest = np.argmin(dist, axis=-1)  # (F, C, G)
+    near = det.reported & (
+        np.take_along_axis(dist, nearest[..., None], -1)[..., 0]
+        < config.mix_distance * det.height_px
+    )
+    mixed = near[..., None] & (rng.random((F, C, G, len(MIX_LIMBS))) < config.limb_mix_rate)
+    f, c, g, limb = np.nonzero(mixed)
+    new_xy, new_score = xy.copy(), score.copy()
+    if f.size:
+        kps = MIX_LIMBS[limb]  # (n, 2)
+        src = nearest[f, c, g]
+        new_xy[f[:, None], c[:, None], g[:, None], kps] = xy[
+            f[:, None], c[:, None], src[:, None], kps
+        ]
+        new_score[f[:, None], c[:, None], g[:, None], kps] = score[
+            f[:, None], c[:, None], src[:, None], kps
+        ]
+    return dataclasses.replace(det, xy=new_xy, score=new_score, mixed=mixed)
+
+
+def extra_skeletons(
+    det: DetectorOutput, config: DetectorConfig, rng: np.random.Generator
+) -> tuple[DetectorOutput, np.ndarray, np.ndarray, np.ndarray]:
+    """Duplicate and fragmentary skeletons of reported people (bottom-up grouping failures).
+
+    Returns:
+      det with ``duplicated`` and ``fragmented`` set, and the extra rows: xy (F, C, G, 2, K, 2),
+      score (F, C, G, 2, K), valid (F, C, G, 2): slot 0 the duplicate, slot 1 the fragment.
+    """
+    xy, score = det.xy, det.score
+    F, C, G, K_ = score.shape
+    present = score > 0
+    h = det.height_px[..., None, None]
+    dup = det.reported & (rng.random((F, C, G)) < config.duplicate_rate)
+    dup_xy = xy + config.duplicate_noise * h * rng.standard_normal(xy.shape)
+    dup_score = score * rng.uniform(0.5, 0.9, (F, C, G, 1))
+    # Fragments: an arm or a leg (the body-part masks of false positives), or a few random
+    # keypoints, of the person's reported ones; at least two keypoints.
+    frag = det.reported & (rng.random((F, C, G)) < config.fragment_rate)
+    limbs = _PARTS[[2, 3, 5, 6]]
+    kind = rng.integers(0, len(limbs) + 1, (F, C, G))
+    mask = (
+        np.where(
+            (kind < len(limbs))[..., None],
+            limbs[np.minimum(kind, len(limbs) - 1)],
+            rng.random((F, C, G, K_)) < 0.25,
+        )
+        & present
+    )
+    frag &= mask.sum(-1) >= 2
+    frag_xy = xy + config.duplicate_noise * h * rng.standard_normal(xy.shape)
+    frag_score = np.where(mask, score * rng.uniform(0.3, 0.7, (F, C, G, 1)), 0.0)
+    valid = np.stack([dup, frag], 3)
+    ex_score = np.stack([np.where(present, dup_score, 0.0), frag_score], 3)
+    ex_score = np.where(valid[..., None], ex_score, 0.0).astype(np.float32)
+    ex_xy = np.where((ex_score > 0)[..., None], np.stack([dup_xy, frag_xy], 3), 0.0)
+    det = dataclasses.replace(det, duplicated=dup, fragmented=frag)
+    return det, ex_xy.astype(np.float32), ex_score, valid
 
 
 def _occlusion(pc: np.ndarray, radii: np.ndarray, group: np.ndarray, exempt: np.ndarray):

@@ -23,7 +23,16 @@ from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.synthetic import body as bm
 from mvpose_jax.synthetic.config import SyntheticConfig
-from mvpose_jax.synthetic.detector import DetectorOutput, _fields, detect_people, false_positives
+from mvpose_jax.synthetic.detector import (
+    DetectorOutput,
+    Occluders,
+    _fields,
+    detect_people,
+    extra_skeletons,
+    false_positives,
+    mix_parts,
+    place_occluders,
+)
 from mvpose_jax.synthetic.motion import Paths, plan_paths, pose_angles
 from mvpose_jax.synthetic.scene import SceneGeometry, scene_geometry
 
@@ -39,12 +48,15 @@ class SyntheticScene:
       recording: the `Recording` (detections, ground truth, identities, projections).
       truth: per-person detector internals, arrays (F, C, G, ...): which keypoints are in the
         image, occluded (by anyone / by others), which people are in view, missed, swapped …
-      num_false_positives: (F, C) false-positive skeletons in each view.
+      num_false_positives: (F, C) false-positive skeletons in each view (duplicates and
+        fragments of people, `truth.duplicated` and `truth.fragmented`, not counted).
       points: (F, G, NUM_POINTS, 3) world points of the body model: the 18 keypoints, then the
         pelvis and head centres (the capsule ends of `body.CAPSULES`), metres.
       bodies: the G bodies.
       paths: the planned movement (floor coordinates) and on-the-spot activities.
       geometry: the rig's floor and capture area.
+      occluders: the scene's static boxes (O of them: centre (O, 3), axes (O, 3, 3), half sizes
+        (O, 3)); None without.
     """
 
     recording: Recording
@@ -54,6 +66,7 @@ class SyntheticScene:
     bodies: bm.Bodies
     paths: Paths
     geometry: SceneGeometry
+    occluders: Occluders | None = None
 
 
 def generate_recording(
@@ -167,6 +180,7 @@ def simulate(
                         config.scene,
                         floor_height=round(geometry.floor_height + float(o), 4),
                         floor_jitter_m=0.0,
+                        floor_offset_m=0.0,  # already in geometry.floor_height
                     ),
                 ),
                 np.nonzero(offsets == o)[0].tolist(),
@@ -243,7 +257,17 @@ def _simulate_batch(
     local, frames = bm.forward_kinematics(bodies, angles)  # floor coordinates
     world = geometry.to_world(local)  # (F, G, NP, 3)
     axes = frames @ geometry.basis  # (F, G, 3, 3) heading frames in the world
-    det = detect_people(cams, world, axes, bodies.height, bodies.radii, group, config.detector, rng)
+    dc = config.detector
+    # The domain shifts' effects (all off by default, and then they draw no random numbers).
+    occluders = place_occluders(geometry, B, dc, rng) if dc.num_occluders > 0 else None
+    det = detect_people(
+        cams, world, axes, bodies.height, bodies.radii, group, dc, rng, occluders=occluders
+    )
+    if dc.limb_mix_rate > 0:
+        det = mix_parts(det, group, dc, rng)
+    extra = None
+    if dc.duplicate_rate > 0 or dc.fragment_rate > 0:
+        det, *extra = extra_skeletons(det, dc, rng)
 
     # Body-frame poses to shape false positives from (a few hundred random person-frames).
     n_src = min(F * G, 256)
@@ -260,6 +284,14 @@ def _simulate_batch(
         config.detector,
         rng,
     )
+    num_fp = fp_valid.sum(-1)  # (F, C, B)
+    if extra is not None:
+        # Duplicates and fragments are extra rows with identity -1, like false positives: the
+        # pipeline takes one skeleton per person and view, so the best grouping leaves them out.
+        ex_xy, ex_score, ex_valid = (a.reshape((F, C, B, Gp * 2) + a.shape[4:]) for a in extra)
+        fp_xy = np.concatenate([fp_xy, ex_xy], axis=3)
+        fp_score = np.concatenate([fp_score, ex_score], axis=3)
+        fp_valid = np.concatenate([fp_valid, ex_valid], axis=3)
     M = fp_valid.shape[-1]
     K = bm.NUM_KEYPOINTS
 
@@ -322,11 +354,12 @@ def _simulate_batch(
             SyntheticScene(
                 rec,
                 truth,
-                fp_valid[:, :, b].sum(-1),
+                num_fp[:, :, b],
                 world[:, sl],
                 bodies.take(sl),
                 path_b,
                 geometry,
+                None if occluders is None else Occluders(*(a[b] for a in occluders)),
             )
         )
     return scenes

@@ -301,10 +301,12 @@ def pose_angles(
         side = rng.choice(3, n_seg, p=[0.4, 0.4, 0.2])[a_]  # left, right, both
         use = np.stack([side != 1, side != 0], -1).astype(np.float64)  # (F, G, 2) left, right
         reach_type = rng.choice(3, n_seg, p=[0.5, 0.25, 0.25])[a_]  # forward, up, side
-        r_flex = np.select([reach_type == 0, reach_type == 1], [u(60, 100), u(140, 170)], u(0, 25))
+        r_flex = np.select(
+            [reach_type == 0, reach_type == 1], [u(60, 100), u(*config.reach_up_deg)], u(0, 25)
+        )
         r_abd = np.where(reach_type == 2, u(70, 95), u(0, 20))
         w_freq, w_phase = u(1.5, 3.0), u(0, 2 * np.pi)
-        crouch_d, bend_d = u(0.6, 1.0), u(50, 85)
+        crouch_d, bend_d = u(*config.crouch_depth), u(*config.bend_deg)
 
         def apply(angle: np.ndarray, target, mask: np.ndarray, pair_use=None) -> np.ndarray:
             """Blends targets (F, G) into angles (F, G) or (F, G, 2) where mask (F, G)."""
@@ -329,7 +331,7 @@ def pose_angles(
         fore_abd = apply(fore_abd, wave_osc, is_wave, wave_use)
         hip_flex = apply(hip_flex, deg(95) * crouch_d, is_crouch)
         knee = apply(knee, deg(118) * crouch_d, is_crouch)
-        trunk_flex = apply(trunk_flex, deg(30) * crouch_d, is_crouch)
+        trunk_flex = apply(trunk_flex, deg(config.crouch_trunk_deg) * crouch_d, is_crouch)
         arm_flex = apply(arm_flex, deg(40), is_crouch)
         fore_flex = apply(fore_flex, deg(65), is_crouch)
         trunk_flex = apply(trunk_flex, deg(bend_d), is_bend)

@@ -296,6 +296,8 @@ def _build_geometry(rig: Rig, config: SceneConfig) -> SceneGeometry:
     floor_h = (
         config.floor_height if config.floor_height is not None else estimate_floor_height(rig, up)
     )
+    if config.floor_offset_m:
+        floor_h = floor_h + config.floor_offset_m
     origin = _floor_origin(cams, up, floor_h)
     cam_ab = np.stack([(cams.centres - origin) @ e1, (cams.centres - origin) @ e2], -1)
     extent = float(np.abs(cam_ab).max()) + 6.0
