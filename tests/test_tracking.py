@@ -61,7 +61,9 @@ def _track(xyz, kv, valid, config=TrackingConfig()):
 
 
 def _ids_of(track, truth, person):
-    return set(np.unique(track[truth == person]).tolist())
+    """The track ids a person got (-1, a tentative track's first frames, left out)."""
+    ids = track[truth == person]
+    return set(np.unique(ids[ids >= 0]).tolist())
 
 
 def test_people_crossing_with_slots_swapped_every_frame_keep_their_ids():
@@ -77,26 +79,31 @@ def test_people_crossing_with_slots_swapped_every_frame_keep_their_ids():
     track = _track(xyz, kv, valid)
     assert [_ids_of(track, truth, i) for i in range(3)] == [{0}, {1}, {2}]
     assert (track[~valid] == -1).all()
+    # Tentative until the third frame (`TrackingConfig.confirm_hits`), tracked after.
+    assert (track[:2][valid[:2]] == -1).all() and (track[2:][valid[2:]] >= 0).all()
 
 
 def test_entering_leaving_and_gaps_shorter_and_longer_than_the_limit():
     F = 120
     a = _walk([-1.0, 0.0, 0.0], [0.5, 0.0, 0.0], F)
-    b = _walk([1.0, 1.0, 0.0], [0.0, -0.3, 0.0], F)
+    # (b passes 0.5 m from a: nearer, it would be taken for a part of a, see `split_m`)
+    b = _walk([1.5, 1.0, 0.0], [0.0, -0.3, 0.0], F)
     present_a = np.ones(F, bool)
     present_b = np.zeros(F, bool)
     present_b[10:40] = True  # enters at 10
     present_b[55:70] = True  # back after 15 frames (0.5 s): the same person
     present_b[110:] = True  # back after 40 frames (1.33 s): a new track
     xyz, kv, valid, truth = _frames([a, b], [present_a, present_b])
-    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=1.0))
+    # Without re-linking (tested on its own below), the gap limit alone decides.
+    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=1.0, relink_gap_s=0.0))
     assert _ids_of(track, truth, 0) == {0}
     f_b, g_b = np.nonzero(truth == 1)
     ids_b = track[f_b, g_b]
-    assert set(ids_b[f_b < 70]) == {1}
-    assert set(ids_b[f_b >= 110]) == {2}  # never reused, never the old id
+    assert set(ids_b[f_b < 70]) == {1, -1}  # -1: tentative at 10 and 11
+    assert (ids_b[(f_b >= 12) & (f_b < 70)] == 1).all()
+    assert set(ids_b[f_b >= 112]) == {2}  # never reused, never the old id
     # The limit is the configured one: with 2 s the third appearance keeps its id.
-    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=2.0))
+    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=2.0, relink_gap_s=0.0))
     assert _ids_of(track, truth, 1) == {1}
 
 
@@ -108,7 +115,7 @@ def test_a_frame_without_anyone_and_a_person_with_few_keypoints():
     kv[10] = False
     kv[15:18, 0, 2:] = False  # two keypoints only: matched by the centre
     track = _track(xyz, kv, valid)
-    assert set(track[valid].tolist()) == {0} and track[10, 0] == -1
+    assert set(track[2:][valid[2:]].tolist()) == {0} and track[10, 0] == -1
 
 
 def test_chunks_carry_the_state():
@@ -135,12 +142,17 @@ def test_chunks_carry_the_state():
 
 
 def test_the_gate_refuses_a_jump_and_the_2d_evidence_decides_between_near_people():
+    at_once = TrackingConfig(confirm_hits=1)  # every person is a track from its first frame
     state = initial_state(len(BODY), 1)
     here = BODY[None] + np.array([0.0, 0.0, 0.0])
-    state, ids = update_tracks(state, time=0.0, xyz=here, keypoint_valid=np.ones((1, 6), bool))
+    state, ids = update_tracks(
+        state, time=0.0, xyz=here, keypoint_valid=np.ones((1, 6), bool), config=at_once
+    )
     # 1 m away one frame later: a new person, not the same one.
     far = here + np.array([1.0, 0.0, 0.0])
-    state2, ids2 = update_tracks(state, time=1 / FPS, xyz=far, keypoint_valid=np.ones((1, 6), bool))
+    state2, ids2 = update_tracks(
+        state, time=1 / FPS, xyz=far, keypoint_valid=np.ones((1, 6), bool), config=at_once
+    )
     assert ids.tolist() == [0] and ids2.tolist() == [1]
 
     # Two tracks 0.3 m apart; the new frame's two people are halfway between in 3D (equal 3D
@@ -152,7 +164,14 @@ def test_the_gate_refuses_a_jump_and_the_2d_evidence_decides_between_near_people
     per_px = np.full((2, 1), 0.003)
     kv = np.ones((2, 6), bool)
     state, ids = update_tracks(
-        state, time=0.0, xyz=two, keypoint_valid=kv, xy=xy, score=sc, metres_per_px=per_px
+        state,
+        time=0.0,
+        xyz=two,
+        keypoint_valid=kv,
+        xy=xy,
+        score=sc,
+        metres_per_px=per_px,
+        config=at_once,
     )
     mid = np.stack([BODY + [0.15, 0.0, 0.0]] * 2)
     state, ids = update_tracks(
@@ -163,6 +182,7 @@ def test_the_gate_refuses_a_jump_and_the_2d_evidence_decides_between_near_people
         xy=xy[::-1] + 1.0,
         score=sc,
         metres_per_px=per_px,
+        config=at_once,
     )
     assert ids.tolist() == [1, 0]
 
