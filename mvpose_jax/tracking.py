@@ -18,8 +18,14 @@ Per frame (`update_tracks`):
    skeletons in one camera barely move between frames.
 3. Gate: no match whose 3D distance exceeds ``gate_m + gate_speed_mps * (time since the track
    was seen)``.
-4. `scipy.optimize.linear_sum_assignment` on the gated cost; unmatched people start new tracks
-   (ids count up, never reused); tracks unseen for more than ``max_gap_s`` end.
+4. `scipy.optimize.linear_sum_assignment` on the gated cost, confirmed tracks first, then
+   tentative ones on the people left. A person left within ``split_m`` of a track matched in
+   the frame is a second proposal of that person (no new track; the one with more keypoints
+   keeps the track). Other people start tentative tracks (track -1), confirmed after
+   ``confirm_hits`` consecutive matches and ended at their first miss.
+5. A newly confirmed track takes up a lost one (unseen up to ``relink_gap_s``) last seen near
+   it with the same body size (keypoint-pair distances); else it gets a new id (ids count up,
+   never reused). Tracks unseen for more than ``max_gap_s`` are lost: only a re-link finds them.
 
 The state is explicit (`TrackerState`), so a stream carries it from chunk to chunk and a chunked
 run gives the same ids as a whole-recording run.
@@ -98,6 +104,9 @@ class TrackingConfig:
 # deviation is under this share of its mean, over at least _RIGID_MIN_SAMPLES frames.
 _RIGID_CV = 0.1
 _RIGID_MIN_SAMPLES = 3
+# Body size samples: every this many matches of a track (limb lengths are constant; sampling
+# all frames would double the tracker's time per frame for nothing).
+_SIZE_EVERY = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,8 +126,9 @@ class TrackerState:
       hits: (T,) int64 frames matched so far.
       xy: (T, C, K, 2) pixels, the last matched person's 2D skeletons; score (T, C, K) their
         scores (0: no skeleton or keypoint).
-      size_n, size_sum, size_sq: (T, K, K) count, sum and sum of squares (metres) of each
-        keypoint pair's distance over the track's frames (its body size, for re-linking).
+      size_n, size_sum, size_sq: (T, K (K - 1) / 2) count, sum and sum of squares (metres) of
+        each keypoint pair's distance (pairs i < j in `numpy.triu_indices` order), sampled every
+        ``_SIZE_EVERY`` matches of the track from its first: its body size, for re-linking.
       time: the time of the last update (seconds; -inf before the first).
       next_id: the id the next confirmed track gets.
     """
@@ -158,9 +168,9 @@ def initial_state(num_keypoints: int, num_cameras: int = 0) -> TrackerState:
         hits=np.zeros(0, np.int64),
         xy=np.zeros((0, C, K, 2), np.float32),
         score=np.zeros((0, C, K), np.float32),
-        size_n=np.zeros((0, K, K), np.int32),
-        size_sum=np.zeros((0, K, K)),
-        size_sq=np.zeros((0, K, K)),
+        size_n=np.zeros((0, K * (K - 1) // 2), np.int32),
+        size_sum=np.zeros((0, K * (K - 1) // 2)),
+        size_sq=np.zeros((0, K * (K - 1) // 2)),
     )
 
 
@@ -191,8 +201,10 @@ def _masked_median(values: np.ndarray, mask: np.ndarray, count: np.ndarray) -> n
     lie far off, and must not decide the match or the velocity.
     """
     ranked = np.sort(np.where(mask, values, np.inf), axis=-1)
-    at = np.maximum((count - 1) // 2, 0)[..., None]
-    return np.take_along_axis(ranked, at, axis=-1)[..., 0]
+    at = np.broadcast_to(np.maximum((count - 1) // 2, 0), ranked.shape[:-1]).ravel()
+    # Flat indexing: np.take_along_axis costs several times more on these small arrays.
+    flat = ranked.reshape(-1, ranked.shape[-1])
+    return flat[np.arange(len(flat)), at].reshape(ranked.shape[:-1])
 
 
 def _centres(xyz: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -321,7 +333,9 @@ def update_tracks(
         if views:
             rows["xy"][t_idx], rows["score"][t_idx] = xy[d_idx], score[d_idx]
         if relink:
-            _add_sizes(rows, t_idx, xyz[d_idx], new_kv)
+            sample = hits[t_idx] % _SIZE_EVERY == 1
+            if sample.any():
+                _add_sizes(rows, t_idx[sample], xyz[d_idx[sample]], new_kv[sample])
 
     # New tentative tracks for the people left (not for parts of a person already on a track).
     new = np.nonzero(~m & ~fragment)[0]
@@ -339,9 +353,9 @@ def update_tracks(
             "hits": np.ones(n, np.int64),
             "xy": xy[new] if views else np.zeros((n, C, K, 2), np.float32),
             "score": score[new] if views else np.zeros((n, C, K), np.float32),
-            "size_n": np.zeros((n, K, K), np.int32),
-            "size_sum": np.zeros((n, K, K)),
-            "size_sq": np.zeros((n, K, K)),
+            "size_n": np.zeros((n,) + state.size_n.shape[1:], np.int32),
+            "size_sum": np.zeros((n,) + state.size_n.shape[1:]),
+            "size_sq": np.zeros((n,) + state.size_n.shape[1:]),
         }
         rows = {name: np.concatenate([rows[name], added[name]]) for name in _TRACK_FIELDS}
         if relink:
@@ -351,22 +365,25 @@ def update_tracks(
     # Tentative tracks matched often enough are confirmed: an old track's id, or a new one.
     next_id = state.next_id
     ids = rows["ids"]
-    seen_now = rows["last_time"] == time
-    drop = np.zeros(len(ids), bool)
-    for r in np.nonzero((ids < 0) & seen_now & (rows["hits"] >= config.confirm_hits))[0]:
-        old = _relink_candidate(rows, r, time, drop, config) if relink else -1
-        if old >= 0:
-            _merge_into(rows, old, r)
-            drop[r] = True
-            ids[r] = ids[old]
-        else:
-            ids[r] = next_id
-            next_id += 1
+    tentative = ids < 0
+    keep_s = max(config.max_gap_s, config.relink_gap_s)
+    keep = time - rows["last_time"] <= keep_s
+    if tentative.any():
+        seen_now = rows["last_time"] == time
+        for r in np.nonzero(tentative & seen_now & (rows["hits"] >= config.confirm_hits))[0]:
+            old = _relink_candidate(rows, r, time, ~keep, config) if relink else -1
+            if old >= 0:
+                _merge_into(rows, old, r)
+                keep[r] = False
+                ids[r] = ids[old]
+            else:
+                ids[r] = next_id
+                next_id += 1
+        # Tentative tracks end at their first miss.
+        keep &= seen_now | (ids >= 0)
     track = np.where(matched_track >= 0, ids[np.maximum(matched_track, 0)], -1)
 
-    # Tentative tracks end at their first miss; confirmed ones once beyond any re-link.
-    keep_s = max(config.max_gap_s, config.relink_gap_s)
-    keep = ~drop & np.where(ids < 0, seen_now, time - rows["last_time"] <= keep_s)
+    # Confirmed tracks end once beyond any re-link.
     if not keep.all():
         rows = {name: a[keep] for name, a in rows.items()}
     return TrackerState(**rows, time=time, next_id=next_id), track
@@ -375,6 +392,10 @@ def update_tracks(
 def _assign(cost: np.ndarray, ok: np.ndarray, matched_track: np.ndarray) -> None:
     """Minimum-cost assignment of tracks (rows) to people (columns) where ``ok`` (T, D);
     writes each matched person's track row into ``matched_track`` (D,)."""
+    if ok.size == 1:  # one track and one person (the common case of a lone person): no search
+        if ok[0, 0]:
+            matched_track[0] = 0
+        return
     r_any, c_any = ok.any(1), ok.any(0)
     if not r_any.any():
         return
@@ -414,11 +435,12 @@ def _split_people(
 def _add_sizes(rows: dict, t_idx: np.ndarray, xyz: np.ndarray, kv: np.ndarray) -> None:
     """Adds the people's (M, K, 3) keypoint-pair distances (valid where kv (M, K)) to the body
     size sums of track rows t_idx (M,)."""
-    pair = _norm(xyz[:, :, None] - xyz[:, None], axis=-1)  # (M, K, K)
-    both = kv[:, :, None] & kv[:, None]
+    i, j = np.triu_indices(kv.shape[-1], 1)
+    sq = np.square(xyz[:, i] - xyz[:, j]).sum(-1)  # (M, P)
+    both = kv[:, i] & kv[:, j]
     rows["size_n"][t_idx] += both
-    rows["size_sum"][t_idx] += np.where(both, pair, 0.0)
-    rows["size_sq"][t_idx] += np.where(both, pair * pair, 0.0)
+    rows["size_sum"][t_idx] += np.sqrt(sq) * both
+    rows["size_sq"][t_idx] += sq * both
 
 
 def _relink_candidate(
@@ -450,11 +472,10 @@ def _relink_candidate(
     rigid &= mean_old > 0
     n_new = rows["size_n"][r]
     mean_new = rows["size_sum"][r] / np.maximum(n_new, 1)
-    pairs = rigid & (n_new > 0)[None]  # (N, K, K)
-    n_pairs = pairs.sum((1, 2)) // 2  # each pair is counted as (i, j) and (j, i)
+    pairs = rigid & (n_new > 0)[None]  # (N, P)
+    n_pairs = pairs.sum(-1)
     rel = np.abs(mean_new[None] - mean_old) / np.where(mean_old > 0, mean_old, 1.0)
-    N = len(c)
-    rel_med = _masked_median(rel.reshape(N, -1), pairs.reshape(N, -1), 2 * n_pairs)
+    rel_med = _masked_median(rel, pairs, n_pairs)
     same_size = np.where(
         n_pairs >= config.relink_min_pairs, rel_med <= config.relink_size_tolerance, True
     )
