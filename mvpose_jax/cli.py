@@ -1161,7 +1161,7 @@ def _infer(args: argparse.Namespace) -> int:
     if tracking is not None or export:
         out = load_poses(done.npz)
         if out.track is not None:
-            n_tracks = len(np.unique(out.track[out.poses.valid]))
+            n_tracks = len(np.unique(out.track[out.poses.valid & (out.track >= 0)]))
             n_filled = int(out.filled.sum()) if out.filled is not None else 0
             tracks = f", {n_tracks} tracks, {n_filled} keypoints filled ({args.filter} filter)"
     print(
@@ -1205,7 +1205,7 @@ def _smooth(args: argparse.Namespace) -> int:
         raise e.at(file=args.poses) from None
     npz_path, json_path = save_poses(out, args.out)
     print(
-        f"{len(out.confidence)} frames, {len(np.unique(out.track[out.poses.valid]))} tracks at "
+        f"{len(out.confidence)} frames, {len(np.unique(out.track[out.poses.valid & (out.track >= 0)]))} tracks at "
         f"{fps:g} fps; {args.filter} filter, {int(out.filled.sum())} keypoints filled; wrote "
         f"{json_path} and {npz_path}"
     )
