@@ -884,8 +884,10 @@ def tracking(tier: Tier) -> dict:
                     metres_per_px=per_px[f],
                 )
                 t1 = time.perf_counter()
+                # As the pipeline does: people on tentative tracks (-1) are not filtered.
+                on = ids >= 0
                 euro, _ = one_euro_update(
-                    euro, time=f / 30.0, track=ids, xyz=xyz[f], keypoint_valid=kv[f]
+                    euro, time=f / 30.0, track=ids[on], xyz=xyz[f][on], keypoint_valid=kv[f][on]
                 )
                 t2 = time.perf_counter()
                 if rep:

@@ -1077,7 +1077,7 @@ def _infer(args: argparse.Namespace) -> int:
                 summary.update(tracks=set(), filled=0)
                 for path in out:  # the summary line's counts, one chunk in memory at a time
                     res = load_poses_chunk(path)[1]
-                    summary["tracks"].update(res.track[res.poses.valid].tolist())
+                    summary["tracks"].update(res.track[res.poses.valid & (res.track >= 0)].tolist())
                     summary["filled"] += int(res.filled.sum()) if res.filled is not None else 0
                 return out
 
@@ -1218,7 +1218,7 @@ def _smooth(args: argparse.Namespace) -> int:
         raise e.at(file=args.poses) from None
     npz_path, json_path = save_poses(out, args.out)
     print(
-        f"{len(out.confidence)} frames, {len(np.unique(out.track[out.poses.valid]))} tracks at "
+        f"{len(out.confidence)} frames, {len(np.unique(out.track[out.poses.valid & (out.track >= 0)]))} tracks at "
         f"{fps:g} fps; {args.filter} filter, {int(out.filled.sum())} keypoints filled; wrote "
         f"{json_path} and {npz_path}"
     )

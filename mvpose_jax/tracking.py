@@ -18,8 +18,14 @@ Per frame (`update_tracks`):
    skeletons in one camera barely move between frames.
 3. Gate: no match whose 3D distance exceeds ``gate_m + gate_speed_mps * (time since the track
    was seen)``.
-4. `scipy.optimize.linear_sum_assignment` on the gated cost; unmatched people start new tracks
-   (ids count up, never reused); tracks unseen for more than ``max_gap_s`` end.
+4. `scipy.optimize.linear_sum_assignment` on the gated cost, confirmed tracks first, then
+   tentative ones on the people left. A person left within ``split_m`` of a track matched in
+   the frame is a second proposal of that person (no new track; the one with more keypoints
+   keeps the track). Other people start tentative tracks (track -1), confirmed after
+   ``confirm_hits`` consecutive matches and ended at their first miss.
+5. A newly confirmed track takes up a lost one (unseen up to ``relink_gap_s``) last seen near
+   it with the same body size (keypoint-pair distances); else it gets a new id (ids count up,
+   never reused). Tracks unseen for more than ``max_gap_s`` are lost: only a re-link finds them.
 
 The state is explicit (`TrackerState`), so a stream carries it from chunk to chunk and a chunked
 run gives the same ids as a whole-recording run.
@@ -40,10 +46,11 @@ _NO_MATCH = 1e6
 
 @dataclasses.dataclass(frozen=True)
 class TrackingConfig:
-    """Settings of the tracker.
+    """Settings of the tracker (defaults chosen on the validation tracking scenes,
+    `experiments.tracking_scenes`).
 
     Attributes:
-      max_gap_s: a track unseen for longer than this (seconds) ends; a person seen again within
+      max_gap_s: a track unseen for longer than this (seconds) is lost; a person seen again within
         it keeps their id.
       gate_m: the largest cost (metres) of a match one frame after the track was seen.
       gate_speed_mps: the gate grows by this (m/s) with the time since the track was seen (a
@@ -54,6 +61,28 @@ class TrackingConfig:
         (1: the last displacement only).
       max_speed_mps: velocity estimates are clipped to this speed (a wrong match cannot launch a
         track across the room).
+      confirm_hits: a new track is tentative until matched in this many consecutive frames; a
+        tentative track has no id (its people get track -1) and ends at its first miss, so a
+        ghost (a person built from two people's skeletons) that lasts fewer frames leaves no
+        track. Confirmed tracks are matched first. 1: every new person is a track at once.
+      keypoint_ttl_s: a keypoint missing from (or far off in) a track's matches for longer than
+        this (seconds) is forgotten and taken afresh from the next person matched, so a stale
+        or wrong keypoint (one of a ghost's) cannot decide later matches. inf: kept for the
+        track's life.
+      split_m: a person left unmatched whose 3D cost to a track matched in the same frame is under
+        this (metres) is part of that track's person (one person proposed twice, from different
+        views): it starts no track and gets track -1; of the two, the one with more keypoints
+        stays on the track. 0: off.
+      relink_gap_s: a confirmed track unseen for up to this long (seconds, beyond ``max_gap_s``)
+        may be taken up again by a new track when it is confirmed: the new track started after
+        the old one was last seen, within ``gate_m + gate_speed_mps * (time unseen)`` of where
+        it was last seen, with the same body size (``relink_size_tolerance``). It then keeps the
+        old id. 0 (or not above ``max_gap_s`` with no unmatched candidate): off.
+      relink_size_tolerance: the largest median relative difference of the two tracks' mean
+        keypoint-pair distances (over the pairs rigid in the old track, such as limb lengths)
+        for a re-link; with fewer than ``relink_min_pairs`` such pairs in common, position alone
+        decides.
+      relink_min_pairs: see ``relink_size_tolerance``.
     """
 
     max_gap_s: float = 1.0
@@ -63,36 +92,66 @@ class TrackingConfig:
     min_common_keypoints: int = 3
     velocity_smoothing: float = 0.5
     max_speed_mps: float = 4.0
+    confirm_hits: int = 3
+    keypoint_ttl_s: float = 0.5
+    split_m: float = 0.15
+    relink_gap_s: float = 3.0
+    relink_size_tolerance: float = 0.1
+    relink_min_pairs: int = 1
+
+
+# A keypoint pair is rigid in a track (a limb, not wrist to ankle) when its distance's standard
+# deviation is under this share of its mean, over at least _RIGID_MIN_SAMPLES frames.
+_RIGID_CV = 0.1
+_RIGID_MIN_SAMPLES = 3
+# Body size samples: every this many matches of a track (limb lengths are constant; sampling
+# all frames would double the tracker's time per frame for nothing).
+_SIZE_EVERY = 5
 
 
 @dataclasses.dataclass(frozen=True)
 class TrackerState:
-    """The active tracks (T of them) and the next new id.
+    """The tracks (T of them: confirmed, tentative and lost ones) and the next new id.
 
     Attributes:
-      ids: (T,) int64 track ids, increasing (new tracks are appended with larger ids).
+      ids: (T,) int64 track ids; -1 for a tentative track (it gets an id when confirmed).
       xyz: (T, K, 3) metres, the last pose (keypoints not seen in the last match were moved with
         the track's velocity).
-      keypoint_valid: (T, K) which keypoints of ``xyz`` were ever seen.
+      keypoint_valid: (T, K) which keypoints of ``xyz`` hold a measurement (seen within
+        ``keypoint_ttl_s`` of the track's last match).
+      keypoint_time: (T, K) seconds when each keypoint was last seen.
       velocity: (T, 3) m/s.
+      first_time: (T,) seconds when each track was first matched.
       last_time: (T,) seconds when each track was last matched.
       hits: (T,) int64 frames matched so far.
       xy: (T, C, K, 2) pixels, the last matched person's 2D skeletons; score (T, C, K) their
         scores (0: no skeleton or keypoint).
+      size_n, size_sum, size_sq: (T, K (K - 1) / 2) count, sum and sum of squares (metres) of
+        each keypoint pair's distance (pairs i < j in `numpy.triu_indices` order), sampled every
+        ``_SIZE_EVERY`` matches of the track from its first: its body size, for re-linking.
       time: the time of the last update (seconds; -inf before the first).
-      next_id: the id the next new track gets.
+      next_id: the id the next confirmed track gets.
     """
 
     ids: np.ndarray
     xyz: np.ndarray
     keypoint_valid: np.ndarray
+    keypoint_time: np.ndarray
     velocity: np.ndarray
+    first_time: np.ndarray
     last_time: np.ndarray
     hits: np.ndarray
     xy: np.ndarray
     score: np.ndarray
+    size_n: np.ndarray
+    size_sum: np.ndarray
+    size_sq: np.ndarray
     time: float = -np.inf
     next_id: int = 0
+
+
+# The per-track fields of `TrackerState` (rows are added and removed together).
+_TRACK_FIELDS = tuple(f.name for f in dataclasses.fields(TrackerState))[:-2]
 
 
 def initial_state(num_keypoints: int, num_cameras: int = 0) -> TrackerState:
@@ -102,11 +161,16 @@ def initial_state(num_keypoints: int, num_cameras: int = 0) -> TrackerState:
         ids=np.zeros(0, np.int64),
         xyz=np.zeros((0, K, 3)),
         keypoint_valid=np.zeros((0, K), bool),
+        keypoint_time=np.zeros((0, K)),
         velocity=np.zeros((0, 3)),
+        first_time=np.zeros(0),
         last_time=np.zeros(0),
         hits=np.zeros(0, np.int64),
         xy=np.zeros((0, C, K, 2), np.float32),
         score=np.zeros((0, C, K), np.float32),
+        size_n=np.zeros((0, K * (K - 1) // 2), np.int32),
+        size_sum=np.zeros((0, K * (K - 1) // 2)),
+        size_sq=np.zeros((0, K * (K - 1) // 2)),
     )
 
 
@@ -137,8 +201,10 @@ def _masked_median(values: np.ndarray, mask: np.ndarray, count: np.ndarray) -> n
     lie far off, and must not decide the match or the velocity.
     """
     ranked = np.sort(np.where(mask, values, np.inf), axis=-1)
-    at = np.maximum((count - 1) // 2, 0)[..., None]
-    return np.take_along_axis(ranked, at, axis=-1)[..., 0]
+    at = np.broadcast_to(np.maximum((count - 1) // 2, 0), ranked.shape[:-1]).ravel()
+    # Flat indexing: np.take_along_axis costs several times more on these small arrays.
+    flat = ranked.reshape(-1, ranked.shape[-1])
+    return flat[np.arange(len(flat)), at].reshape(ranked.shape[:-1])
 
 
 def _centres(xyz: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -158,7 +224,7 @@ def update_tracks(
     metres_per_px: np.ndarray | None = None,
     config: TrackingConfig = TrackingConfig(),
 ) -> tuple[TrackerState, np.ndarray]:
-    """One frame: matches its D people to the active tracks.
+    """One frame: matches its D people to the tracks.
 
     Args:
       state: the tracks before this frame.
@@ -169,17 +235,29 @@ def update_tracks(
         `metres_per_pixel`).
       config: the tracker's settings.
     Returns:
-      (the new state, (D,) int64 track id of each person).
+      (the new state, (D,) int64 track id of each person; -1 for a person on a tentative track
+      or part of a person already on a track, see ``TrackingConfig.confirm_hits`` and
+      ``split_m``).
     """
     D, K = keypoint_valid.shape
     T = len(state.ids)
     dt = time - state.last_time  # (T,)
     views = xy is not None and config.view_weight > 0 and state.xy.shape[1] > 0
+    confirmed = state.ids >= 0
+    # Lost tracks (unseen beyond the gap) wait for a re-link only; they are not matched.
+    active = state.time - state.last_time <= config.max_gap_s
+    # Keypoints the track's matches have lacked for too long are forgotten (not the keypoints
+    # of a track unseen: its last pose is all there is to find it again).
+    kv_track = state.keypoint_valid
+    if np.isfinite(config.keypoint_ttl_s):
+        stale = state.last_time[:, None] - state.keypoint_time > config.keypoint_ttl_s
+        kv_track = kv_track & ~stale
     matched_track = np.full(D, -1, np.int64)
+    fragment = np.zeros(D, bool)
     if T and D:
         # (T, K, 3) constant-velocity prediction.
         pred = state.xyz + state.velocity[:, None] * dt[:, None, None]
-        common = state.keypoint_valid[:, None] & keypoint_valid[None]  # (T, D, K)
+        common = kv_track[:, None] & keypoint_valid[None]  # (T, D, K)
         n_common = common.sum(-1)
         dist = _norm(pred[:, None] - xyz[None], axis=-1)  # (T, D, K)
         d_kp = _masked_median(dist, common, n_common)
@@ -187,7 +265,7 @@ def update_tracks(
         d3 = d_kp  # (T, D)
         if few.any():
             d_centre = _norm(
-                _centres(pred, state.keypoint_valid)[:, None] - _centres(xyz, keypoint_valid)[None]
+                _centres(pred, kv_track)[:, None] - _centres(xyz, keypoint_valid)[None]
             )
             d3 = np.where(few, d_centre, d_kp)
         cost = d3
@@ -208,22 +286,24 @@ def update_tracks(
         # The gate is on the 3D distance alone: a wrong grouping (a ghost built from this
         # person's skeletons and another's) shares 2D skeletons with the person but lies apart.
         gate = config.gate_m + config.gate_speed_mps * dt  # (T,)
-        ok = d3 <= gate[:, None]
-        if T * D == 1:
-            rows, cols = np.zeros(1, np.int64), np.zeros(1, np.int64)
-        else:
-            rows, cols = linear_sum_assignment(np.where(ok, cost, _NO_MATCH))
-        keep = ok[rows, cols]
-        rows, cols = rows[keep], cols[keep]
-        matched_track[cols] = rows
+        ok = (d3 <= gate[:, None]) & active[:, None]
+        # Confirmed tracks first: a tentative track (perhaps a ghost's) cannot take their people.
+        _assign(cost, ok & confirmed[:, None], matched_track)
+        if config.split_m > 0 and (matched_track < 0).any() and (matched_track >= 0).any():
+            _split_people(d3, keypoint_valid, matched_track, fragment, config.split_m)
+        if not confirmed.all():
+            free = (matched_track < 0) & ~fragment
+            _assign(cost, ok & ~confirmed[:, None] & free[None], matched_track)
 
     # Update the matched tracks.
-    ids, xyz_t, kv_t = state.ids, state.xyz.copy(), state.keypoint_valid.copy()
-    vel, last_time, hits = state.velocity.copy(), state.last_time.copy(), state.hits.copy()
-    st_xy, st_score = state.xy.copy(), state.score.copy()
+    rows = {name: getattr(state, name) for name in _TRACK_FIELDS}
+    rows = {name: a.copy() for name, a in rows.items()}
+    rows["keypoint_valid"] = kv_track.copy()
+    relink = config.relink_gap_s > 0
     m = matched_track >= 0
     if m.any():
         t_idx, d_idx = matched_track[m], np.nonzero(m)[0]
+        xyz_t, kv_t = rows["xyz"], rows["keypoint_valid"]
         dt_m = dt[t_idx][:, None]  # (M, 1)
         new_kv = keypoint_valid[d_idx]
         # A keypoint far off the prediction (a gross reconstruction error) neither moves the
@@ -241,49 +321,177 @@ def update_tracks(
         speed = _norm(v_new, axis=-1, keepdims=True)
         v_new *= np.minimum(1.0, config.max_speed_mps / np.maximum(speed, 1e-12))
         # The first measured velocity is taken whole; later ones blended with the estimate.
+        hits = rows["hits"]
         a = np.where(hits[t_idx] == 1, 1.0, config.velocity_smoothing)[:, None]
-        vel[t_idx] = a * v_new + (1 - a) * vel[t_idx]
+        rows["velocity"][t_idx] = a * v_new + (1 - a) * rows["velocity"][t_idx]
         moved = xyz_t[t_idx] + (v_new * dt_m)[:, None]
         xyz_t[t_idx] = np.where(new_kv[..., None], xyz[d_idx], moved)
         kv_t[t_idx] |= new_kv
-        last_time[t_idx] = time
+        rows["keypoint_time"][t_idx] = np.where(new_kv, time, rows["keypoint_time"][t_idx])
+        rows["last_time"][t_idx] = time
         hits[t_idx] += 1
         if views:
-            st_xy[t_idx], st_score[t_idx] = xy[d_idx], score[d_idx]
+            rows["xy"][t_idx], rows["score"][t_idx] = xy[d_idx], score[d_idx]
+        if relink:
+            sample = hits[t_idx] % _SIZE_EVERY == 1
+            if sample.any():
+                _add_sizes(rows, t_idx[sample], xyz[d_idx[sample]], new_kv[sample])
 
-    # New tracks for the unmatched people.
-    new = np.nonzero(~m)[0]
-    new_ids = state.next_id + np.arange(len(new))
-    track = matched_track.copy()
-    track[m] = ids[matched_track[m]]
-    track[new] = new_ids
+    # New tentative tracks for the people left (not for parts of a person already on a track).
+    new = np.nonzero(~m & ~fragment)[0]
     if len(new):
-        C = st_xy.shape[1]
-        ids = np.concatenate([ids, new_ids])
-        xyz_t = np.concatenate([xyz_t, xyz[new]])
-        kv_t = np.concatenate([kv_t, keypoint_valid[new]])
-        vel = np.concatenate([vel, np.zeros((len(new), 3))])
-        last_time = np.concatenate([last_time, np.full(len(new), time)])
-        hits = np.concatenate([hits, np.ones(len(new), np.int64)])
-        if views:
-            st_xy = np.concatenate([st_xy, xy[new]])
-            st_score = np.concatenate([st_score, score[new]])
-        else:
-            st_xy = np.concatenate([st_xy, np.zeros((len(new), C, K, 2), st_xy.dtype)])
-            st_score = np.concatenate([st_score, np.zeros((len(new), C, K), st_score.dtype)])
+        C = rows["xy"].shape[1]
+        n = len(new)
+        added = {
+            "ids": np.full(n, -1, np.int64),
+            "xyz": xyz[new],
+            "keypoint_valid": keypoint_valid[new],
+            "keypoint_time": np.where(keypoint_valid[new], time, -np.inf),
+            "velocity": np.zeros((n, 3)),
+            "first_time": np.full(n, time),
+            "last_time": np.full(n, time),
+            "hits": np.ones(n, np.int64),
+            "xy": xy[new] if views else np.zeros((n, C, K, 2), np.float32),
+            "score": score[new] if views else np.zeros((n, C, K), np.float32),
+            "size_n": np.zeros((n,) + state.size_n.shape[1:], np.int32),
+            "size_sum": np.zeros((n,) + state.size_n.shape[1:]),
+            "size_sq": np.zeros((n,) + state.size_n.shape[1:]),
+        }
+        rows = {name: np.concatenate([rows[name], added[name]]) for name in _TRACK_FIELDS}
+        if relink:
+            _add_sizes(rows, T + np.arange(n), xyz[new], keypoint_valid[new])
+        matched_track[new] = T + np.arange(n)
 
-    # Tracks unseen for longer than the gap end.
-    alive = time - last_time <= config.max_gap_s
-    if not alive.all():
-        ids, xyz_t, kv_t, vel, last_time, hits, st_xy, st_score = (
-            a[alive] for a in (ids, xyz_t, kv_t, vel, last_time, hits, st_xy, st_score)
-        )
-    return (
-        TrackerState(
-            ids, xyz_t, kv_t, vel, last_time, hits, st_xy, st_score, time, state.next_id + len(new)
-        ),
-        track,
+    # Tentative tracks matched often enough are confirmed: an old track's id, or a new one.
+    next_id = state.next_id
+    ids = rows["ids"]
+    tentative = ids < 0
+    keep_s = max(config.max_gap_s, config.relink_gap_s)
+    keep = time - rows["last_time"] <= keep_s
+    if tentative.any():
+        seen_now = rows["last_time"] == time
+        for r in np.nonzero(tentative & seen_now & (rows["hits"] >= config.confirm_hits))[0]:
+            old = _relink_candidate(rows, r, time, ~keep, config) if relink else -1
+            if old >= 0:
+                _merge_into(rows, old, r)
+                keep[r] = False
+                ids[r] = ids[old]
+            else:
+                ids[r] = next_id
+                next_id += 1
+        # Tentative tracks end at their first miss.
+        keep &= seen_now | (ids >= 0)
+    track = np.where(matched_track >= 0, ids[np.maximum(matched_track, 0)], -1)
+
+    # Confirmed tracks end once beyond any re-link.
+    if not keep.all():
+        rows = {name: a[keep] for name, a in rows.items()}
+    return TrackerState(**rows, time=time, next_id=next_id), track
+
+
+def _assign(cost: np.ndarray, ok: np.ndarray, matched_track: np.ndarray) -> None:
+    """Minimum-cost assignment of tracks (rows) to people (columns) where ``ok`` (T, D);
+    writes each matched person's track row into ``matched_track`` (D,)."""
+    if ok.size == 1:  # one track and one person (the common case of a lone person): no search
+        if ok[0, 0]:
+            matched_track[0] = 0
+        return
+    r_any, c_any = ok.any(1), ok.any(0)
+    if not r_any.any():
+        return
+    r_idx, c_idx = np.nonzero(r_any)[0], np.nonzero(c_any)[0]
+    if len(r_idx) == 1 and len(c_idx) == 1:
+        matched_track[c_idx[0]] = r_idx[0]
+        return
+    sub_ok = ok[np.ix_(r_idx, c_idx)]
+    rows, cols = linear_sum_assignment(np.where(sub_ok, cost[np.ix_(r_idx, c_idx)], _NO_MATCH))
+    keep = sub_ok[rows, cols]
+    matched_track[c_idx[cols[keep]]] = r_idx[rows[keep]]
+
+
+def _split_people(
+    d3: np.ndarray,
+    keypoint_valid: np.ndarray,
+    matched_track: np.ndarray,
+    fragment: np.ndarray,
+    split_m: float,
+) -> None:
+    """Marks the unmatched people within ``split_m`` (3D cost d3 (T, D)) of a matched track as
+    parts of its person (``fragment``, (D,)); the one of them with the most keypoints, if it has
+    more than the track's person, takes the track's place (``matched_track`` (D,))."""
+    support = keypoint_valid.sum(-1)  # (D,)
+    for d in np.nonzero(matched_track >= 0)[0]:
+        t = matched_track[d]
+        parts = np.nonzero((matched_track < 0) & ~fragment & (d3[t] < split_m))[0]
+        if not len(parts):
+            continue
+        fragment[parts] = True
+        best = parts[np.argmax(support[parts])]
+        if support[best] > support[d]:
+            matched_track[best], matched_track[d] = t, -1
+            fragment[best], fragment[d] = False, True
+
+
+def _add_sizes(rows: dict, t_idx: np.ndarray, xyz: np.ndarray, kv: np.ndarray) -> None:
+    """Adds the people's (M, K, 3) keypoint-pair distances (valid where kv (M, K)) to the body
+    size sums of track rows t_idx (M,)."""
+    i, j = np.triu_indices(kv.shape[-1], 1)
+    sq = np.square(xyz[:, i] - xyz[:, j]).sum(-1)  # (M, P)
+    both = kv[:, i] & kv[:, j]
+    rows["size_n"][t_idx] += both
+    rows["size_sum"][t_idx] += np.sqrt(sq) * both
+    rows["size_sq"][t_idx] += sq * both
+
+
+def _relink_candidate(
+    rows: dict, r: int, time: float, taken: np.ndarray, config: TrackingConfig
+) -> int:
+    """The row of the confirmed track that track row ``r`` continues, or -1.
+
+    Candidates: confirmed tracks not seen since before ``r`` started, unseen for at most
+    ``relink_gap_s``, last seen within the gate's reach of where ``r`` is now, with the same body
+    size; the nearest of them.
+    """
+    ids, last = rows["ids"], rows["last_time"]
+    gap = time - last
+    cand = (ids >= 0) & ~taken & (last < rows["first_time"][r]) & (gap <= config.relink_gap_s)
+    if not cand.any():
+        return -1
+    (c,) = np.nonzero(cand)
+    # Where each was last seen: the keypoints of its last match (expired ones included).
+    last_seen = rows["keypoint_time"] == last[:, None]  # (T, K)
+    centre = _centres(rows["xyz"][c], last_seen[c])
+    here = _centres(rows["xyz"][r][None], last_seen[r][None])[0]
+    dist = _norm(centre - here)
+    near = dist <= config.gate_m + config.gate_speed_mps * gap[c]
+    # Body size: mean pair distances, over the pairs rigid in the old track.
+    n_old = rows["size_n"][c]
+    mean_old = rows["size_sum"][c] / np.maximum(n_old, 1)
+    var_old = rows["size_sq"][c] / np.maximum(n_old, 1) - mean_old**2
+    rigid = (n_old >= _RIGID_MIN_SAMPLES) & (var_old <= (_RIGID_CV * mean_old) ** 2)
+    rigid &= mean_old > 0
+    n_new = rows["size_n"][r]
+    mean_new = rows["size_sum"][r] / np.maximum(n_new, 1)
+    pairs = rigid & (n_new > 0)[None]  # (N, P)
+    n_pairs = pairs.sum(-1)
+    rel = np.abs(mean_new[None] - mean_old) / np.where(mean_old > 0, mean_old, 1.0)
+    rel_med = _masked_median(rel, pairs, n_pairs)
+    same_size = np.where(
+        n_pairs >= config.relink_min_pairs, rel_med <= config.relink_size_tolerance, True
     )
+    ok = near & same_size
+    if not ok.any():
+        return -1
+    return int(c[ok][np.argmin(dist[ok])])
+
+
+def _merge_into(rows: dict, old: int, r: int) -> None:
+    """Track row ``old`` takes up track row ``r``'s present (pose, velocity, skeletons) and adds
+    its body size samples."""
+    for name in ("xyz", "keypoint_valid", "keypoint_time", "velocity", "last_time", "xy", "score"):
+        rows[name][old] = rows[name][r]
+    for name in ("hits", "size_n", "size_sum", "size_sq"):
+        rows[name][old] += rows[name][r]
 
 
 def track_frames(

@@ -614,7 +614,8 @@ def test_infer_exports_after_the_poses(three_people, tmp_path, capsys):
     # infer tracks: one file per track, no warning about slots
     assert "slot is not the same person over time" not in captured.err
     res = load_poses(out)
-    tracks = sorted({int(t) for t in res.track[res.poses.valid]})
+    # (-1: people on tentative tracks, not exported)
+    tracks = sorted({int(t) for t in res.track[res.poses.valid]} - {-1})
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
         ["poses.json", "poses.npz"]
@@ -684,8 +685,9 @@ def test_infer_tracks_filters_and_smooth_refilters(files, recording, tmp_path, c
     assert "2 tracks" in capsys.readouterr().out
     res = load_poses(out)
     assert res.track is not None and res.filled is not None
-    # Each slot's person keeps one id: two true people, two tracks, every frame.
-    assert set(np.unique(res.track[res.poses.valid])) == {0, 1}
+    # Two true people, two tracks: tentative (-1) in the first two frames, then confirmed.
+    assert set(np.unique(res.track[:2][res.poses.valid[:2]])) == {-1}
+    assert set(np.unique(res.track[2:][res.poses.valid[2:]])) == {0, 1}
     doc = json.loads((out / "poses.json").read_text())
     assert all("track" in p for f in doc["frames"] for p in f["people"])
 
@@ -1001,6 +1003,6 @@ def test_infer_tracks_across_a_resume_without_reusing_ids(
     after = load_poses(out)
     assert not after.partial and len(after.confidence) == rec.num_frames
     F0 = len(before.confidence)
-    old = set(after.track[:F0][after.poses.valid[:F0]].tolist())
-    new = set(after.track[F0:][after.poses.valid[F0:]].tolist())
+    old = set(after.track[:F0][after.poses.valid[:F0]].tolist()) - {-1}  # -1: tentative
+    new = set(after.track[F0:][after.poses.valid[F0:]].tolist()) - {-1}
     assert old and new and min(new) > max(old)  # restarted tracks take fresh ids

@@ -3,6 +3,8 @@ and longer than the limit, chunks, and one track per true person on a synthetic 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -61,7 +63,9 @@ def _track(xyz, kv, valid, config=TrackingConfig()):
 
 
 def _ids_of(track, truth, person):
-    return set(np.unique(track[truth == person]).tolist())
+    """The track ids a person got (-1, a tentative track's first frames, left out)."""
+    ids = track[truth == person]
+    return set(np.unique(ids[ids >= 0]).tolist())
 
 
 def test_people_crossing_with_slots_swapped_every_frame_keep_their_ids():
@@ -77,26 +81,31 @@ def test_people_crossing_with_slots_swapped_every_frame_keep_their_ids():
     track = _track(xyz, kv, valid)
     assert [_ids_of(track, truth, i) for i in range(3)] == [{0}, {1}, {2}]
     assert (track[~valid] == -1).all()
+    # Tentative until the third frame (`TrackingConfig.confirm_hits`), tracked after.
+    assert (track[:2][valid[:2]] == -1).all() and (track[2:][valid[2:]] >= 0).all()
 
 
 def test_entering_leaving_and_gaps_shorter_and_longer_than_the_limit():
     F = 120
     a = _walk([-1.0, 0.0, 0.0], [0.5, 0.0, 0.0], F)
-    b = _walk([1.0, 1.0, 0.0], [0.0, -0.3, 0.0], F)
+    # (b passes 0.5 m from a: nearer, it would be taken for a part of a, see `split_m`)
+    b = _walk([1.5, 1.0, 0.0], [0.0, -0.3, 0.0], F)
     present_a = np.ones(F, bool)
     present_b = np.zeros(F, bool)
     present_b[10:40] = True  # enters at 10
     present_b[55:70] = True  # back after 15 frames (0.5 s): the same person
     present_b[110:] = True  # back after 40 frames (1.33 s): a new track
     xyz, kv, valid, truth = _frames([a, b], [present_a, present_b])
-    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=1.0))
+    # Without re-linking (tested on its own below), the gap limit alone decides.
+    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=1.0, relink_gap_s=0.0))
     assert _ids_of(track, truth, 0) == {0}
     f_b, g_b = np.nonzero(truth == 1)
     ids_b = track[f_b, g_b]
-    assert set(ids_b[f_b < 70]) == {1}
-    assert set(ids_b[f_b >= 110]) == {2}  # never reused, never the old id
+    assert set(ids_b[f_b < 70]) == {1, -1}  # -1: tentative at 10 and 11
+    assert (ids_b[(f_b >= 12) & (f_b < 70)] == 1).all()
+    assert set(ids_b[f_b >= 112]) == {2}  # never reused, never the old id
     # The limit is the configured one: with 2 s the third appearance keeps its id.
-    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=2.0))
+    track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=2.0, relink_gap_s=0.0))
     assert _ids_of(track, truth, 1) == {1}
 
 
@@ -108,7 +117,7 @@ def test_a_frame_without_anyone_and_a_person_with_few_keypoints():
     kv[10] = False
     kv[15:18, 0, 2:] = False  # two keypoints only: matched by the centre
     track = _track(xyz, kv, valid)
-    assert set(track[valid].tolist()) == {0} and track[10, 0] == -1
+    assert set(track[2:][valid[2:]].tolist()) == {0} and track[10, 0] == -1
 
 
 def test_chunks_carry_the_state():
@@ -135,12 +144,17 @@ def test_chunks_carry_the_state():
 
 
 def test_the_gate_refuses_a_jump_and_the_2d_evidence_decides_between_near_people():
+    at_once = TrackingConfig(confirm_hits=1)  # every person is a track from its first frame
     state = initial_state(len(BODY), 1)
     here = BODY[None] + np.array([0.0, 0.0, 0.0])
-    state, ids = update_tracks(state, time=0.0, xyz=here, keypoint_valid=np.ones((1, 6), bool))
+    state, ids = update_tracks(
+        state, time=0.0, xyz=here, keypoint_valid=np.ones((1, 6), bool), config=at_once
+    )
     # 1 m away one frame later: a new person, not the same one.
     far = here + np.array([1.0, 0.0, 0.0])
-    state2, ids2 = update_tracks(state, time=1 / FPS, xyz=far, keypoint_valid=np.ones((1, 6), bool))
+    state2, ids2 = update_tracks(
+        state, time=1 / FPS, xyz=far, keypoint_valid=np.ones((1, 6), bool), config=at_once
+    )
     assert ids.tolist() == [0] and ids2.tolist() == [1]
 
     # Two tracks 0.3 m apart; the new frame's two people are halfway between in 3D (equal 3D
@@ -152,7 +166,14 @@ def test_the_gate_refuses_a_jump_and_the_2d_evidence_decides_between_near_people
     per_px = np.full((2, 1), 0.003)
     kv = np.ones((2, 6), bool)
     state, ids = update_tracks(
-        state, time=0.0, xyz=two, keypoint_valid=kv, xy=xy, score=sc, metres_per_px=per_px
+        state,
+        time=0.0,
+        xyz=two,
+        keypoint_valid=kv,
+        xy=xy,
+        score=sc,
+        metres_per_px=per_px,
+        config=at_once,
     )
     mid = np.stack([BODY + [0.15, 0.0, 0.0]] * 2)
     state, ids = update_tracks(
@@ -163,8 +184,100 @@ def test_the_gate_refuses_a_jump_and_the_2d_evidence_decides_between_near_people
         xy=xy[::-1] + 1.0,
         score=sc,
         metres_per_px=per_px,
+        config=at_once,
     )
     assert ids.tolist() == [1, 0]
+
+
+def _track_people(frames, config=TrackingConfig()):
+    """Frames as lists of (K, 3) people (K = 6, all keypoints valid unless NaN) -> per frame the
+    list of track ids, by `update_tracks` one frame at a time."""
+    state, out = initial_state(len(BODY)), []
+    for f, people in enumerate(frames):
+        xyz = np.asarray(people, float).reshape(-1, len(BODY), 3)
+        kv = ~np.isnan(xyz).any(-1)
+        state, ids = update_tracks(
+            state, time=f / FPS, xyz=np.nan_to_num(xyz), keypoint_valid=kv, config=config
+        )
+        out.append(ids.tolist())
+    return out
+
+
+def test_a_ghost_lasting_one_or_two_frames_makes_no_track():
+    F = 20
+    a = _walk([-1.0, 0.0, 0.0], [0.5, 0.0, 0.0], F)
+    b = _walk([1.0, 0.0, 0.0], [-0.5, 0.0, 0.0], F)
+    ghost = BODY + [0.0, 1.2, 0.0]  # between and beside them: a wrong grouping
+    frames = [[a[f], b[f]] for f in range(F)]
+    frames[8] = frames[8] + [ghost]  # one frame
+    frames[14] = frames[14] + [ghost]  # two frames
+    frames[15] = frames[15] + [ghost + 0.01]
+    ids = _track_people(frames)
+    assert all(f[2] == -1 for f in ids if len(f) == 3)  # the ghost: never a track id
+    assert [f[:2] for f in ids[2:]] == [[0, 1]] * (F - 2)
+    # Without confirmation the ghost is a track.
+    ids = _track_people(frames, TrackingConfig(confirm_hits=1))
+    assert {f[2] for f in ids if len(f) == 3} == {2}
+    # A person who stays is confirmed at the third frame, and keeps the id.
+    ids = _track_people([[a[f]] for f in range(F)])
+    assert [f[0] for f in ids] == [-1, -1] + [0] * (F - 2)
+
+
+def test_a_person_proposed_twice_keeps_one_id_on_the_better_supported_proposal():
+    F = 20
+    a = _walk([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], F)
+    part = lambda p, keep: np.where(np.isin(np.arange(len(BODY)), keep)[:, None], p, np.nan)  # noqa: E731
+    frames = [[a[f]] for f in range(F)]
+    for f in range(6, 14):
+        # Two proposals of the one person from different views: an upper-body fragment, and
+        # from frame 10 on the fragment holds more keypoints than the other proposal.
+        if f < 10:
+            frames[f] = [a[f], part(a[f] + 0.02, [0, 1, 2])]
+        else:
+            frames[f] = [part(a[f], [0, 1, 2]), a[f] + 0.02]
+    ids = _track_people(frames)
+    assert [f for f in ids[6:10]] == [[0, -1]] * 4
+    assert [f for f in ids[10:14]] == [[-1, 0]] * 4
+    assert {i for f in ids for i in f} == {-1, 0}
+    # Without it, the second proposal becomes a track of its own.
+    ids = _track_people(frames, TrackingConfig(split_m=0.0))
+    assert {i for f in ids for i in f} == {-1, 0, 1}
+
+
+def test_a_track_lost_beyond_the_gap_is_relinked_by_body_size():
+    # Person a (the BODY) and a larger person c; a is unseen for 1.5 s (beyond max_gap_s) and
+    # comes back 0.5 m from where it was lost, while c walks in just where a was lost.
+    big = np.diag([1.3, 1.3, 1.3])
+    F = 120
+    a = _walk([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], F)
+    c = _walk([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], F) @ big.T
+    frames = [[a[f]] for f in range(30)] + [[] for _ in range(45)]
+    frames += [[c[f] + [0.05, 0.0, 0.0], a[f] + [0.5, 0.0, 0.0]] for f in range(75, F)]
+    ids = _track_people(frames)
+    assert [f for f in ids[80:]] == [[1, 0]] * (F - 80)  # a keeps id 0, c is new
+    # By position alone (no body size) the nearer one, c, would take a's id.
+    ids = _track_people(frames, TrackingConfig(relink_size_tolerance=np.inf))
+    assert [f for f in ids[80:]] == [[0, 1]] * (F - 80)
+    # Without re-linking, a comes back as a new track.
+    ids = _track_people(frames, TrackingConfig(relink_gap_s=0.0))
+    assert sorted({i for f in ids[80:] for i in f}) == [1, 2]
+
+
+def test_stale_keypoints_are_forgotten():
+    # The first frame's legs are 1.5 m off (a wrong grouping); they are "off" in every later
+    # match, so without forgetting the track keeps them; later only the legs and one hip are
+    # seen, and the stale legs decide the match.
+    F = 90
+    a = _walk([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], F)
+    first = a[0].copy()
+    first[3:] += [1.5, 0.0, 0.0]
+    legs = np.where(np.isin(np.arange(len(BODY)), [2, 3, 4, 5])[:, None], a[0], np.nan)
+    frames = [[first]] + [[a[f]] for f in range(1, 60)] + [[legs]] * (F - 60)
+    config = TrackingConfig(relink_gap_s=0.0)
+    ids = _track_people(frames, config)
+    assert {i for f in ids[2:] for i in f} == {0}
+    ids = _track_people(frames, dataclasses.replace(config, keypoint_ttl_s=np.inf))
+    assert {i for f in ids[60:] for i in f} != {0}
 
 
 def test_metres_per_pixel_is_depth_over_focal():
