@@ -949,7 +949,7 @@ def add_smoothing_arguments(p: argparse.ArgumentParser, *, default_filter: str) 
     p.add_argument(
         "--cutoff-hz",
         type=float,
-        default=3.0,
+        default=2.0,
         help="butterworth: cut-off frequency (Hz, order 4; chosen on validation scenes)",
     )
     p.add_argument(

@@ -9,7 +9,7 @@ Three parts, all host-side numpy/scipy, vectorised over tracks and keypoints:
   is smoothed hard and a fast one follows with little lag.
 * `butterworth` on a `TrackSeries`: zero-phase low-pass (``scipy.signal.butter`` as second-order
   sections, then ``sosfiltfilt``: forwards and backwards, no lag), the biomechanics default
-  (Pose2Sim's, order 4; our default cut-off 3 Hz). Each run of samples of one keypoint of one
+  (Pose2Sim's, order 4; our default cut-off 2 Hz). Each run of samples of one keypoint of one
   track is filtered on its own: the filter never reaches across a gap that was not filled.
 * `reject_outliers`: drops samples far from their local median (gross errors a linear filter
   would only spread).
@@ -410,7 +410,7 @@ def smooth_poses(
     *,
     fps: float,
     filter: str = "butterworth",
-    cutoff_hz: float = 3.0,
+    cutoff_hz: float = 2.0,
     order: int = 4,
     fill_gap_s: float = 0.5,
     outlier_m: float | None = 0.1,
@@ -422,7 +422,8 @@ def smooth_poses(
       results: tracked poses (``results.track`` set).
       fps: frames per second of the recording.
       filter: "none", "one-euro" (causal, as the stream runs it) or "butterworth" (zero-phase).
-      cutoff_hz, order: the Butterworth low-pass (3 Hz: chosen on the validation scenes; the
+      cutoff_hz, order: the Butterworth low-pass (2 Hz: chosen on the validation tracking scenes
+        for both the learned and the geometric pipeline, see README "Tracks over time"; the
         biomechanics default, Pose2Sim's, is 6 Hz, which leaves about 4x the true jitter here).
       outlier_m: first drop samples this far (metres) from their local median
         (`reject_outliers`); None: keep all.
@@ -520,7 +521,7 @@ def _to_slots(
 
 #: Frames of context on each side of a chunk when it is smoothed apart from the rest, in
 #: seconds: beyond the outlier window, the longest filled gap (0.5 s by default) and the
-#: Butterworth filter's response (at the 3 Hz default its impulse response is ~1e-6 of its peak
+#: Butterworth filter's response (at the 2 Hz default its impulse response is ~1e-6 of its peak
 #: after 1 s), so a chunk comes out as it would from the whole recording.
 CHUNK_CONTEXT_S = 3.0
 

@@ -1,0 +1,143 @@
+"""The Butterworth cut-off on the validation tracking scenes, for the learned and the geometric
+pipeline: ``python -m experiments.filter_cutoffs [--splits validation] [--cutoffs 1.5,2,3]``.
+
+Trains the seed-0 quick-scale 5-view matcher and estimator as ``experiments.run`` does (or loads
+them from ``--models``, a pickle this script wrote), runs both pipelines with tracking on each
+tracking scene (``[0, 4, n]`` validation, ``[0, 6, n]`` test; 1-8 people, 300 frames), and prints
+for each cut-off the jitter (times the ground truth's), MPJPE and PCP, with the unfiltered row
+and the identity metrics. The README's table of cut-offs comes from the validation split.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+
+from experiments.run import (
+    SCALES,
+    _seen_truth,
+    _stack_frames,
+    fit_estimator,
+    fit_matcher,
+    make_data,
+    make_scenes,
+    make_tracking_scenes,
+)
+from mvpose_jax.cameras import up_vector
+from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.data.poses import PoseResults
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.metrics import identity_metrics, jitter, pose_metrics
+from mvpose_jax.skeletons import Poses3D
+from mvpose_jax.smoothing import smooth_poses
+from mvpose_jax.tracking import TrackingConfig
+
+
+def models(rig, path: Path | None) -> dict:
+    if path is not None and path.exists():
+        with open(path, "rb") as f:
+            return pickle.load(f)
+    sc = SCALES["quick"]
+    data = make_data(rig, make_scenes(rig, sc, 0), sc, 0, True)
+    matcher, fit = fit_matcher(data, sc, rig.names, 0, True)
+    estimator, _ = fit_estimator(data, sc, rig.names, rig.names, 0, True)
+    out = {"matcher": matcher, "estimator": estimator, "fit": fit}
+    if path is not None:
+        with open(path, "wb") as f:
+            pickle.dump(out, f)
+    return out
+
+
+def _pooled(results):
+    poses = Poses3D(*(_stack_frames([r.poses[k] for r in results]) for k in range(3)))
+    track = _stack_frames(
+        [np.where(r.track >= 0, r.track + i * 100_000, -1) for i, r in enumerate(results)],
+        fill=-1,
+    )
+    return poses, track
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.filter_cutoffs")
+    ap.add_argument("--splits", default="validation", help="validation and/or test (comma list)")
+    ap.add_argument("--cutoffs", default="1.5,1.75,2,3", help="Butterworth cut-offs (Hz)")
+    ap.add_argument("--models", type=Path, help="pickle of the trained models (made if missing)")
+    ap.add_argument("--out", type=Path, help="write every number as JSON")
+    args = ap.parse_args(argv)
+    rig = load_rig("panoptic5")
+    m = models(rig, args.models)
+    scenes = make_tracking_scenes(rig, SCALES["quick"], 0)
+    fps, out = 30.0, {}
+    pipelines = {
+        "gat_mlp": {
+            "matcher": m["matcher"],
+            "estimator": m["estimator"],
+            "threshold": m["fit"]["threshold"],
+        },
+        "epipolar_dlt": {"half_score_px": m["fit"]["geometric_cutoff_px"]},
+    }
+    for split in args.splits.split(","):
+        recs = scenes[split]
+        gts = [_seen_truth(r) for r in recs]
+        G = max(g.valid.shape[1] for g in gts)
+        ids = _stack_frames(
+            [
+                np.broadcast_to(i * G + np.arange(g.valid.shape[1]), g.valid.shape)
+                for i, g in enumerate(gts)
+            ]
+        )
+        gt = Poses3D(*(_stack_frames([g[k] for g in gts]) for k in range(3)))
+        gt_jitter = jitter(gt.xyz, gt.keypoint_valid, gt.valid, np.where(gt.valid, ids, -1))
+        scoring = {"up": up_vector(rig), "person_ids": ids}
+        for name, kwargs in pipelines.items():
+            results = []
+            for rec in recs:
+                res = run_pipeline(
+                    rig, rec.detections, tracking=TrackingConfig(), fps=fps, **kwargs
+                )
+                results.append(
+                    PoseResults(
+                        res.poses, res.confidence, res.members, res.identity, res.cameras,
+                        rec.layout, rec.timestamps, res.track,
+                    )
+                )  # fmt: skip
+            raw, track = _pooled(results)
+            row = {"identity": identity_metrics(raw, track, gt, gt_ids=ids)}
+            variants = {"none": results}
+            for c in args.cutoffs.split(","):
+                variants[f"{float(c):g} Hz"] = [
+                    smooth_poses(r, fps=fps, filter="butterworth", cutoff_hz=float(c))
+                    for r in results
+                ]
+            for key, rs in variants.items():
+                poses, trk = _pooled(rs)
+                pm = pose_metrics(poses, gt, **scoring)
+                row[key] = {
+                    "jitter_x_truth": jitter(poses.xyz, poses.keypoint_valid, poses.valid, trk)
+                    / gt_jitter,
+                    "mpjpe_mm": pm["mpjpe_mm"],
+                    "pcp": pm["pcp"],
+                }
+                print(
+                    f"{split:10s} {name:12s} {key:8s} jitter x{row[key]['jitter_x_truth']:.2f} "
+                    f"MPJPE {pm['mpjpe_mm']:.1f} mm PCP {pm['pcp']:.2f}",
+                    flush=True,
+                )
+            ident = row["identity"]
+            print(
+                f"{split:10s} {name:12s} IDF1 {ident['idf1']:.4f}, "
+                f"{ident['switches_per_1000']:.2f} switches per 1,000 person-frames",
+                flush=True,
+            )
+            out[f"{split}/{name}"] = row
+    if args.out:
+        args.out.write_text(json.dumps(out, indent=1, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
