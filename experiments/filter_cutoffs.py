@@ -19,20 +19,19 @@ import numpy as np
 
 from experiments.run import (
     SCALES,
-    _seen_truth,
-    _stack_frames,
     fit_estimator,
     fit_matcher,
     make_data,
     make_scenes,
     make_tracking_scenes,
+    pooled_tracks,
+    tracking_truth,
 )
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.metrics import identity_metrics, jitter, pose_metrics
-from mvpose_jax.skeletons import Poses3D
 from mvpose_jax.smoothing import smooth_poses
 from mvpose_jax.tracking import TrackingConfig
 
@@ -50,15 +49,6 @@ def models(rig, path: Path | None) -> dict:
         with open(path, "wb") as f:
             pickle.dump(out, f)
     return out
-
-
-def _pooled(results):
-    poses = Poses3D(*(_stack_frames([r.poses[k] for r in results]) for k in range(3)))
-    track = _stack_frames(
-        [np.where(r.track >= 0, r.track + i * 100_000, -1) for i, r in enumerate(results)],
-        fill=-1,
-    )
-    return poses, track
 
 
 def main(argv=None) -> int:
@@ -82,15 +72,7 @@ def main(argv=None) -> int:
     }
     for split in args.splits.split(","):
         recs = scenes[split]
-        gts = [_seen_truth(r) for r in recs]
-        G = max(g.valid.shape[1] for g in gts)
-        ids = _stack_frames(
-            [
-                np.broadcast_to(i * G + np.arange(g.valid.shape[1]), g.valid.shape)
-                for i, g in enumerate(gts)
-            ]
-        )
-        gt = Poses3D(*(_stack_frames([g[k] for g in gts]) for k in range(3)))
+        gt, ids = tracking_truth(recs)
         gt_jitter = jitter(gt.xyz, gt.keypoint_valid, gt.valid, np.where(gt.valid, ids, -1))
         scoring = {"up": up_vector(rig), "person_ids": ids}
         for name, kwargs in pipelines.items():
@@ -105,7 +87,7 @@ def main(argv=None) -> int:
                         rec.layout, rec.timestamps, res.track,
                     )
                 )  # fmt: skip
-            raw, track = _pooled(results)
+            raw, track = pooled_tracks([r.poses for r in results], [r.track for r in results])
             row = {"identity": identity_metrics(raw, track, gt, gt_ids=ids)}
             variants = {"none": results}
             for c in args.cutoffs.split(","):
@@ -114,7 +96,7 @@ def main(argv=None) -> int:
                     for r in results
                 ]
             for key, rs in variants.items():
-                poses, trk = _pooled(rs)
+                poses, trk = pooled_tracks([r.poses for r in rs], [r.track for r in rs])
                 pm = pose_metrics(poses, gt, **scoring)
                 row[key] = {
                     "jitter_x_truth": jitter(poses.xyz, poses.keypoint_valid, poses.valid, trk)

@@ -604,6 +604,30 @@ def _stack_frames(parts: list[np.ndarray], fill=0) -> np.ndarray:
     return np.concatenate([pad(np.asarray(a)) for a in parts])
 
 
+def tracking_truth(scenes: list) -> tuple[Poses3D, np.ndarray]:
+    """The scenes' ground truth (people some camera saw) as one recording: frames stacked,
+    people padded, and (F, G) person ids unique across scenes."""
+    gts = [_seen_truth(r) for r in scenes]
+    G = max(g.valid.shape[1] for g in gts)
+    ids = _stack_frames(
+        [
+            np.broadcast_to(i * G + np.arange(g.valid.shape[1]), g.valid.shape)
+            for i, g in enumerate(gts)
+        ]
+    )
+    return Poses3D(*(_stack_frames([g[k] for g in gts]) for k in range(3))), ids
+
+
+def pooled_tracks(poses: list[Poses3D], tracks: list[np.ndarray]) -> tuple[Poses3D, np.ndarray]:
+    """Each scene's tracked poses as one recording: frames stacked, people padded, and track ids
+    offset per scene (each scene is its own stream) so no two scenes share one."""
+    stacked = Poses3D(*(_stack_frames([p[k] for p in poses]) for k in range(3)))
+    track = _stack_frames(
+        [np.where(t >= 0, t + i * 100_000, -1) for i, t in enumerate(tracks)], fill=-1
+    )
+    return stacked, track
+
+
 def tracking_rows(rig, scenes: list, matcher, estimator, fit: dict) -> dict:
     """Tracks over time on long scenes: identities (IDF1, switches, MOTA) and, per filter, jitter,
     MPJPE and PCP, for the learned pipeline and for epipolar proposals + DLT.
@@ -623,25 +647,17 @@ def tracking_rows(rig, scenes: list, matcher, estimator, fit: dict) -> dict:
         "butterworth": {"filter": "butterworth"},
     }
     out = {}
-    gts = [_seen_truth(r) for r in scenes]
-    G = max(g.valid.shape[1] for g in gts)
-    gt_ids = _stack_frames(
-        [
-            np.broadcast_to(i * G + np.arange(g.valid.shape[1]), g.valid.shape)
-            for i, g in enumerate(gts)
-        ]
-    )
-    gt = Poses3D(*(_stack_frames([g[i] for g in gts]) for i in range(3)))
+    gt, gt_ids = tracking_truth(scenes)
     gt_jitter = jitter(gt.xyz, gt.keypoint_valid, gt.valid, np.where(gt.valid, gt_ids, -1))
     scoring = {"up": up_vector(rig), "person_ids": gt_ids, "layout": layout}
     for name, kwargs in pipelines.items():
         per_filter = {f: [] for f in filters}
         tracks, seconds, person_frames = [], 0.0, 0
-        for i, rec in enumerate(scenes):
+        for rec in scenes:
             res = run_pipeline(rig, rec.detections, tracking=TrackingConfig(), fps=fps, **kwargs)
             seconds += res.seconds["tracking"]
             person_frames += int(res.poses.valid.sum())
-            tracks.append(np.where(res.track >= 0, res.track + i * 100_000, -1))
+            tracks.append(res.track)
             results = PoseResults(
                 res.poses,
                 res.confidence,
@@ -656,20 +672,15 @@ def tracking_rows(rig, scenes: list, matcher, estimator, fit: dict) -> dict:
                 sm = smooth_poses(results, fps=fps, **fk)
                 filled = np.zeros_like(sm.poses.keypoint_valid) if sm.filled is None else sm.filled
                 per_filter[f].append((sm.poses, sm.track, filled))
-        track = _stack_frames(tracks, fill=-1)
-        raw = Poses3D(*(_stack_frames([p[0][i] for p in per_filter["none"]]) for i in range(3)))
+        raw, track = pooled_tracks([p[0] for p in per_filter["none"]], tracks)
         row = {
             "identity": identity_metrics(raw, track, gt, gt_ids=gt_ids, layout=layout),
             "tracking_ms_per_person_frame": 1000 * seconds / max(person_frames, 1),
             "gt_jitter_mm": gt_jitter,
-            "scene_people": [int(g.valid.shape[1]) for g in gts],
+            "scene_people": [int(r.ground_truth.valid.shape[1]) for r in scenes],
         }
         for f, parts in per_filter.items():
-            poses = Poses3D(*(_stack_frames([p[0][i] for p in parts]) for i in range(3)))
-            # Offsets as above, so scenes' tracks stay apart in the jitter too.
-            trk = _stack_frames(
-                [np.where(p[1] >= 0, p[1] + i * 100_000, -1) for i, p in enumerate(parts)], fill=-1
-            )
+            poses, trk = pooled_tracks([p[0] for p in parts], [p[1] for p in parts])
             filled = _stack_frames([p[2] for p in parts], fill=False)
             m = pose_metrics(poses, gt, **scoring)
             row[f] = {
