@@ -379,6 +379,32 @@ def load_npz_members(
     return out
 
 
+def npz_member_shapes(
+    path: str | os.PathLike, names: Sequence[str] | None = None
+) -> dict[str, tuple[int, ...]]:
+    """Each member's shape, from its ``.npy`` header (checked as `load_npz_members` checks it),
+    without reading any member's data.
+
+    Args:
+      path: the archive.
+      names: the member names allowed; any other member is an error. None: any name.
+    Raises:
+      InputError as `load_npz_members`.
+    """
+    out: dict[str, tuple[int, ...]] = {}
+    with _open_archive(path) as archive:
+        for info in archive.infolist():
+            name = _member_name(info, path, names, out)
+            try:
+                with archive.open(info) as f:
+                    out[name] = _check_header(f, info.file_size)[0]
+            except InputError as e:
+                raise e.at(file=path, field=name) from None
+            except Exception as e:
+                raise _unreadable(e, path, name) from None
+    return out
+
+
 def _load_members(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """A recording's members: known names only, the required ones (and ground truth) complete."""
     out = load_npz_members(path, _REQUIRED + _OPTIONAL)

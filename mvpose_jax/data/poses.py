@@ -45,7 +45,7 @@ from typing import IO, Any
 import numpy as np
 
 from mvpose_jax.data.files import atomic_open, read_json
-from mvpose_jax.data.npz import load_npz_members
+from mvpose_jax.data.npz import load_npz_members, npz_member_shapes
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D, get_layout
 
@@ -251,7 +251,8 @@ def _optional_members(F: int, G: int, K: int):
     )
 
 
-_CHUNK_MEMBERS = (
+# The members every poses npz holds; chunk files add the optional ones and their first frame.
+_REQUIRED_MEMBERS = (
     "xyz",
     "valid",
     "keypoint_valid",
@@ -260,9 +261,10 @@ _CHUNK_MEMBERS = (
     "identity",
     "cameras",
     "layout",
-    "timestamps",
-    "track",
-    "filled",
+)
+_CHUNK_MEMBERS = (
+    *_REQUIRED_MEMBERS,
+    *(name for name, *_ in _optional_members(0, 0, 0)),
     "first_frame",
 )
 
@@ -270,18 +272,8 @@ _CHUNK_MEMBERS = (
 def _chunk_head(path) -> dict:
     """What `assemble_poses` needs of a chunk before reading its arrays: its first frame, frame
     count, people G, skeletons P, cameras, layout and optional members (from the headers)."""
+    shapes = npz_member_shapes(path, _CHUNK_MEMBERS)
     try:
-        with zipfile.ZipFile(path) as zf:
-            shapes = {}
-            for info in zf.infolist():
-                with zf.open(info) as f:
-                    version = np.lib.format.read_magic(f)
-                    read = (
-                        np.lib.format.read_array_header_1_0
-                        if version == (1, 0)
-                        else np.lib.format.read_array_header_2_0
-                    )
-                    shapes[info.filename.removesuffix(".npy")] = read(f)[0]
         with np.load(path, allow_pickle=False) as chunk:
             small = {k: chunk[k] for k in ("first_frame", "cameras", "layout")}
     except Exception as e:
@@ -394,17 +386,7 @@ def load_poses(path: str | os.PathLike) -> PoseResults:
     # Untrusted bytes: the checked member reader refuses a header that does not describe its
     # member's bytes (so a declared huge array allocates nothing) and object (pickled) arrays.
     data = load_npz_members(path)
-    needed = (
-        "xyz",
-        "valid",
-        "keypoint_valid",
-        "confidence",
-        "members",
-        "identity",
-        "cameras",
-        "layout",
-    )
-    missing = [k for k in needed if k not in data]
+    missing = [k for k in _REQUIRED_MEMBERS if k not in data]
     if missing:
         raise InputError(f"not a poses file: missing {missing}", file=path, field=missing[0])
     for field in ("xyz", "confidence"):
