@@ -322,15 +322,22 @@ class Data:
         return det, ident, gt, ids
 
 
-def make_scenes(rig, sc: Scale, data_seed: int) -> dict:
+def make_scenes(
+    rig, sc: Scale, data_seed: int, *, splits: dict = SPLITS, num_frames: int | None = None
+) -> dict:
+    """Multi-person scenes, one per entry of ``test_people``, of each split's seed stream
+    (``num_frames`` each, default ``sc.test_frames``)."""
     return {
         split: [
             generate_recording(
-                rig, num_people=n, num_frames=sc.test_frames, seed=[data_seed, stream, n]
+                rig,
+                num_people=n,
+                num_frames=sc.test_frames if num_frames is None else num_frames,
+                seed=[data_seed, stream, n],
             )
             for n in sc.test_people
         ]
-        for split, stream in SPLITS.items()
+        for split, stream in splits.items()
     }
 
 
@@ -576,15 +583,7 @@ def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[di
 
 def make_tracking_scenes(rig, sc: Scale, data_seed: int) -> dict:
     """Long multi-person scenes (one per entry of ``test_people``) for tracks over time."""
-    return {
-        split: [
-            generate_recording(
-                rig, num_people=n, num_frames=sc.tracking_frames, seed=[data_seed, stream, n]
-            )
-            for n in sc.test_people
-        ]
-        for split, stream in TRACKING_SPLITS.items()
-    }
+    return make_scenes(rig, sc, data_seed, splits=TRACKING_SPLITS, num_frames=sc.tracking_frames)
 
 
 def _seen_truth(rec) -> Poses3D:
