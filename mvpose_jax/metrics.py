@@ -549,6 +549,7 @@ def identity_metrics(
     gt_ids: np.ndarray | None = None,
     layout: str = "coco18",
     max_distance_m: float = 0.5,
+    ignore: np.ndarray | None = None,
 ) -> dict:
     """How well predicted tracks keep people's identities (multi-object tracking metrics).
 
@@ -564,6 +565,12 @@ def identity_metrics(
       gt_ids: optional (F, G) int identities of the ground truth (default: the G index).
       layout: the evaluation keypoints' layout (the mean keypoint error is over them).
       max_distance_m: a pair farther apart (mean keypoint error, metres) never matches.
+      ignore: optional (F, G) bool, ground-truth people that are "don't care" in a frame (as
+        MOTChallenge's ignore regions; e.g. people only one camera sees, whom no multi-view
+        method can place): each frame's tracked predictions are first assigned (minimum total
+        error, under ``max_distance_m``) to the ground truth counted and ignored together; those
+        that take an ignored person are left out, neither right nor false, and ignored people
+        are never missed. Must be False where ``gt.valid`` is False.
     Returns:
       idf1, idp, idr (fractions), mota (fraction), id_switches, false_positives, misses,
       person_frames (ground-truth person-frames), switches_per_1000 (per 1,000 person-frames),
@@ -582,6 +589,9 @@ def identity_metrics(
         )
     if gt_ids is None:
         gt_ids = np.broadcast_to(np.arange(gt.valid.shape[1]), gt.valid.shape)
+    ignore = np.zeros(gt.valid.shape, bool) if ignore is None else np.asarray(ignore, bool)
+    if ignore.shape != gt.valid.shape or (ignore & ~gt.valid).any():
+        raise ValueError("ignore must be (F, G) like the ground truth, and only where it is valid")
     kps = evaluation_keypoints(layout)
     acc = mm.MOTAccumulator(auto_id=True)
     untracked = 0
@@ -590,6 +600,10 @@ def identity_metrics(
         p_idx = np.flatnonzero(pred.valid[f])
         untracked += int((pred_track[f, p_idx] < 0).sum())
         p_idx = p_idx[pred_track[f, p_idx] >= 0]
+        if ignore[f].any():
+            g_idx, p_idx = _without_ignored(
+                pred, gt, f, g_idx, p_idx, ignore[f], kps, max_distance_m
+            )
         err = _pair_errors(
             pred.xyz[f][p_idx][:, kps],
             pred.keypoint_valid[f][p_idx][:, kps],
@@ -620,6 +634,22 @@ def identity_metrics(
         "num_tracks": len(tracks),
         "num_ids": int(row["num_unique_objects"]),
     }
+
+
+def _without_ignored(pred, gt, f, g_idx, p_idx, ignore_f, kps, max_distance_m):
+    """Frame f's counted ground truth and the predictions not taken by an ignored person."""
+    from scipy.optimize import linear_sum_assignment
+
+    err = _pair_errors(
+        pred.xyz[f][p_idx][:, kps],
+        pred.keypoint_valid[f][p_idx][:, kps],
+        gt.xyz[f][g_idx][:, kps],
+        gt.keypoint_valid[f][g_idx][:, kps],
+    )  # (P, G)
+    near = err < max_distance_m
+    rows, cols = linear_sum_assignment(np.where(near, err, 1e6))
+    taken = near[rows, cols] & ignore_f[g_idx[cols]]
+    return g_idx[~ignore_f[g_idx]], np.delete(p_idx, rows[taken])
 
 
 def _nan_as_zero(x) -> float:

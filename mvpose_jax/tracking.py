@@ -83,6 +83,11 @@ class TrackingConfig:
         for a re-link; with fewer than ``relink_min_pairs`` such pairs in common, position alone
         decides.
       relink_min_pairs: see ``relink_size_tolerance``.
+      backfill: in `track_frames`, a track's tentative first frames get its id once it is
+        confirmed (within the same call: in the pipeline, the same chunk), so a person is
+        tracked from the frame they appear, not ``confirm_hits - 1`` frames later. A tentative
+        track that ends unconfirmed (a ghost's) still leaves no id. False: those frames keep -1
+        (what a strictly causal consumer of `update_tracks` sees).
     """
 
     max_gap_s: float = 1.0
@@ -98,6 +103,7 @@ class TrackingConfig:
     relink_gap_s: float = 3.0
     relink_size_tolerance: float = 0.1
     relink_min_pairs: int = 1
+    backfill: bool = True
 
 
 # A keypoint pair is rigid in a track (a limb, not wrist to ankle) when its distance's standard
@@ -126,11 +132,14 @@ class TrackerState:
       hits: (T,) int64 frames matched so far.
       xy: (T, C, K, 2) pixels, the last matched person's 2D skeletons; score (T, C, K) their
         scores (0: no skeleton or keypoint).
+      serial: (T,) int64 a number unique to each track over the stream, tentative ones
+        included (their people are followed by it until they have an id).
       size_n, size_sum, size_sq: (T, K (K - 1) / 2) count, sum and sum of squares (metres) of
         each keypoint pair's distance (pairs i < j in `numpy.triu_indices` order), sampled every
         ``_SIZE_EVERY`` matches of the track from its first: its body size, for re-linking.
       time: the time of the last update (seconds; -inf before the first).
       next_id: the id the next confirmed track gets.
+      next_serial: the serial the next new track gets.
     """
 
     ids: np.ndarray
@@ -146,12 +155,14 @@ class TrackerState:
     size_n: np.ndarray
     size_sum: np.ndarray
     size_sq: np.ndarray
+    serial: np.ndarray
     time: float = -np.inf
     next_id: int = 0
+    next_serial: int = 0
 
 
 # The per-track fields of `TrackerState` (rows are added and removed together).
-_TRACK_FIELDS = tuple(f.name for f in dataclasses.fields(TrackerState))[:-2]
+_TRACK_FIELDS = tuple(f.name for f in dataclasses.fields(TrackerState))[:-3]
 
 
 def initial_state(num_keypoints: int, num_cameras: int = 0) -> TrackerState:
@@ -171,6 +182,7 @@ def initial_state(num_keypoints: int, num_cameras: int = 0) -> TrackerState:
         size_n=np.zeros((0, K * (K - 1) // 2), np.int32),
         size_sum=np.zeros((0, K * (K - 1) // 2)),
         size_sq=np.zeros((0, K * (K - 1) // 2)),
+        serial=np.zeros(0, np.int64),
     )
 
 
@@ -239,6 +251,31 @@ def update_tracks(
       or part of a person already on a track, see ``TrackingConfig.confirm_hits`` and
       ``split_m``).
     """
+    state, track, _ = _update_tracks(
+        state,
+        time=time,
+        xyz=xyz,
+        keypoint_valid=keypoint_valid,
+        xy=xy,
+        score=score,
+        metres_per_px=metres_per_px,
+        config=config,
+    )
+    return state, track
+
+
+def _update_tracks(
+    state: TrackerState,
+    *,
+    time: float,
+    xyz: np.ndarray,
+    keypoint_valid: np.ndarray,
+    xy: np.ndarray | None,
+    score: np.ndarray | None,
+    metres_per_px: np.ndarray | None,
+    config: TrackingConfig,
+) -> tuple[TrackerState, np.ndarray, np.ndarray]:
+    """`update_tracks`, also returning the (D,) serial of each person's track (-1: none)."""
     D, K = keypoint_valid.shape
     T = len(state.ids)
     dt = time - state.last_time  # (T,)
@@ -356,6 +393,7 @@ def update_tracks(
             "size_n": np.zeros((n,) + state.size_n.shape[1:], np.int32),
             "size_sum": np.zeros((n,) + state.size_n.shape[1:]),
             "size_sq": np.zeros((n,) + state.size_n.shape[1:]),
+            "serial": state.next_serial + np.arange(n, dtype=np.int64),
         }
         rows = {name: np.concatenate([rows[name], added[name]]) for name in _TRACK_FIELDS}
         if relink:
@@ -381,12 +419,15 @@ def update_tracks(
                 next_id += 1
         # Tentative tracks end at their first miss.
         keep &= seen_now | (ids >= 0)
-    track = np.where(matched_track >= 0, ids[np.maximum(matched_track, 0)], -1)
+    on = np.maximum(matched_track, 0)
+    track = np.where(matched_track >= 0, ids[on], -1)
+    serial = np.where(matched_track >= 0, rows["serial"][on], -1)
 
     # Confirmed tracks end once beyond any re-link.
     if not keep.all():
         rows = {name: a[keep] for name, a in rows.items()}
-    return TrackerState(**rows, time=time, next_id=next_id), track
+    next_serial = state.next_serial + len(new)
+    return TrackerState(**rows, time=time, next_id=next_id, next_serial=next_serial), track, serial
 
 
 def _assign(cost: np.ndarray, ok: np.ndarray, matched_track: np.ndarray) -> None:
@@ -516,7 +557,8 @@ def track_frames(
         (F, G, C, K) scores (`inference.group_people`) in the C cameras of ``rig``.
       config: the tracker's settings.
     Returns:
-      (the state after the last frame, (F, G) int32 track id of each slot, -1 where empty).
+      (the state after the last frame, (F, G) int32 track id of each slot, -1 where empty or
+      not on a confirmed track; see ``TrackingConfig.backfill`` for a track's first frames).
     """
     xyz = np.asarray(xyz, np.float64)
     keypoint_valid = np.asarray(keypoint_valid, bool)
@@ -533,9 +575,11 @@ def track_frames(
         xy, score = np.asarray(xy, np.float32), np.asarray(score, np.float32)
         per_px = metres_per_pixel(rig, _centres(xyz, keypoint_valid))  # (F, G, C)
     track = np.full((F, G), -1, np.int32)
+    # Tentative tracks' people so far, by track serial: (frames, slots), labelled once confirmed.
+    pending: dict[int, tuple[list[int], list[int]]] = {}
     for f in range(F):
         (d,) = np.nonzero(valid[f])
-        state, ids = update_tracks(
+        state, ids, serial = _update_tracks(
             state,
             time=float(times[f]),
             xyz=xyz[f, d],
@@ -546,4 +590,19 @@ def track_frames(
             config=config,
         )
         track[f, d] = ids
+        if not config.backfill:
+            continue
+        for i in np.nonzero(serial >= 0)[0]:
+            key = int(serial[i])
+            if ids[i] < 0:
+                frames, slots = pending.setdefault(key, ([], []))
+                frames.append(f)
+                slots.append(int(d[i]))
+            elif key in pending:
+                frames, slots = pending.pop(key)
+                track[frames, slots] = ids[i]
+        if pending and f % 8 == 7:
+            # Tentative tracks end at their first miss: drop the ghosts that ended.
+            alive = set(state.serial[state.ids < 0].tolist())
+            pending = {k: v for k, v in pending.items() if k in alive}
     return state, track

@@ -685,9 +685,9 @@ def test_infer_tracks_filters_and_smooth_refilters(files, recording, tmp_path, c
     assert "2 tracks" in capsys.readouterr().out
     res = load_poses(out)
     assert res.track is not None and res.filled is not None
-    # Two true people, two tracks: tentative (-1) in the first two frames, then confirmed.
-    assert set(np.unique(res.track[:2][res.poses.valid[:2]])) == {-1}
-    assert set(np.unique(res.track[2:][res.poses.valid[2:]])) == {0, 1}
+    # Two true people, two tracks, from the first frame (tentative in the first two frames,
+    # labelled once confirmed).
+    assert set(np.unique(res.track[res.poses.valid])) == {0, 1}
     doc = json.loads((out / "poses.json").read_text())
     assert all("track" in p for f in doc["frames"] for p in f["people"])
 

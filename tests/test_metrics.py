@@ -334,6 +334,30 @@ def test_identity_metrics_far_and_untracked_predictions_are_errors():
         metrics.identity_metrics(gt, np.zeros((3, 2), int), gt)
 
 
+def test_identity_metrics_ignored_people_are_neither_missed_nor_false():
+    gt = _walkers(F=10, G=3)
+    track = np.tile([0, 1, 2], (10, 1))
+    ignore = np.zeros((10, 3), bool)
+    ignore[:5, 2] = True  # the third person is "don't care" in frames 0-4
+    m = metrics.identity_metrics(gt, track, gt, ignore=ignore)
+    # Frames 0-4 of the third person's track are left out: IDF1 = 2 * 25 / (25 + 25).
+    assert m["idf1"] == 1.0 and m["person_frames"] == 25 and m["false_positives"] == 0
+    # Not predicted while ignored: not missed either.
+    valid = gt.valid.copy()
+    valid[:5, 2] = False
+    m = metrics.identity_metrics(gt._replace(valid=valid), track, gt, ignore=ignore)
+    assert m["idf1"] == 1.0 and m["misses"] == 0
+    # A prediction near no one stays false even beside an ignored person, and the counted
+    # people's misses stay misses: frames 0-4 of person 0 predicted 2 m off.
+    far = gt.xyz.copy()
+    far[:5, 0] += np.array([0.0, 0.0, 2.0])
+    m = metrics.identity_metrics(gt._replace(xyz=far), track, gt, ignore=ignore)
+    assert m["false_positives"] == 5 and m["misses"] == 5
+    assert m["idf1"] == pytest.approx(2 * 20 / (25 + 25))
+    with pytest.raises(ValueError, match="ignore"):
+        metrics.identity_metrics(gt, track, gt, ignore=np.zeros((10, 2), bool))
+
+
 def test_jitter_closed_form_and_gaps():
     # x = a f^2 has second difference 2a everywhere; a gap breaks the series.
     F, K, a = 12, 18, 0.004

@@ -81,8 +81,12 @@ def test_people_crossing_with_slots_swapped_every_frame_keep_their_ids():
     track = _track(xyz, kv, valid)
     assert [_ids_of(track, truth, i) for i in range(3)] == [{0}, {1}, {2}]
     assert (track[~valid] == -1).all()
-    # Tentative until the third frame (`TrackingConfig.confirm_hits`), tracked after.
-    assert (track[:2][valid[:2]] == -1).all() and (track[2:][valid[2:]] >= 0).all()
+    # Every frame is labelled: the first two, tentative until the third (`confirm_hits`), get
+    # the id once it is confirmed (`backfill`) ...
+    assert (track[valid] >= 0).all()
+    # ... which is all a strictly causal consumer cannot do.
+    causal = _track(xyz, kv, valid, TrackingConfig(backfill=False))
+    assert (causal[:2][valid[:2]] == -1).all() and (causal[2:] == track[2:]).all()
 
 
 def test_entering_leaving_and_gaps_shorter_and_longer_than_the_limit():
@@ -101,8 +105,7 @@ def test_entering_leaving_and_gaps_shorter_and_longer_than_the_limit():
     assert _ids_of(track, truth, 0) == {0}
     f_b, g_b = np.nonzero(truth == 1)
     ids_b = track[f_b, g_b]
-    assert set(ids_b[f_b < 70]) == {1, -1}  # -1: tentative at 10 and 11
-    assert (ids_b[(f_b >= 12) & (f_b < 70)] == 1).all()
+    assert (ids_b[f_b < 70] == 1).all()  # tentative at 10 and 11, labelled once confirmed
     assert set(ids_b[f_b >= 112]) == {2}  # never reused, never the old id
     # The limit is the configured one: with 2 s the third appearance keeps its id.
     track = _track(xyz, kv, valid, TrackingConfig(max_gap_s=2.0, relink_gap_s=0.0))
@@ -221,6 +224,19 @@ def test_a_ghost_lasting_one_or_two_frames_makes_no_track():
     # A person who stays is confirmed at the third frame, and keeps the id.
     ids = _track_people([[a[f]] for f in range(F)])
     assert [f[0] for f in ids] == [-1, -1] + [0] * (F - 2)
+    # Over a chunk (`track_frames`), the people's tentative first frames get their ids once
+    # confirmed, and the ghost's frames still get none.
+    G = 3
+    xyz = np.zeros((F, G, len(BODY), 3))
+    valid = np.zeros((F, G), bool)
+    for f, people in enumerate(frames):
+        xyz[f, : len(people)], valid[f, : len(people)] = people, True
+    kv = np.broadcast_to(valid[..., None], xyz.shape[:-1]).copy()
+    state, track = track_frames(
+        initial_state(len(BODY)), times=np.arange(F) / FPS, xyz=xyz, keypoint_valid=kv, valid=valid
+    )
+    assert (track[:, :2] == [0, 1]).all()
+    assert (track[:, 2] == -1).all() and state.next_id == 2
 
 
 def test_a_person_proposed_twice_keeps_one_id_on_the_better_supported_proposal():
