@@ -480,7 +480,7 @@ def blend_skeletons(
     # The one inlier view's ray (unseen pixels may be junk: the image centre stands in).
     lead = (1,) * (px.ndim - 2)
     centre_px = 0.5 * rig.size.reshape((-1,) + lead + (2,))
-    one = kept & (kept.sum(axis=0) == 1)  # (C, ..., K)
+    one = kept & (kept.sum(axis=0, keepdims=True) == 1)  # (C, ..., K)
     rays = pixel_rays(rig, jnp.where(one[..., None], px, centre_px))  # (C, ..., K, 3)
     ray = jnp.sum(jnp.where(one[..., None], rays, 0.0), axis=0)  # (..., K, 3)
     cam = camera_centres(rig).reshape((-1,) + lead + (3,))
