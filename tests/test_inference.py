@@ -217,6 +217,7 @@ def test_robust_triangulation_survives_a_wrong_skeleton_in_a_group(scene):
         run_pipeline(rig, rec.detections, method="median")
 
 
+@pytest.mark.slow  # the 3D stage five ways and the pipeline (compilations)
 def test_blend_is_robust_triangulation_where_it_reconstructs_and_the_estimator_elsewhere(scene):
     rig, rec = scene
     det = rec.detections
