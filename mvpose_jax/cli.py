@@ -856,25 +856,28 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--method",
-        choices=("dlt", "centroid", "robust"),
-        default="dlt",
-        help="triangulation without --estimator: score-weighted DLT, the paper's pairwise "
-        "centroid, or robust (DLT that drops a person's views that are not theirs, by the "
-        "median keypoint reprojection error, then each keypoint's outlier views; never below 2)",
+        choices=("mlp", "blend", "dlt", "centroid", "robust"),
+        default=None,
+        help="the 3D stage. With --estimator: mlp (its output; the default) or blend (robust "
+        "triangulation wherever 2+ inlier views see a keypoint, the estimator elsewhere, placed "
+        "by the person's triangulated keypoints; docs/blend.md). Without: dlt (score-weighted "
+        "DLT; the default), centroid (the paper's pairwise centroid) or robust (DLT that drops "
+        "a person's views that are not theirs, by the median keypoint reprojection error, then "
+        "each keypoint's outlier views; never below 2)",
     )
     p.add_argument(
         "--outlier-px",
         type=float,
         default=None,
-        help="--method robust: reprojection error (px) that marks a keypoint's view as an "
-        "outlier (default 30, chosen on validation scenes)",
+        help="--method robust or blend: reprojection error (px) that marks a keypoint's view as "
+        "an outlier (default 30, chosen on validation scenes)",
     )
     p.add_argument(
         "--view-outlier-px",
         type=float,
         default=None,
-        help="--method robust: median keypoint reprojection error (px) that marks a whole view "
-        "as not the person's (default 30)",
+        help="--method robust or blend: median keypoint reprojection error (px) that marks a "
+        "whole view as not the person's (default 30)",
     )
     p.add_argument(
         "--threshold",
@@ -1021,6 +1024,13 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.trained import load_estimator, load_matcher
 
     check_writable(args.out, folder=True)
+    if args.method in ("mlp", "blend") and not args.estimator:
+        raise InputError(f"--method {args.method} needs --estimator", field="--method")
+    if args.method in ("dlt", "centroid", "robust") and args.estimator:
+        raise InputError(
+            f"--method {args.method} triangulates: it would not use --estimator (mlp or blend do)",
+            field="--method",
+        )
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
     one_euro, smooth_kwargs = _smoothing(args)
@@ -1256,11 +1266,12 @@ def _infer_settings(args: argparse.Namespace, stream, threshold: float, fps: flo
         "--threshold": threshold,
         "--min-views": args.min_views,
     }
-    if args.estimator is None:
-        settings["--method"] = args.method
+    method = args.method or ("mlp" if args.estimator else "dlt")
+    if method != "mlp":  # runs with an estimator before --method blend existed recorded none
+        settings["--method"] = method
     if args.matcher is None:
         settings["--half-score-px"] = args.half_score_px
-    if args.method == "robust" and args.estimator is None:
+    if method in ("robust", "blend"):
         settings["--outlier-px"] = args.outlier_px
         settings["--view-outlier-px"] = args.view_outlier_px
     # What the chunks hold also depends on the tracker and the streaming filter (Butterworth,

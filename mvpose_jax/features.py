@@ -109,20 +109,30 @@ def estimator_inputs(
     return EstimatorInputs(keypoint, pair_xyz, pair_ok)
 
 
-def assemble_features(inputs: EstimatorInputs, view_mask: jax.Array) -> jax.Array:
+def assemble_features(
+    inputs: EstimatorInputs,
+    view_mask: jax.Array,
+    initial: tuple[jax.Array, jax.Array] | None = None,
+) -> jax.Array:
     """The 14 numbers per (camera, keypoint), using only the views in ``view_mask``.
 
     Args:
       inputs: `EstimatorInputs` of N people.
       view_mask: (N, C) bool, the views given to the network (others become all zeros and take
         no part in the initial 3D estimate).
+      initial: optional (xyz (N, K, 3) rig-normalised, available (N, K) bool) initial 3D
+        estimate replacing the pairwise centroid (e.g. robust triangulation at inference; a
+        network trained on centroids reads it as one).
     Returns:
       (N, C, K, 14) features.
     """
     N, C, K, _ = inputs.keypoint.shape
     keypoint = jnp.where(view_mask[:, :, None, None], inputs.keypoint, 0.0)
     pairs = camera_pairs(C)
-    if len(pairs):
+    if initial is not None:
+        init = jnp.where(initial[1][..., None], initial[0], 0.0).astype(keypoint.dtype)
+        has_init = initial[1].astype(keypoint.dtype)
+    elif len(pairs):
         pair_kept = view_mask[:, pairs[:, 0]] & view_mask[:, pairs[:, 1]]  # (N, Q)
         init, has_init = centroid_of_pairs(inputs.pair_xyz, inputs.pair_ok & pair_kept[:, None, :])
         has_init = has_init.astype(keypoint.dtype)  # init: (N, K, 3)

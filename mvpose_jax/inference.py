@@ -46,6 +46,7 @@ from mvpose_jax.trained import Estimator, Matcher
 from mvpose_jax.triangulate import (
     OUTLIER_PX,
     VIEW_OUTLIER_PX,
+    blend_skeletons,
     camera_pairs,
     triangulate_pairwise_centroid,
     triangulate_points,
@@ -54,6 +55,9 @@ from mvpose_jax.triangulate import (
 
 # The triangulation methods of the 3D stage without an estimator.
 TRIANGULATION_METHODS = ("dlt", "centroid", "robust")
+# The methods of the 3D stage with an estimator: its own output, or robust triangulation where it
+# reconstructs a keypoint and the estimator elsewhere (`triangulate.blend_skeletons`).
+ESTIMATOR_METHODS = ("mlp", "blend")
 
 # Models are called through jit-compiled functions with their NNX GraphDef closed over, one per
 # GraphDef: passed as a static argument, a GraphDef is hashed on every call, and hashing one
@@ -89,8 +93,20 @@ def _predict_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score):
     return to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
 
 
-def _predict(graphdef, rest, params, rig: Rig, normalisation, xy, score):
-    return bound_model_fn(_predict_fn, graphdef)(rest, params, rig, normalisation, xy, score)
+def _blend_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score, thresholds):
+    """Method "blend": robust triangulation once, as the estimator's initial 3D (in place of the
+    pairwise centroid it was trained on: on validation scenes that helped on every shift, most
+    with wrong groupings) and where it reconstructs a keypoint (`triangulate.blend_skeletons`)."""
+    centre, radius = normalisation
+    px, w = jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)
+    tri, ok, kept = triangulate_skeletons_robust(
+        rig, px, w, outlier_px=thresholds[0], view_outlier_px=thresholds[1]
+    )
+    initial = ((tri - centre.reshape(1, 1, 3)) / radius, ok)
+    inputs = estimator_inputs(rig, xy, score, normalisation)
+    feats = assemble_features(inputs, (score > 0).any(axis=-1), initial)
+    model = to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
+    return blend_skeletons(rig, px, w, model_xyz=model, tri_xyz=tri, tri_valid=ok, kept=kept)[0]
 
 
 def predict_people(
@@ -98,6 +114,9 @@ def predict_people(
     xy: np.ndarray,
     score: np.ndarray,
     *,
+    method: str = "mlp",
+    outlier_px: float = OUTLIER_PX,
+    view_outlier_px: float = VIEW_OUTLIER_PX,
     mesh: jax.sharding.Mesh | None = None,
 ) -> np.ndarray:
     """3D keypoints of N people from their views in the estimator's inference cameras.
@@ -105,21 +124,30 @@ def predict_people(
     Args:
       estimator: a trained `Estimator`.
       xy: (N, C_i, K, 2) pixels; score: (N, C_i, K), 0 = missing.
+      method: "mlp", the estimator's output; or "blend", robust triangulation
+        (`triangulate.triangulate_skeletons_robust` with ``outlier_px``, ``view_outlier_px``)
+        where it reconstructs a keypoint and the estimator, given it as its initial 3D,
+        elsewhere (`triangulate.blend_skeletons`).
       mesh: optional data mesh (`parallel.make_data_mesh`): people are split over its devices
         (padded to a multiple of the device count), parameters replicated.
     Returns:
       (N, K, 3) metres: every keypoint, seen or not.
     """
+    if method not in ESTIMATOR_METHODS:
+        raise ValueError(f"method must be one of {ESTIMATOR_METHODS}, not {method!r}")
+    fn = _predict_fn if method == "mlp" else _blend_fn
+    extra = () if method == "mlp" else (np.array([outlier_px, view_outlier_px], np.float32),)
     xy_p, score_p = _pad_people(xy, score)
+    jitted = bound_model_fn(fn, estimator.graphdef)
     if mesh is None:
-        out = _predict(
-            estimator.graphdef,
+        out = jitted(
             estimator.rest,
             estimator.params,
             estimator.rig_infer,
             estimator.normalisation,
             xy_p,
             score_p,
+            *extra,
         )
         return np.asarray(out)[: len(xy)]
     # Local imports: this function is the only place inference needs the mesh helpers.
@@ -129,14 +157,14 @@ def predict_people(
     xy_p, score_p = shard_batch(
         mesh, (pad_leading(xy_p, n), pad_leading(score_p, n))
     )  # (B, ...) split
-    out = _predict(
-        estimator.graphdef,
+    out = jitted(
         estimator.rest,
         replicate(mesh, estimator.params),
         estimator.rig_infer,
         replicate(mesh, estimator.normalisation),
         xy_p,
         score_p,
+        *(replicate(mesh, e) for e in extra),
     )
     return to_host(out)[: len(xy)]
 
@@ -205,12 +233,17 @@ def poses_from_people(xyz: np.ndarray, keypoint_valid: np.ndarray, exists: np.nd
 
 
 def estimate_grouped(
-    estimator: Estimator, xy: np.ndarray, score: np.ndarray, min_views: int = 2
+    estimator: Estimator,
+    xy: np.ndarray,
+    score: np.ndarray,
+    min_views: int = 2,
+    method: str = "mlp",
+    **robust,
 ) -> tuple[Poses3D, np.ndarray]:
     """Estimator poses for people grouped per frame, (F, G, C_i, K, ...) in, `Poses3D` out.
 
     A person exists when at least ``min_views`` inference views (1 with a single inference
-    camera) have a skeleton of them.
+    camera) have a skeleton of them. ``method``, ``robust``: `predict_people`'s.
 
     Returns:
       (poses, confidence (F, G): the mean detection score of the person's keypoints).
@@ -219,7 +252,7 @@ def estimate_grouped(
     exists = _present(score, min_views)
     out = np.zeros((F, G, K, 3), np.float32)
     if exists.any():
-        out[exists] = predict_people(estimator, xy[exists], score[exists])
+        out[exists] = predict_people(estimator, xy[exists], score[exists], method=method, **robust)
     poses = poses_from_people(out, np.ones((F, G, K), bool), exists)
     return poses, _confidence(score)
 
@@ -737,7 +770,7 @@ def poses_of_members(
     members: np.ndarray,
     *,
     estimator: Estimator | None = None,
-    method: str = "dlt",
+    method: str | None = None,
     min_views: int = 2,
     outlier_px: float = OUTLIER_PX,
     view_outlier_px: float = VIEW_OUTLIER_PX,
@@ -748,29 +781,48 @@ def poses_of_members(
       rig: the C cameras of the detections and of ``members``.
       detections: xy (F, C, P, K, 2), score (F, C, P, K).
       members: (F, G, C) each person's skeleton index per camera, -1 none.
-      estimator: 3D from it, on its inference cameras (found by name in ``rig``); None:
-        triangulation (``method`` "dlt", "centroid" or "robust", see `triangulate_people`) of
-        keypoints seen in 2+ views.
+      estimator: a trained estimator, on its inference cameras (found by name in ``rig``), for
+        the methods "mlp" and "blend".
+      method: "mlp" (the estimator's output) or "blend" (robust triangulation where it
+        reconstructs a keypoint, the estimator elsewhere; `predict_people`), both with an
+        estimator; or a triangulation of keypoints seen in 2+ views ("dlt", "centroid" or
+        "robust", see `triangulate_people`). Default: "mlp" with an estimator, else "dlt".
       min_views: a person needs skeletons in this many (inference) views.
-      outlier_px, view_outlier_px: method "robust"'s thresholds (`triangulate_people`).
+      outlier_px, view_outlier_px: the thresholds of robust triangulation (methods "robust" and
+        "blend"; `triangulate_people`).
     Returns:
       (`Poses3D` (F, G, ...), confidence (F, G)).
+    Raises:
+      ValueError: an unknown method, or "mlp" / "blend" without an estimator.
     """
+    method = check_method(method, estimator)
     p_xy, p_score = group_people(detections.xy, detections.score, members)
-    if estimator is None:
-        return triangulate_grouped(
-            rig,
-            p_xy,
-            p_score,
-            method,
-            min_views,
-            outlier_px=outlier_px,
-            view_outlier_px=view_outlier_px,
-        )
+    robust = {"outlier_px": outlier_px, "view_outlier_px": view_outlier_px}
+    if method in TRIANGULATION_METHODS:
+        return triangulate_grouped(rig, p_xy, p_score, method, min_views, **robust)
     if tuple(rig.names) != tuple(estimator.rig_infer.names):
         idx = _camera_columns(rig.names, estimator.rig_infer.names, "the estimator's inference")
         p_xy, p_score = p_xy[:, :, idx], p_score[:, :, idx]
-    return estimate_grouped(estimator, p_xy, p_score, min_views)
+    if method == "mlp":
+        return estimate_grouped(estimator, p_xy, p_score, min_views)
+    return estimate_grouped(estimator, p_xy, p_score, min_views, method, **robust)
+
+
+def check_method(method: str | None, estimator: Estimator | None) -> str:
+    """The 3D method to run: ``method``, or the default ("mlp" with an estimator, else "dlt").
+
+    Raises:
+      ValueError: an unknown method, or an estimator method without an estimator.
+    """
+    if method is None:
+        return "mlp" if estimator is not None else "dlt"
+    if method in ESTIMATOR_METHODS and estimator is None:
+        raise ValueError(f"method {method!r} needs an estimator")
+    if method not in TRIANGULATION_METHODS + ESTIMATOR_METHODS:
+        raise ValueError(
+            f"method must be one of {TRIANGULATION_METHODS + ESTIMATOR_METHODS}, not {method!r}"
+        )
+    return method
 
 
 def _camera_columns(names: Sequence[str], wanted: Sequence[str], what: str) -> list[int]:
@@ -789,7 +841,7 @@ def stream_pipeline(
     *,
     matcher: Matcher | None = None,
     estimator: Estimator | None = None,
-    method: str = "dlt",
+    method: str | None = None,
     threshold: float = 0.5,
     min_views: int = 2,
     half_score_px: float = 30.0,
@@ -813,11 +865,16 @@ def stream_pipeline(
         only one chunk is in memory at a time, and ``chunk_frames`` is not used).
       matcher: proposals from this learned matcher, on its cameras (``matcher.rig.names``); None:
         the geometric matcher (symmetric epipolar distance, ``half_score_px``) on every camera.
-      estimator: 3D from this estimator, on its inference cameras (a subset of the proposal
-        cameras); None: triangulation of every keypoint seen in 2+ views (``method`` "dlt",
-        "centroid", the paper's pairwise centroid, or "robust", DLT that rejects outlier views).
+      estimator: a trained estimator, on its inference cameras (a subset of the proposal
+        cameras), for the methods "mlp" and "blend".
+      method: the 3D stage (`poses_of_members`): with an estimator "mlp" (its output, the
+        default) or "blend" (robust triangulation where it reconstructs a keypoint, the
+        estimator elsewhere); or triangulation of every keypoint seen in 2+ views: "dlt" (the
+        default without an estimator), "centroid" (the paper's pairwise centroid), or "robust"
+        (DLT that rejects outlier views). A triangulation method ignores the estimator.
       threshold, min_views: the proposal step (`propose_people`).
-      outlier_px, view_outlier_px: method "robust"'s thresholds (`triangulate_people`).
+      outlier_px, view_outlier_px: the thresholds of robust triangulation, methods "robust"
+        and "blend" (`triangulate_people`).
       chunk_frames: frames per chunk (memory is bounded by it).
       progress: show a progress bar.
       num_frames: frames the chunks hold in all (the progress bar's length) when ``detections``
@@ -837,10 +894,11 @@ def stream_pipeline(
     prop_cams = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
     prop_idx = _camera_columns(rig.names, prop_cams, "the matcher's")
     prop_rig = rig.select(list(prop_cams))
-    if estimator is not None:
+    method = check_method(method, estimator)
+    if method in ESTIMATOR_METHODS:
         _camera_columns(prop_cams, estimator.rig_infer.names, "the estimator's inference")
-    elif method not in TRIANGULATION_METHODS:
-        raise ValueError(f"method must be one of {TRIANGULATION_METHODS}, not {method!r}")
+    else:
+        estimator = None  # a triangulation: the estimator is neither checked nor used
     checked_keypoints: list[int] = []
 
     def check(det: Detections) -> None:

@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, make_rig
-from mvpose_jax.models import GATConfig, MatchingGAT
+from mvpose_jax.cameras import Rig, make_rig, rig_centre_and_radius
+from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
 from mvpose_jax.train import init_train_state, make_optimizer, make_train_step, matcher_loss_fn
-from mvpose_jax.trained import MatcherConfig
+from mvpose_jax.trained import Estimator, EstimatorConfig, MatcherConfig
 
 
 def random_rig(seed: int = 0, num_cameras: int = 4):
@@ -187,6 +187,17 @@ def tiny_matcher_train_state(config: GATConfig = TINY_GAT, lr: float = 3e-3, see
     tx = make_optimizer(dataclasses.replace(MatcherConfig().train, learning_rate=lr))
     graphdef, rest, state = init_train_state(m, tx)
     return graphdef, rest, state, make_train_step(graphdef, rest, tx, matcher_loss_fn)
+
+
+def untrained_estimator(rig: Rig, num_keypoints: int = 18, seed: int = 0) -> Estimator:
+    """An estimator on every camera of ``rig`` whose network returns its initial 3D estimate
+    exactly: a "residual" PoseMLP starts with a zero output layer (a closed form for inference
+    tests, no training)."""
+    mlp = MLPConfig(widths=(8,), output="residual")
+    model = PoseMLP(rig.num_cameras, num_keypoints, mlp, rngs=nnx.Rngs(seed))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    config = EstimatorConfig(train_cameras=tuple(rig.names), mlp=mlp)
+    return Estimator(graphdef, rest, params, rig, config, rig_centre_and_radius(rig))
 
 
 def read_trc(path) -> dict:

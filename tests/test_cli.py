@@ -139,6 +139,45 @@ def test_infer_robust_triangulation(files, tmp_path, capsys):
     assert both.any() and np.abs(robust.poses.xyz - dlt.poses.xyz)[both].max() < 0.2
 
 
+@pytest.mark.slow  # trains an estimator for two steps
+def test_infer_blend_of_estimator_and_robust_triangulation(files, tmp_path, capsys):
+    # Untracked: the poses as the 3D stage gives them (tracked ones are filtered).
+    base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]
+    # The method and the estimator must go together; nothing is written otherwise.
+    assert main([*base, "--out", str(tmp_path / "a"), "--method", "blend"]) == 2
+    assert "--method blend needs --estimator" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    from mvpose_jax.synthetic import generate_single_person_recordings
+
+    recs = generate_single_person_recordings(
+        load_rig("panoptic5"), num_recordings=2, num_frames=6, seed=3
+    )
+    for i, rec in enumerate(recs):
+        save_recording(rec, tmp_path / "train" / f"walk_{i}.npz")
+    est = tmp_path / "est"
+    train = ["train-estimator", "--rig", "panoptic5", "--train", str(tmp_path / "train")]
+    assert main([*train, "--out", str(est), "--steps", "2", "--batch-size", "8"]) == 0
+    with_est = [*base, "--estimator", str(est)]
+    assert main([*with_est, "--out", str(tmp_path / "b"), "--method", "robust"]) == 2
+    assert "would not use --estimator" in capsys.readouterr().err
+    outs = {}
+    for method, argv in (
+        ("robust", [*base, "--method", "robust"]),
+        ("mlp", with_est),  # the default with an estimator
+        ("blend", [*with_est, "--method", "blend"]),
+    ):
+        outs[method] = tmp_path / method
+        assert main([*argv, "--out", str(outs[method])]) == 0
+    robust, mlp, blend = (
+        load_poses(outs[m] / "poses.npz").poses for m in ("robust", "mlp", "blend")
+    )
+    np.testing.assert_array_equal(blend.valid, mlp.valid)  # the same people ...
+    assert blend.keypoint_valid[blend.valid].all()  # ... every keypoint, like the estimator ...
+    tri = robust.keypoint_valid & blend.valid[..., None]
+    assert tri.any()
+    np.testing.assert_allclose(blend.xyz[tri], robust.xyz[tri], atol=1e-4)  # ... triangulated
+
+
 def test_evaluate_without_ground_truth_gives_reprojection_only(files, recording, tmp_path, capsys):
     bare = tmp_path / "bare.json"
     rec = load_recording(files["native"])

@@ -141,6 +141,13 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
             assert set(row["pose"]) == set(SHIFT_PIPELINES)
             for metrics in row["pose"].values():
                 assert 0 <= metrics["pcp"] <= 100 and 0 <= metrics["completeness"] <= 100
+            # On robust triangulation's keypoints the blend IS robust triangulation.
+            for g in ("gat", "epipolar", "true"):
+                blend, robust = row["pose"][f"{g}_blend"], row["pose"][f"{g}_robust"]
+                if robust["completeness"] > 0:
+                    assert blend["mpjpe_on_robust_keypoints_mm"] == pytest.approx(
+                        robust["mpjpe_mm"], abs=2e-3
+                    )
     # The unshifted reference is exactly paper-panoptic's scenes.
     rig = load_rig("panoptic5")
     plain = make_scenes(rig, SCALES["smoke"], 0)

@@ -41,7 +41,7 @@ from mvpose_jax.train import (
 )
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 from tests.helpers import TINY_GAT as TINY
-from tests.helpers import random_frames
+from tests.helpers import random_frames, untrained_estimator
 from tests.helpers import tiny_matcher_train_state as _train_state
 
 
@@ -217,6 +217,52 @@ def test_robust_triangulation_survives_a_wrong_skeleton_in_a_group(scene):
         run_pipeline(rig, rec.detections, method="median")
 
 
+@pytest.mark.slow  # the 3D stage five ways and the pipeline (compilations)
+def test_blend_is_robust_triangulation_where_it_reconstructs_and_the_estimator_elsewhere(scene):
+    rig, rec = scene
+    det = rec.detections
+    members = members_from_identity(np.asarray(rec.identity), 3)
+    est = untrained_estimator(rig)  # returns its initial 3D: robust triangulation, for "blend"
+    blend, conf = poses_of_members(rig, det, members, estimator=est, method="blend")
+    robust, _ = poses_of_members(rig, det, members, method="robust")
+    mlp, mlp_conf = poses_of_members(rig, det, members, estimator=est)  # "mlp" is the default
+    np.testing.assert_array_equal(blend.valid, mlp.valid)
+    np.testing.assert_array_equal(conf, mlp_conf)
+    assert blend.keypoint_valid[blend.valid].all()  # every keypoint, like the estimator
+    tri = robust.keypoint_valid & blend.valid[..., None]
+    assert tri.any() and (~tri & blend.keypoint_valid).any()
+    np.testing.assert_allclose(blend.xyz[tri], robust.xyz[tri], atol=1e-5)
+    # A keypoint one view sees: on that view's ray, as far from the camera as the person's
+    # triangulated keypoints' mean (the untrained network's start; the blend's offset is 0).
+    from mvpose_jax.cameras import camera_centres, pixel_rays
+    from mvpose_jax.inference import group_people
+
+    xy, score = group_people(det.xy, det.score, members)  # (F, G, C, K, ...)
+    one = ((score > 0).sum(axis=2) == 1) & blend.valid[..., None]  # (F, G, K)
+    assert one.any()
+    cam = np.argmax(score > 0, axis=2)  # (F, G, K) the one view
+    rays = np.moveaxis(np.asarray(pixel_rays(rig, np.moveaxis(xy, 2, 0))), 0, 2)
+    ray = np.take_along_axis(rays, cam[:, :, None, :, None], axis=2)[:, :, 0]
+    origin = np.asarray(camera_centres(rig))[cam]
+    kv = robust.keypoint_valid[..., None]
+    anchor = (robust.xyz * kv).sum(-2) / np.maximum(kv.sum(-2), 1)  # (F, G, 3)
+    depth = np.linalg.norm(anchor[:, :, None] - origin, axis=-1, keepdims=True)
+    np.testing.assert_allclose(blend.xyz[one], (origin + ray * depth)[one], atol=1e-4)
+    # The pipeline gives the same, and the method is checked.
+    res = run_pipeline(rig, det, estimator=est, method="blend")
+    again, _ = poses_of_members(rig, det, res.members, estimator=est, method="blend")
+    np.testing.assert_allclose(again.xyz, res.poses.xyz, atol=1e-6)
+    for method in ("blend", "mlp"):
+        with pytest.raises(ValueError, match="needs an estimator"):
+            poses_of_members(rig, det, members, method=method)
+    with pytest.raises(ValueError, match="blend"):
+        run_pipeline(rig, det, estimator=est, method="median")
+    # A triangulation method ignores the estimator.
+    dlt_est, _ = poses_of_members(rig, det, members, estimator=est, method="dlt")
+    dlt, _ = poses_of_members(rig, det, members, method="dlt")
+    np.testing.assert_array_equal(dlt_est.xyz, dlt.xyz)
+
+
 @pytest.mark.slow  # uses the trained `models`
 def test_keypoint_count_mismatch_is_a_clear_error(scene, models):
     rig, rec = scene
@@ -279,7 +325,7 @@ def test_no_nan_leaves_the_pipeline_on_degenerate_input(scene, models, use_estim
     det = _degenerate_detections(rig)
     estimator = models[1] if use_estimator else None
     # threshold 0 so that even the junk frame's skeletons get grouped and reach the 3D stage.
-    for method in ("dlt", "centroid", "robust"):
+    for method in ("mlp", "blend") if use_estimator else ("dlt", "centroid", "robust"):
         res = run_pipeline(rig, det, estimator=estimator, method=method, threshold=0.0)
         assert np.isfinite(res.poses.xyz).all() and np.isfinite(res.confidence).all()
         # Invalid keypoints are zeroed, invalid people have no valid keypoint.

@@ -300,3 +300,113 @@ def test_robust_thresholds_do_not_recompile(ring_rig):
     before = fn._cache_size()
     fn(ring_rig, px, w, outlier_px=25.0, view_outlier_px=jnp.inf)
     assert fn._cache_size() == before
+
+
+# --------------------------------------------------------------------------- blend with a model
+
+
+def _blend(rig, px, w, model):
+    px, w = jnp.asarray(px, jnp.float32), jnp.asarray(w, jnp.float32)
+    tri, ok, kept = triangulate.triangulate_skeletons_robust(rig, px, w)
+    xyz, from_tri = triangulate.blend_skeletons(
+        rig, px, w, model_xyz=jnp.asarray(model), tri_xyz=tri, tri_valid=ok, kept=kept
+    )
+    return np.asarray(xyz), np.asarray(from_tri), np.asarray(ok)
+
+
+def _pinhole_error(rig, X, px):
+    """Independent reference: distance between the undistorted detection (OpenCV) and the pinhole
+    projection of X, in pixels, per camera. X: (N, 3); px: (C, N, 2)."""
+    out = []
+    for c in range(rig.num_cameras):
+        K, D = np.asarray(rig.K[c], np.float64), np.asarray(rig.dist[c], np.float64)
+        und = cv2.undistortPoints(px[c][:, None].astype(np.float64), K, D, P=K)[:, 0]
+        cam = X.astype(np.float64) @ np.asarray(rig.R[c], np.float64).T + np.asarray(rig.t[c])
+        proj = (cam @ K.T)[:, :2] / (cam @ K.T)[:, 2:]
+        out.append(np.linalg.norm(proj - und, axis=-1))
+    return np.stack(out)
+
+
+def test_reprojection_errors_match_opencv(ring_rig):
+    X = scene_points(ring_rig, 30, (12,))
+    px = np.asarray(cameras.project_points(ring_rig, jnp.asarray(X)))
+    px = px + np.random.default_rng(31).normal(scale=5.0, size=px.shape)
+    ours = np.asarray(triangulate.reprojection_errors_px(ring_rig, jnp.asarray(X), jnp.asarray(px)))
+    np.testing.assert_allclose(ours, _pinhole_error(ring_rig, X, px), atol=0.05)
+    # A point behind a camera has no reprojection there.
+    behind = np.asarray(cameras.camera_centres(ring_rig))[0] - 2.0 * np.asarray(ring_rig.R)[0, 2]
+    err = triangulate.reprojection_errors_px(ring_rig, jnp.asarray(behind), jnp.asarray(px[:, 0]))
+    assert np.isinf(np.asarray(err)[0])
+
+
+def test_blend_takes_triangulation_where_it_exists():
+    """A model far off on keypoints two or more views see: exact triangulation wins there; the
+    same model off by a constant on every keypoint is moved back by the person's offset where
+    only the model answers."""
+    rig = random_rig(seed=32, num_cameras=4)
+    X = scene_points(rig, 33, (3, 18))  # three people
+    px = np.asarray(cameras.project_points(rig, jnp.asarray(X)))
+    w = np.ones(px.shape[:-1], np.float32)
+    w[:, :, 17] = 0.0  # keypoint 17 nobody sees
+    model = X.copy()
+    model[0, :8] += np.array([0.5, -0.3, 0.2], np.float32)  # person 0: far off on 8 keypoints
+    model[1] += np.array([0.0, 0.6, 0.0], np.float32)  # person 1: a constant (a floor off)
+    xyz, from_tri, ok = _blend(rig, px, w, model)
+    assert from_tri[:, :17].all() and not from_tri[:, 17].any()
+    np.testing.assert_allclose(xyz[:, :17], X[:, :17], atol=1e-3)  # triangulation, not the model
+    # Keypoint 17: person 1's model moved back by its offset; person 2's model untouched;
+    # person 0's offset is the median over its keypoints (most agree with the model): zero.
+    np.testing.assert_allclose(xyz[1, 17], X[1, 17], atol=1e-3)
+    np.testing.assert_allclose(xyz[2, 17], X[2, 17], atol=1e-3)
+    np.testing.assert_allclose(xyz[0, 17], model[0, 17], atol=1e-3)
+
+
+def test_blend_rejects_an_outlier_view_and_snaps_a_one_view_keypoint_to_its_ray():
+    rig = random_rig(seed=34, num_cameras=5)
+    X = scene_points(rig, 35, (1, 18))
+    px = np.array(cameras.project_points(rig, jnp.asarray(X)))
+    w = np.ones(px.shape[:-1], np.float32)
+    px[3, 0, 4] += np.array([150.0, -120.0], np.float32)  # a wild view of keypoint 4
+    w[1:, 0, 9] = 0.0  # keypoint 9: camera 0 only
+    w[:, 0, 10] = 0.0  # keypoint 10: camera 2 only (the rest of the view is fine)
+    w[2, 0, 10] = 1.0
+    model = X + np.random.default_rng(36).normal(scale=0.08, size=X.shape).astype(np.float32)
+    xyz, from_tri, _ = _blend(rig, px, w, model)
+    # The wild view is rejected: keypoint 4 is exact, not the DLT pulled off nor the model.
+    np.testing.assert_allclose(xyz[0, 4], X[0, 4], atol=1e-3)
+    dlt, _ = triangulate.triangulate_points(rig, jnp.asarray(px), jnp.asarray(w))
+    assert np.linalg.norm(np.asarray(dlt)[0, 4] - X[0, 4]) > 0.02
+    # One view: the closest point of that view's ray to the (offset-corrected) model point.
+    for k, c in ((9, 0), (10, 2)):
+        assert not from_tri[0, k]
+        tri_ok = np.ones(18, bool)
+        tri_ok[[9, 10]] = False
+        offset = np.median(X[0, tri_ok] - model[0, tri_ok], axis=0)
+        moved = model[0, k] + offset
+        o = np.asarray(cameras.camera_centres(rig))[c]
+        r = (X[0, k] - o) / np.linalg.norm(X[0, k] - o)  # the ray through the exact detection
+        expected = o + r * np.dot(moved - o, r)
+        np.testing.assert_allclose(xyz[0, k], expected, atol=2e-3)
+        err = triangulate.reprojection_errors_px(
+            rig, jnp.asarray(xyz[0, k]), jnp.asarray(px[:, 0, k])
+        )
+        assert float(np.asarray(err)[c]) < 0.1  # it projects onto its detection
+
+
+@pytest.mark.parametrize("batch", [(), (2,), (2, 3)])
+def test_blend_shapes_masks_and_padding(ring_rig, batch):
+    K = 6
+    X = scene_points(ring_rig, 37, batch + (K,))
+    px = np.array(cameras.project_points(ring_rig, jnp.asarray(X)))
+    rng = np.random.default_rng(38)
+    w = (rng.random(px.shape[:-1]) < 0.6).astype(np.float32)
+    px[w == 0] = np.nan  # junk where unseen must not leak
+    if batch:  # a padding person: nothing seen, the model's output comes back as it is
+        w[:, 0] = 0.0
+    model = (X + 0.05).astype(np.float32)
+    xyz, from_tri, ok = _blend(ring_rig, px, w, model)
+    assert xyz.shape == batch + (K, 3) and from_tri.shape == batch + (K,)
+    assert np.isfinite(xyz).all()
+    np.testing.assert_array_equal(from_tri, ok)
+    if batch:
+        np.testing.assert_allclose(xyz[0], model[0], atol=1e-6)
