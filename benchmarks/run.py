@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--groups",
-        default="peaks,latency,offline,training,tracking,infer_memory",
+        default="peaks,latency,offline,training,tracking,infer_memory,adapt",
         help="comma-separated groups to run",
     )
     parser.add_argument(
