@@ -141,8 +141,11 @@ ROBOT = ("orinbot_l", "orinbot_r")
 # After `adapt`: the MLP adapted to the split's own detections, grouped by the same proposals it
 # then runs behind (no labels; issue 19 item 3). Settings chosen on the validation scenes.
 # Steps bound it, not the clock (max_seconds far away), so the tables do not depend on the load.
+# Chosen on the validation scenes of part-mixing and floor-0.3 (seed 0): mean PCP of the four
+# adapted pipelines 81.26 at 1e-4, 81.36 at 3e-4 (constant), 81.43 at 1e-3 decaying to 1e-4.
 SHIFT_ADAPT = AdaptConfig(
-    learning_rate=1e-4,
+    learning_rate=1e-3,
+    final_lr_fraction=0.1,
     max_steps=300,
     max_seconds=3600.0,
     check_every=20,

@@ -1048,7 +1048,10 @@ def add_adapt_arguments(p: argparse.ArgumentParser, *, prefix: str = "") -> None
         "(default: 120 s per 1,000 frames, at least 30 s)",
     )
     p.add_argument(
-        f"--{prefix}learning-rate", type=float, default=1e-4, help=f"{what}Adam's step size"
+        f"--{prefix}learning-rate",
+        type=float,
+        default=1e-3,
+        help=f"{what}Adam's initial step size (a cosine decay to a tenth of it over --max-steps)",
     )
     p.add_argument(
         f"--{prefix}holdout-every",
