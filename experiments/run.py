@@ -57,6 +57,7 @@ from mvpose_jax.data import save_recording, select_cameras
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.poses import PoseResults
+from mvpose_jax.errors import InputError
 from mvpose_jax.features import people_from_identity, single_person_samples
 from mvpose_jax.inference import (
     composed_frames,
@@ -1368,16 +1369,21 @@ def shift_rows(
         m = pose_metrics(poses, gt, confidence=conf, **scoring)
         out["pose"][key] = {k: round(float(m[k]), 3) for k in SHIFT_METRICS}
     for key, grouping in ({} if adapt is None else ADAPT_PIPELINES).items():
-        adapted, report = adapt_estimator(
-            rig, det, estimator, members=members[grouping], config=adapt, progress=False
-        )
+        try:
+            adapted, report = adapt_estimator(
+                rig, det, estimator, members=members[grouping], config=adapt, progress=False
+            )
+            info = {
+                k: getattr(report, k)
+                for k in ("steps", "best_step", "stopped", "heldout_px_before", "heldout_px_after")
+            } | {"seconds": round(report.seconds, 1)}
+        except InputError as e:
+            # Too few grouped people to hold frames out (tiny scales, a matcher that groups
+            # nobody): the row is the unadapted MLP, and says so.
+            adapted, info = estimator, {"skipped": str(e)}
         poses, conf = poses_of_members(rig, det, members[grouping], estimator=adapted)
         m = pose_metrics(poses, gt, confidence=conf, **scoring)
-        out["pose"][key] = {k: round(float(m[k]), 3) for k in SHIFT_METRICS}
-        out["pose"][key]["adapt"] = {
-            k: getattr(report, k)
-            for k in ("steps", "best_step", "stopped", "heldout_px_before", "heldout_px_after")
-        } | {"seconds": round(report.seconds, 1)}
+        out["pose"][key] = {k: round(float(m[k]), 3) for k in SHIFT_METRICS} | {"adapt": info}
     return out
 
 
