@@ -291,6 +291,25 @@ def markdown(run: dict) -> str:
                 f"| {r['people']} | {_ms(r['tracker_ms'])} | {_ms(r['one_euro_ms'])} | "
                 f"{_ms(r['per_person_ms'])} | {r['status']} |"
             )
+    ad = run.get("adapt")
+    if ad:
+        lines += [
+            "",
+            f"## Adapting the estimator to a recording (target <= "
+            f"{ad['limit_seconds_per_1000_frames']:.0f} s per 1,000 frames)",
+            "",
+            "`adapt.adapt_estimator`, quick-size MLP, 5 views, 4 people, epipolar proposals, every "
+            "default step run (no early stop): the whole call, proposals and compilation included.",
+            "",
+            "| frames | people adapt / held out | steps | proposals s | training s | ms per step "
+            "| s per 1,000 frames | CPU s per 1,000 frames | target |",
+            "|---|---|---|---|---|---|---|---|---|",
+            f"| {ad['frames']} | {ad['people_adapt']} / {ad['people_heldout']} | {ad['steps']} "
+            f"| {ad['grouping_seconds']:.1f} | {ad['training_seconds']:.1f} "
+            f"| {ad['ms_per_step_incl_compile_and_checks']:.0f} "
+            f"| {ad['seconds_per_1000_frames']:.1f} "
+            f"| {1000 * ad['cpu_seconds'] / ad['frames']:.1f} | {ad['status']} |",
+        ]
     if mem:
         lines += [
             "",

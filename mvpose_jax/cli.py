@@ -709,6 +709,94 @@ def _train_estimator(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- adapt
+#   mvpose-jax adapt --rig calib.toml --detections rec.npz --estimator est/ --out est_rec/
+
+
+def _adapt_arguments(p: argparse.ArgumentParser) -> None:
+    _detection_arguments(p)
+    p.add_argument(
+        "--cameras", nargs="+", help="use only these cameras of the recording (default: all)"
+    )
+    p.add_argument(
+        "--estimator",
+        "--model",
+        dest="estimator",
+        required=True,
+        help="folder of the trained estimator to start from (train-estimator --out, or an "
+        "earlier adapt --out)",
+    )
+    p.add_argument(
+        "--matcher",
+        help="group the detections into people with this trained matcher (train-matcher --out); "
+        "default: the geometric matcher (symmetric epipolar distance) on every camera",
+    )
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="proposals: least match score (default: the matcher's proposal_threshold.json, "
+        "else 0.5)",
+    )
+    p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
+    p.add_argument(
+        "--half-score-px",
+        type=float,
+        default=30.0,
+        help="geometric matcher: epipolar distance (px) that scores 0.5",
+    )
+    p.add_argument("--out", required=True, help="the adapted model's folder (new or empty)")
+    p.add_argument("--seed", type=int, default=0, help="batch order and augmentation")
+    add_adapt_arguments(p)
+
+
+@command(
+    "adapt",
+    "Fine-tune a trained 3D estimator on a recording's own detections (no labels: grouped by "
+    "the proposals, reprojection loss, held-out frames stop it); writes a model infer loads.",
+    _adapt_arguments,
+)
+def _adapt(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from mvpose_jax.adapt import adapt_estimator, save_adapted_estimator
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.proposals import read_proposal_threshold
+    from mvpose_jax.trained import load_estimator, load_matcher
+
+    out = check_writable(args.out, folder=True)
+    if out.exists() and any(out.iterdir()):
+        raise InputError("exists and is not empty; choose a new folder", file=out, field="--out")
+    config = adapt_config(args)
+    config.check()
+    rig_all = load_rig(
+        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    )
+    rec, rig = _load_detections(args, rig_all)
+    matcher = load_matcher(args.matcher, rig) if args.matcher else None
+    estimator = load_estimator(args.estimator, rig)
+    threshold = read_proposal_threshold(args.matcher, args.threshold)
+    adapted, report = adapt_estimator(
+        rig,
+        rec.detections,
+        estimator,
+        matcher=matcher,
+        threshold=threshold,
+        half_score_px=args.half_score_px,
+        config=config,
+    )
+    report.settings["estimator"] = str(Path(args.estimator).resolve())
+    report.settings["detections"] = str(Path(args.detections).resolve())
+    save_adapted_estimator(args.out, adapted, report)
+    print_adapt_report(report)
+    print(
+        f"wrote {args.out} (`infer --estimator {args.out}` loads it) and its report "
+        f"{Path(args.out) / 'adapt_report.json'}"
+    )
+    _print_dev_quality(args.out)
+    return 0
+
+
 # --------------------------------------------------------------------------- infer / evaluate / render
 
 
@@ -938,6 +1026,86 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         help="also write the poses as trc, c3d and/or csv (comma list) in --out, as `export` "
         "does with its defaults: one file per track, mm, OpenSim axes from the rig's up",
     )
+    p.add_argument(
+        "--adapt",
+        action="store_true",
+        help="first fine-tune --estimator on this recording's own detections, grouped by the "
+        "proposals (no labels; as `mvpose-jax adapt`, in memory; reads the whole recording), "
+        "then infer with it",
+    )
+    add_adapt_arguments(p, prefix="adapt-")
+
+
+def add_adapt_arguments(p: argparse.ArgumentParser, *, prefix: str = "") -> None:
+    """The settings of an adaptation (`adapt.AdaptConfig`), as ``adapt`` and ``infer --adapt``
+    take them (``prefix`` before each option's name)."""
+    what = "--adapt: " if prefix else ""
+    p.add_argument(
+        f"--{prefix}max-steps", type=int, default=300, help=f"{what}most fine-tuning steps"
+    )
+    p.add_argument(
+        f"--{prefix}max-seconds",
+        type=float,
+        default=None,
+        help=f"{what}wall-clock budget of the adaptation, proposals and compilation included "
+        "(default: 120 s per 1,000 frames, at least 30 s)",
+    )
+    p.add_argument(
+        f"--{prefix}learning-rate",
+        type=float,
+        default=1e-3,
+        help=f"{what}Adam's initial step size (a cosine decay to a tenth of it over --max-steps)",
+    )
+    p.add_argument(
+        f"--{prefix}holdout-every",
+        type=int,
+        default=5,
+        help=f"{what}hold out every N-th block of frames; their reprojection loss decides when to "
+        "stop, and the best parameters are kept",
+    )
+    p.add_argument(
+        f"--{prefix}block-frames",
+        type=int,
+        default=10,
+        help=f"{what}frames per held-out block (contiguous, so neighbouring frames do not leak)",
+    )
+    p.add_argument(
+        f"--{prefix}patience",
+        type=int,
+        default=5,
+        help=f"{what}held-out checks (every 20 steps) without improvement before stopping",
+    )
+
+
+def adapt_config(args: argparse.Namespace, *, prefix: str = ""):
+    """The `adapt.AdaptConfig` of `add_adapt_arguments`' options."""
+    from mvpose_jax.adapt import AdaptConfig
+
+    def get(name):
+        return getattr(args, prefix.replace("-", "_") + name)
+
+    return AdaptConfig(
+        learning_rate=get("learning_rate"),
+        max_steps=get("max_steps"),
+        max_seconds=get("max_seconds"),
+        patience=get("patience"),
+        holdout_every=get("holdout_every"),
+        block_frames=get("block_frames"),
+        min_views=getattr(args, "min_views", 2),
+        seed=getattr(args, "seed", 0),
+    )
+
+
+def print_adapt_report(report) -> None:
+    """One paragraph on what an adaptation did (`adapt.AdaptReport`)."""
+    print(
+        f"adapted on {report.people_adapt} people of {report.frames_adapt} frames "
+        f"({report.settings['grouping']} proposals), {report.people_heldout} people of "
+        f"{report.frames_heldout} frames held out: held-out reprojection "
+        f"{report.heldout_px_before:.2f} -> {report.heldout_px_after:.2f} px per keypoint "
+        f"(best at step {report.best_step} of {report.steps}, stopped by {report.stopped}, "
+        f"{report.seconds:.0f} s)"
+    )
 
 
 def add_smoothing_arguments(p: argparse.ArgumentParser, *, default_filter: str) -> None:
@@ -1033,6 +1201,17 @@ def _infer(args: argparse.Namespace) -> int:
         )
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
+    if args.adapt and not args.estimator:
+        raise InputError("adapts an estimator: give --estimator", field="--adapt")
+    if args.adapt and args.resume:
+        raise InputError(
+            "an in-memory adaptation cannot be resumed: run `mvpose-jax adapt --out NEW` once, "
+            "then `infer --estimator NEW` (which --resume continues)",
+            field="--adapt",
+        )
+    adapt = adapt_config(args, prefix="adapt-") if args.adapt else None
+    if adapt is not None:
+        adapt.check()
     one_euro, smooth_kwargs = _smoothing(args)
     if args.max_gap_s < 0:
         raise InputError("must be >= 0", field="--max-gap-s")
@@ -1053,6 +1232,19 @@ def _infer(args: argparse.Namespace) -> int:
         matcher = load_matcher(args.matcher, rig) if args.matcher else None
         estimator = load_estimator(args.estimator, rig) if args.estimator else None
         threshold = read_proposal_threshold(args.matcher, args.threshold)
+        if adapt is not None:
+            from mvpose_jax.adapt import adapt_estimator
+
+            estimator, report = adapt_estimator(
+                rig,
+                stream.read_frames(0, F).detections,
+                estimator,
+                matcher=matcher,
+                threshold=threshold,
+                half_score_px=args.half_score_px,
+                config=adapt,
+            )
+            print_adapt_report(report)
         tracking = None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s)
         store = ChunkStore(
             os.path.join(args.out, "chunks"),
@@ -1269,6 +1461,10 @@ def _infer_settings(args: argparse.Namespace, stream, threshold: float, fps: flo
     method = args.method or ("mlp" if args.estimator else "dlt")
     if method != "mlp":  # runs with an estimator before --method blend existed recorded none
         settings["--method"] = method
+    if args.adapt:
+        # (Only when given: the manifests of runs without it stay as they were.) Such a run is
+        # never resumed (`_infer` refuses), and a run without --adapt cannot resume its chunks.
+        settings["--adapt"] = True
     if args.matcher is None:
         settings["--half-score-px"] = args.half_score_px
     if method in ("robust", "blend"):

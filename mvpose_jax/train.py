@@ -243,8 +243,10 @@ def fit(
     best_val_loss: float = math.inf,
     best_state: TrainState | None = None,
     resume_from: FitProgress | None = None,
+    max_seconds: float | None = None,
 ) -> FitResult:
-    """Trains until ``max_epochs``/``max_steps`` or early stopping; returns the best state.
+    """Trains until ``max_epochs``/``max_steps``, early stopping or ``max_seconds``; returns the
+    best state.
 
     Args:
       state: the initial `TrainState`.
@@ -259,6 +261,8 @@ def fit(
       resume_from: the loop state saved with the checkpoint ``state`` comes from (`resume_state`):
         the run goes on exactly as if never interrupted. Without it, a state whose step is not 0
         continues at the batch its step implies, with a fresh history and patience.
+      max_seconds: a wall-clock budget of this call (None: none): once spent, the loop stops
+        after the step that ran over it, validates that state and returns the best one.
 
     Raises:
       InputError when ``resume_from`` belongs to another step than ``state``.
@@ -286,6 +290,7 @@ def fit(
     every = config.checkpoint_every_steps
     last_saved = step  # the starting point is on disk already (or trivial)
     start = time.perf_counter() - resume_from.seconds
+    deadline = math.inf if max_seconds is None else time.perf_counter() + max_seconds
 
     def progress_at(epoch: int, index: int, train_metrics: list) -> dict:
         # Floats, in place: later saves and the epoch's mean need no further transfers.
@@ -334,10 +339,10 @@ def fit(
                 step += 1
                 next_index = i + 1
                 bar.update(1)
-                if step >= max_steps:
+                if step >= max_steps or time.perf_counter() >= deadline:
                     exhausted = False
                     break
-            stop = step >= max_steps
+            stop = step >= max_steps or time.perf_counter() >= deadline
             if train_metrics and ((epoch + 1) % config.eval_every == 0 or stop):
                 record = {
                     k: float(np.mean([float(m[k]) for m in train_metrics]))
@@ -491,7 +496,11 @@ class EstimatorBatch(NamedTuple):
 
 
 def make_estimator_batch(
-    rig_train: Rig, infer_cameras: Sequence[int], xy: jax.Array, score: jax.Array
+    rig_train: Rig,
+    infer_cameras: Sequence[int],
+    xy: jax.Array,
+    score: jax.Array,
+    normalisation: tuple[Any, Any] | None = None,
 ) -> EstimatorBatch:
     """Builds estimator samples from people's detections in the training cameras.
 
@@ -499,13 +508,18 @@ def make_estimator_batch(
       rig_train: the training cameras C_t.
       infer_cameras: indices into C_t of the inference cameras C_i.
       xy: (N, C_t, K, 2) pixels; score: (N, C_t, K).
+      normalisation: (centre (3,), radius ()) of the normalised space; default ``rig_train``'s
+        (an estimator trained elsewhere, `Estimator.normalisation`, keeps its own).
     """
     idx = np.asarray(infer_cameras)
     rig_infer = rig_train.select(list(idx))
     xy = jnp.asarray(xy, jnp.float32)
     score = jnp.asarray(score, jnp.float32)
     inputs = estimator_inputs(
-        rig_infer, xy[:, idx], score[:, idx], rig_centre_and_radius(rig_train)
+        rig_infer,
+        xy[:, idx],
+        score[:, idx],
+        rig_centre_and_radius(rig_train) if normalisation is None else normalisation,
     )
     available = (score[:, idx] > 0).any(axis=-1)
     return EstimatorBatch(inputs, available, xy, score)
@@ -536,9 +550,16 @@ def random_view_subsets(
     return masks, jnp.broadcast_to(n_avail >= 2, (num, N))
 
 
-def estimator_loss_fn(rig_train: Rig, rig_infer: Rig, num_augment: int, loss_power: float = 2.0):
-    """``loss_fn(model, batch, key)`` of the estimator, for `make_train_step`."""
-    centre, radius = rig_centre_and_radius(rig_train)
+def estimator_loss_fn(
+    rig_train: Rig,
+    rig_infer: Rig,
+    num_augment: int,
+    loss_power: float = 2.0,
+    normalisation: tuple[Any, Any] | None = None,
+):
+    """``loss_fn(model, batch, key)`` of the estimator, for `make_train_step`; ``normalisation``
+    as `make_estimator_batch`."""
+    centre, radius = rig_centre_and_radius(rig_train) if normalisation is None else normalisation
 
     def loss_fn(model, batch: EstimatorBatch, key):
         subsets, subset_ok = random_view_subsets(key, batch.available, num_augment)
@@ -680,7 +701,14 @@ def train_estimator(
 
 
 def compare_with_triangulation(
-    graphdef, rest, params, rig_train: Rig, infer_idx: Sequence[int], xy, score
+    graphdef,
+    rest,
+    params,
+    rig_train: Rig,
+    infer_idx: Sequence[int],
+    xy,
+    score,
+    normalisation: tuple[Any, Any] | None = None,
 ) -> dict:
     """Mean reprojection error (px per detected keypoint and training camera) of an estimator's
     people and of DLT triangulation from the same inference views, on the keypoints the
@@ -688,11 +716,12 @@ def compare_with_triangulation(
 
     Args:
       xy: (N, C_t, K, 2), score: (N, C_t, K): people of the dev recordings, training cameras.
+      normalisation: as `make_estimator_batch`.
     Returns:
       {"estimator_px", "triangulation_px", "keypoints"}.
     """
-    data = make_estimator_batch(rig_train, infer_idx, xy, score)
-    centre, radius = rig_centre_and_radius(rig_train)
+    data = make_estimator_batch(rig_train, infer_idx, xy, score, normalisation)
+    centre, radius = rig_centre_and_radius(rig_train) if normalisation is None else normalisation
     model = nnx.merge(graphdef, params, rest)
     xyz_est = to_world(model(assemble_features(data.inputs, data.available)), centre, radius)
     idx = np.asarray(infer_idx)
@@ -714,8 +743,36 @@ def compare_with_triangulation(
     }
 
 
-def _estimator_eval(graphdef, rest, rig_train, rig_infer, loss_power, params, data: EstimatorBatch):
-    centre, radius = rig_centre_and_radius(rig_train)
+def make_estimator_eval(
+    graphdef, rest, rig_train: Rig, loss_power: float, normalisation: tuple[Any, Any] | None = None
+) -> Callable:
+    """A jitted ``(params, EstimatorBatch) -> {"val_loss", "val_px_per_keypoint"}``: the
+    reprojection loss over ``rig_train``'s cameras (no augmentation) and the mean error per
+    detected keypoint; ``normalisation`` as `make_estimator_batch`."""
+    return jax.jit(
+        functools.partial(
+            _estimator_eval,
+            graphdef,
+            rest,
+            rig_train,
+            None,
+            loss_power,
+            normalisation=normalisation,
+        )
+    )
+
+
+def _estimator_eval(
+    graphdef,
+    rest,
+    rig_train,
+    rig_infer,
+    loss_power,
+    params,
+    data: EstimatorBatch,
+    normalisation=None,
+):
+    centre, radius = rig_centre_and_radius(rig_train) if normalisation is None else normalisation
     model = nnx.merge(graphdef, params, rest)
     feats = assemble_features(data.inputs, data.available)
     xyz = to_world(model(feats), centre, radius)

@@ -53,6 +53,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "offline",
         "training",
         "infer_memory",
+        "adapt",
         "memory",
         "targets",
         "profile",
@@ -98,6 +99,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "training",
         "tracking",
         "infer_memory",
+        "adapt",
     }
     assert all(r["maxrss_mb"] > 0 for r in run["memory"].values())
 
@@ -105,6 +107,10 @@ def test_smoke_run_has_every_section(smoke_run):
     assert [r["frames"] for r in rows] == [24, 48]
     assert all(r["infer"]["exit"] == 0 and r["infer"]["maxrss_mb"] > 100 for r in rows)
     assert rows[0]["whole"]["maxrss_mb"] > 100 and "whole" not in rows[1]
+
+    ad = run["adapt"]
+    assert ad["frames"] == 50 and ad["steps"] == 2 and ad["people_heldout"] > 0
+    assert 0 < ad["grouping_seconds"] < ad["seconds"] and ad["status"] in ("pass", "miss")
 
     assert len(run["targets"]) == 5
     assert all(t["status"] in ("pass", "miss", "n/a") for t in run["targets"])
@@ -117,6 +123,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "## Peak memory of infer against the recording's length",
         "## Breakdown",
         "## Tracking",
+        "## Adapting the estimator",
     ):
         assert heading in md
 

@@ -25,6 +25,7 @@ COMMANDS = [
     "convert",
     "train-matcher",
     "train-estimator",
+    "adapt",
     "infer",
     "smooth",
     "evaluate",

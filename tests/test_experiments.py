@@ -123,7 +123,13 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
 
 
 def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
-    from experiments.run import SCALES, SHIFT_PIPELINES, make_scenes, make_shifted_scenes
+    from experiments.run import (
+        ADAPT_PIPELINES,
+        SCALES,
+        SHIFT_PIPELINES,
+        make_scenes,
+        make_shifted_scenes,
+    )
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.synthetic import SHIFTS
 
@@ -138,7 +144,7 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
         assert set(splits) == {"validation", "test"}
         for row in splits.values():
             assert set(row["matching"]) == {"gat", "epipolar"}
-            assert set(row["pose"]) == set(SHIFT_PIPELINES)
+            assert set(row["pose"]) == set(SHIFT_PIPELINES) | set(ADAPT_PIPELINES)
             for metrics in row["pose"].values():
                 assert 0 <= metrics["pcp"] <= 100 and 0 <= metrics["completeness"] <= 100
             # On robust triangulation's keypoints the blend IS robust triangulation.

@@ -1,0 +1,453 @@
+"""Adapting a trained 3D estimator to one recording, without labels.
+
+The estimator's loss (DESIGN.md §1.3) is the reprojection error of its 3D people in the cameras
+that saw them: it needs no 3D truth, so the recording being reconstructed is training data too.
+`adapt_estimator` groups the recording's detections into people with the current proposals (a
+learned matcher, or the epipolar one), builds estimator samples from those groups exactly as
+training does (`train.make_estimator_batch`, the estimator's own normalised frame), and
+fine-tunes the given parameters with the training step and fit loop of `train`
+(`make_train_step`, `fit`). Contiguous blocks of frames are held out (every ``holdout_every``-th
+block of ``block_frames`` frames, so neighbouring frames of a held-out frame, nearly the same
+people, cannot leak into the adaptation set); their reprojection loss decides early stopping,
+and the best parameters (the given ones included) are returned. Steps and wall-clock time are
+bounded (`AdaptConfig`).
+
+`save_adapted_estimator` writes the result as a model folder that `trained.load_estimator`
+(and ``mvpose-jax infer --estimator``) loads, with the report beside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from mvpose_jax.cameras import Rig
+from mvpose_jax.checkpoints import Checkpoints
+from mvpose_jax.data.files import atomic_write_text, to_jsonable
+from mvpose_jax.errors import InputError
+from mvpose_jax.inference import group_people, run_pipeline
+from mvpose_jax.skeletons import Detections
+from mvpose_jax.train import (
+    EstimatorBatch,
+    TrainState,
+    compare_with_triangulation,
+    estimator_loss_fn,
+    fit,
+    init_train_state,
+    make_estimator_batch,
+    make_estimator_eval,
+    make_optimizer,
+    make_train_step,
+)
+from mvpose_jax.trained import DEV_QUALITY_FILE, Estimator, Matcher, TrainConfig
+
+# The time bound of the issue (19, item 3): at most 2 minutes per 1,000 frames (quick size, 2 CPU
+# cores); the default wall-clock budget of an adaptation.
+SECONDS_PER_1000_FRAMES = 120.0
+
+# Written beside the adapted model by `save_adapted_estimator`.
+ADAPT_REPORT_FILE = "adapt_report.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class AdaptConfig:
+    """How an estimator is adapted to a recording.
+
+    Attributes:
+      learning_rate: Adam's initial step size; final_lr_fraction: below 1, a cosine decay to
+        this fraction of it over ``max_steps``; 1: constant. The defaults (1e-3 decaying to 1e-4)
+        were chosen on the domain-shift experiment's validation scenes (quick scale; 1e-4 and
+        3e-4 constant did as well within 0.2 PCP points, and stopped later).
+      batch_size: people per step (augmented view subsets come on top, as in training).
+      max_steps: most steps.
+      max_seconds: wall-clock budget of the whole call (proposals, compilation and steps); None:
+        `SECONDS_PER_1000_FRAMES` per 1,000 frames of the recording (at least 30 s).
+      check_every: steps between two evaluations of the held-out frames.
+      patience: stop after this many evaluations without improvement.
+      holdout_every: every this-many-th block of frames is held out (5: a fifth of the frames).
+      block_frames: frames per block (contiguous, so held-out frames' neighbours stay out of the
+        adaptation set).
+      num_augment: view-subset samples per person (None: the estimator's training setting).
+      loss_power: per-person loss e^power (None: the estimator's training setting).
+      min_views: a person group takes part when it has skeletons in this many cameras.
+      min_people: the least people the adaptation set needs (and the held-out set a quarter of
+        it); fewer is an error.
+      seed: batch order and augmentation.
+    """
+
+    learning_rate: float = 1e-3
+    final_lr_fraction: float = 0.1
+    batch_size: int = 256
+    max_steps: int = 300
+    max_seconds: float | None = None
+    check_every: int = 20
+    patience: int = 5
+    holdout_every: int = 5
+    block_frames: int = 10
+    num_augment: int | None = None
+    loss_power: float | None = None
+    min_views: int = 2
+    min_people: int = 16
+    seed: int = 0
+
+    def budget_seconds(self, num_frames: int) -> float:
+        """The wall-clock budget for a recording of ``num_frames`` frames."""
+        if self.max_seconds is not None:
+            return float(self.max_seconds)
+        return max(30.0, SECONDS_PER_1000_FRAMES * num_frames / 1000.0)
+
+    def check(self) -> None:
+        """Raises `InputError` naming the first setting out of range."""
+        positive = ("batch_size", "check_every", "holdout_every", "block_frames", "min_people")
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise InputError(f"must be at least 1, not {getattr(self, name)}", field=name)
+        if self.holdout_every < 2:
+            raise InputError(
+                "must be at least 2 (1 would hold out every frame)", field="holdout_every"
+            )
+        if self.max_steps < 0 or self.patience < 1 or self.min_views < 1:
+            raise InputError("max_steps >= 0, patience >= 1 and min_views >= 1", field="config")
+        if not self.learning_rate > 0 or not 0 < self.final_lr_fraction <= 1:
+            raise InputError(
+                "learning_rate > 0 and final_lr_fraction in (0, 1]", field="learning_rate"
+            )
+        if self.max_seconds is not None and not self.max_seconds > 0:
+            raise InputError(f"must be > 0, not {self.max_seconds}", field="max_seconds")
+
+
+@dataclasses.dataclass(frozen=True)
+class AdaptReport:
+    """What an adaptation did, for the user and the report file.
+
+    Attributes:
+      frames, frames_adapt, frames_heldout: the recording's frames and how they were split.
+      people_adapt, people_heldout: person groups in each part.
+      heldout_loss_before, heldout_loss_after: the held-out reprojection loss (mean of e^power
+        per person) of the given and of the returned parameters.
+      heldout_px_before, heldout_px_after: the same as mean L1 error per detected keypoint (px).
+      steps: steps run; best_step: the step of the returned parameters (0: the given ones).
+      stopped: "max_steps", "max_seconds" or "patience".
+      seconds: the whole call; seconds_grouping: of it, the proposals.
+      settings: the `AdaptConfig` and the grouping used.
+      quality: the returned estimator against DLT triangulation on the held-out people
+        (`train.compare_with_triangulation`; written beside a saved model, where
+        `trained.load_estimator` warns from it).
+      history: one record per held-out evaluation (`train.fit`).
+    """
+
+    frames: int
+    frames_adapt: int
+    frames_heldout: int
+    people_adapt: int
+    people_heldout: int
+    heldout_loss_before: float
+    heldout_loss_after: float
+    heldout_px_before: float
+    heldout_px_after: float
+    steps: int
+    best_step: int
+    stopped: str
+    seconds: float
+    seconds_grouping: float
+    settings: dict
+    quality: dict
+    history: list[dict[str, float]]
+
+    def to_json(self) -> dict:
+        return to_jsonable(dataclasses.asdict(self))
+
+
+def heldout_frames(num_frames: int, block_frames: int, holdout_every: int) -> np.ndarray:
+    """Which frames are held out: (F,) bool, True for every frame of every ``holdout_every``-th
+    block of ``block_frames`` consecutive frames (blocks holdout_every-1, 2*holdout_every-1, ...),
+    so a recording's start and end both adapt."""
+    block = np.arange(num_frames) // block_frames
+    return block % holdout_every == holdout_every - 1
+
+
+def person_samples(
+    detections: Detections, members: np.ndarray, min_views: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each proposed person's skeletons as one estimator sample.
+
+    Args:
+      detections: xy (F, C, P, K, 2), score (F, C, P, K) in the C cameras of ``members``.
+      members: (F, G, C) each person's skeleton per camera, -1 none.
+      min_views: least cameras with a skeleton.
+    Returns:
+      xy (N, C, K, 2), score (N, C, K) and frame (N,) of the N people kept, frame order.
+    """
+    xy, score = group_people(detections.xy, detections.score, members)  # (F, G, C, K, ...)
+    views = ((members >= 0) & (score > 0).any(-1)).sum(-1)  # (F, G)
+    f, g = np.nonzero(views >= min_views)
+    return xy[f, g], score[f, g], f
+
+
+def adapt_estimator(
+    rig: Rig,
+    detections: Detections,
+    estimator: Estimator,
+    *,
+    members: np.ndarray | None = None,
+    matcher: Matcher | None = None,
+    threshold: float = 0.5,
+    half_score_px: float = 30.0,
+    config: AdaptConfig = AdaptConfig(),
+    progress: bool = True,
+) -> tuple[Estimator, AdaptReport]:
+    """Fine-tunes ``estimator`` on a recording's own detections (no labels; module docstring).
+
+    Args:
+      rig: the C cameras of ``detections``, in their order.
+      detections: xy (F, C, P, K, 2) pixels, score (F, C, P, K), count (F, C).
+      estimator: the starting point; its inference cameras must be among the grouping cameras.
+      members: (F, G, C) person groups on ``rig``'s cameras (e.g. an earlier run's
+        `PipelineResult.members`); None: proposals of ``matcher`` (at ``threshold``) on its
+        cameras, or, without one, of the epipolar matcher (``half_score_px``) on every camera.
+      config: `AdaptConfig`.
+    Returns:
+      (the adapted `Estimator`: the parameters with the lowest held-out loss, possibly the given
+      ones; its cameras and normalisation unchanged, `AdaptReport`).
+    Raises:
+      InputError on settings out of range, cameras or keypoints that do not fit, or a recording
+      too short (or too empty) to hold out frames from.
+    """
+    start = time.perf_counter()
+    config.check()
+    F, C, P, K = np.shape(detections.score)
+    budget = config.budget_seconds(F)
+    if members is None:
+        grouping = "matcher" if matcher is not None else f"epipolar ({half_score_px:g} px)"
+        res = run_pipeline(
+            rig,
+            detections,
+            matcher=matcher,
+            threshold=threshold,
+            half_score_px=half_score_px,
+            min_views=config.min_views,
+        )
+        members, cameras = res.members, res.cameras
+    else:
+        grouping, cameras = "given", tuple(rig.names)
+        if np.shape(members)[0] != F or np.ndim(members) != 3 or np.shape(members)[2] != C:
+            raise InputError(
+                f"members have shape {np.shape(members)}, expected ({F}, G, {C})", field="members"
+            )
+    seconds_grouping = time.perf_counter() - start
+    cam_idx = [rig.names.index(c) for c in cameras]
+    missing = [c for c in estimator.rig_infer.names if c not in cameras]
+    if missing:
+        raise InputError(
+            f"the estimator's inference cameras {missing} are not among the grouping cameras "
+            f"{list(cameras)}",
+            field="cameras",
+        )
+    infer_idx = [list(cameras).index(c) for c in estimator.rig_infer.names]
+    rig_loss = rig.select(list(cameras))
+    det = Detections(
+        np.asarray(detections.xy, np.float32)[:, cam_idx],
+        np.asarray(detections.score, np.float32)[:, cam_idx],
+        np.asarray(detections.count)[:, cam_idx],
+    )
+    model = nnx.merge(estimator.graphdef, estimator.params, estimator.rest)
+    if model.num_keypoints != K:
+        raise InputError(
+            f"the estimator was trained on {model.num_keypoints} keypoints, the detections have "
+            f"{K} (convert the layout)",
+            field="keypoints",
+        )
+    xy, score, frame = person_samples(det, np.asarray(members), config.min_views)
+    # Only people the estimator can see: at least one inference view.
+    seen = (score[:, infer_idx] > 0).any(axis=(1, 2))
+    xy, score, frame = xy[seen], score[seen], frame[seen]
+    held_frames = heldout_frames(F, config.block_frames, config.holdout_every)  # (F,)
+    held = held_frames[frame]  # (N,)
+    n_adapt, n_held = int((~held).sum()), int(held.sum())
+    need_held = max(1, config.min_people // 4)
+    if n_adapt < config.min_people or n_held < need_held:
+        raise InputError(
+            f"too little to adapt on: {n_adapt} people (of {config.min_views}+ views) in the "
+            f"adaptation frames and {n_held} in the held-out frames (every {config.holdout_every}"
+            f"th block of {config.block_frames} frames) of {F} frames; need {config.min_people} "
+            f"and {need_held}: a longer recording, or smaller --block-frames",
+            field="detections",
+        )
+    normalisation = estimator.normalisation
+    power = estimator.config.loss_power if config.loss_power is None else config.loss_power
+    augment = estimator.config.num_augment if config.num_augment is None else config.num_augment
+
+    def batch_of(sel) -> EstimatorBatch:
+        parts = [
+            make_estimator_batch(
+                rig_loss, infer_idx, xy[sel][i : i + 4096], score[sel][i : i + 4096], normalisation
+            )
+            for i in range(0, int(sel.sum()), 4096)
+        ]
+        return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+
+    adapt_data, held_data = batch_of(~held), batch_of(held)
+    batch = min(config.batch_size, n_adapt)
+    max_steps = config.max_steps
+    tcfg = TrainConfig(
+        learning_rate=config.learning_rate,
+        clip_norm=estimator.config.train.clip_norm,
+        batch_size=batch,
+        max_epochs=max(1, math.ceil(max_steps / config.check_every)),
+        max_steps=max_steps,
+        eval_every=1,
+        patience=config.patience,
+        seed=config.seed,
+        final_lr_fraction=config.final_lr_fraction,
+        checkpoint_every_steps=0,
+    )
+    tx = make_optimizer(tcfg, config.check_every)
+    # A copy: the train step donates its state, and the caller keeps the given estimator.
+    graphdef, rest, state = init_train_state(
+        nnx.merge(estimator.graphdef, jax.tree.map(jnp.copy, estimator.params), estimator.rest),
+        tx,
+    )
+    loss_fn = estimator_loss_fn(rig_loss, estimator.rig_infer, augment, power, normalisation)
+    train_step = make_train_step(graphdef, rest, tx, loss_fn)
+    eval_fn = make_estimator_eval(graphdef, rest, rig_loss, power, normalisation)
+
+    def evaluate(s: TrainState) -> dict[str, float]:
+        return {k: float(v) for k, v in eval_fn(s.params, held_data).items()}
+
+    def check_batches(epoch: int):
+        # An "epoch" of the fit loop is one evaluation period: check_every random batches.
+        rng = np.random.default_rng([config.seed, epoch])
+        for _ in range(config.check_every):
+            idx = rng.choice(n_adapt, batch, replace=False)
+            yield jax.tree.map(lambda a: a[idx], adapt_data)
+
+    before = evaluate(state)
+    if max_steps == 0:
+        result_state, steps, history, best_step = state, 0, [], 0
+        after = before
+        stopped = "max_steps"
+    else:
+        result = fit(
+            state,
+            train_step,
+            check_batches,
+            evaluate,
+            tcfg,
+            steps_per_epoch=config.check_every,
+            desc="adapt",
+            progress=progress,
+            best_val_loss=before["val_loss"],
+            best_state=state,
+            max_seconds=max(0.0, budget - (time.perf_counter() - start)),
+        )
+        result_state, steps, history = result.state, result.steps, result.history
+        best_step = int(result_state.step)
+        after = evaluate(result_state)
+        if steps >= max_steps:
+            stopped = "max_steps"
+        elif time.perf_counter() - start >= budget:
+            stopped = "max_seconds"
+        else:
+            stopped = "patience"
+    adapted = estimator._replace(params=jax.device_get(result_state.params))
+    quality = compare_with_triangulation(
+        graphdef,
+        rest,
+        result_state.params,
+        rig_loss,
+        infer_idx,
+        xy[held],
+        score[held],
+        normalisation=normalisation,
+    )
+    quality["how"] += " (here: the people of the adaptation's held-out frames)"
+    report = AdaptReport(
+        frames=F,
+        frames_adapt=int((~held_frames).sum()),
+        frames_heldout=int(held_frames.sum()),
+        people_adapt=n_adapt,
+        people_heldout=n_held,
+        heldout_loss_before=before["val_loss"],
+        heldout_loss_after=after["val_loss"],
+        heldout_px_before=before["val_px_per_keypoint"],
+        heldout_px_after=after["val_px_per_keypoint"],
+        steps=int(steps),
+        best_step=best_step,
+        stopped=stopped,
+        seconds=time.perf_counter() - start,
+        seconds_grouping=seconds_grouping,
+        settings={
+            **dataclasses.asdict(config),
+            "grouping": grouping,
+            "grouping_cameras": list(cameras),
+            "loss_power": power,
+            "num_augment": augment,
+            "budget_seconds": budget,
+        },
+        quality=quality,
+        history=history,
+    )
+    return adapted, report
+
+
+def save_adapted_estimator(
+    directory: str | os.PathLike,
+    estimator: Estimator,
+    report: AdaptReport,
+) -> Path:
+    """Writes an adapted estimator as a model folder `trained.load_estimator` loads, with
+    ``adapt_report.json`` beside the checkpoint.
+
+    The folder is assembled under a temporary name beside ``directory`` and renamed into place
+    when complete: an interrupted call leaves no half-written model.
+
+    Args:
+      directory: the new model folder; it must not exist, or be empty.
+    Raises:
+      InputError when ``directory`` holds something already.
+    """
+    out = Path(directory)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError("exists and is not an empty folder; choose a new one", file=out)
+    config = to_jsonable(dataclasses.asdict(estimator.config))
+    names = list(estimator.rig_infer.names)
+    centre, radius = estimator.normalisation
+    config.update(
+        train_cameras=list(estimator.config.train_cameras or names),
+        infer_cameras=names,
+        num_keypoints=int(
+            nnx.merge(estimator.graphdef, estimator.params, estimator.rest).num_keypoints
+        ),
+        frame=[float(x) for x in np.asarray(centre)] + [float(radius)],
+        adapted={k: v for k, v in report.to_json().items() if k not in ("history", "quality")},
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        params = jax.device_put(estimator.params)
+        state = TrainState(jnp.asarray(report.best_step, jnp.int32), params, ())
+        checkpoints = Checkpoints(tmp)
+        try:
+            checkpoints.save_best(state, config, report.heldout_loss_after)
+        finally:
+            checkpoints.close()
+        atomic_write_text(tmp / ADAPT_REPORT_FILE, json.dumps(report.to_json(), indent=1) + "\n")
+        atomic_write_text(tmp / DEV_QUALITY_FILE, json.dumps(report.quality, indent=1) + "\n")
+        if out.exists():
+            out.rmdir()  # empty (checked above)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
