@@ -484,7 +484,8 @@ def test_epipolar_distances_of_rows_mean_median_and_either_camera_order(ring_rig
     mean, median = epipolar_distances_of_rows(ring_rig, det, rows)
     np.testing.assert_allclose(mean, d, rtol=1e-6)
     swapped = rows[:, [0, 3, 4, 1, 2]]  # the same pairs named (camera_b, camera_a)
-    for got, want in zip(epipolar_distances_of_rows(ring_rig, det, swapped), (mean, median)):
+    got_both = epipolar_distances_of_rows(ring_rig, det, swapped)
+    for got, want in zip(got_both, (mean, median), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-6)
     # The median against OpenCV: undistorted pixels, the fundamental matrix of the two cameras,
     # cv2.computeCorrespondEpilines, point-line distances, their numpy median.
@@ -498,7 +499,7 @@ def test_epipolar_distances_of_rows_mean_median_and_either_camera_order(ring_rig
     def line_distance(lines, pts):
         return np.abs((lines[:, :2] * pts).sum(1) + lines[:, 2]) / np.hypot(*lines[:, :2].T)
 
-    for r, want in zip(rows[::7], median[::7]):
+    for r, want in zip(rows[::7], median[::7], strict=True):
         f, ca, pa, cb, pb = r
         shared = (score[f, ca, pa] > 0) & (score[f, cb, pb] > 0)
         if shared.sum() < 3:

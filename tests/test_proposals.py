@@ -101,6 +101,31 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
         read_proposal_threshold(str(tmp_path), None)
 
 
+@pytest.mark.slow  # a GAT on composed frames, the epipolar distances, 12 proposal runs
+def test_matcher_settings_come_from_one_composition():
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.inference import choose_matcher_settings, choose_matcher_threshold
+    from mvpose_jax.trained import Matcher
+
+    rig = load_rig("panoptic5")
+    recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=3, seed=5)
+    tiny = GATConfig(widths=(8, 1), heads=(2, 1))
+    graphdef, params, rest = nnx.split(
+        MatchingGAT(rig.num_cameras, recs[0].num_keypoints, tiny, rngs=nnx.Rngs(0)), nnx.Param, ...
+    )
+    matcher = Matcher(graphdef, rest, params, rig, MatcherConfig(gat=tiny, max_people=3))
+    threshold, ari, _ = choose_matcher_threshold(matcher, recs, num_samples=24)
+    # The same GAT threshold, the epipolar cutoff, the combined matcher's threshold at it.
+    chosen = choose_matcher_settings(matcher, recs, num_samples=24)
+    assert chosen.threshold == threshold and chosen.ari_by_threshold == ari
+    assert chosen.combined.epipolar_cutoff_px == chosen.geometric_cutoff_px
+    assert chosen.ari_by_cutoff_px[chosen.geometric_cutoff_px] == max(
+        chosen.ari_by_cutoff_px.values()
+    )
+    best = chosen.ari_by_combined_threshold
+    assert best[chosen.combined.threshold] == max(best.values()) and chosen.composed_frames == 24
+
+
 def test_proposals_join_best_first_and_respect_cameras():
     count = np.array([[2, 2, 1]])  # one frame, 3 cameras
     rows = np.array(
