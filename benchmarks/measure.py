@@ -575,6 +575,10 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
         "pp.propose_with_matcher (default 32-frame chunk)",
         lambda f: propose_with_matcher(matcher, _frame(det, f)),
     )
+    measure(
+        "pp.propose_with_matcher combined (GAT + epipolar, the pipeline's default)",
+        lambda f: propose_with_matcher(matcher, _frame(det, f), mode="combined"),
+    )
 
     # ---- t_3Dg: grouping, estimate_grouped, then its insides: features and MLP (poses_of_members
     # is group_people + estimate_grouped)

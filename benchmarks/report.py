@@ -10,6 +10,8 @@ OFFLINE_PEAK_FRACTION = 0.70
 PIPELINE_FACTOR = 2.0
 INFER_MEMORY_SPREAD = 0.10  # infer's peak RSS at every recording length within 10 % of each other
 
+COMBINED_KEY = "pp.propose_with_matcher combined (GAT + epipolar, the pipeline's default)"
+
 
 def _row(rows, **match):
     for r in rows:
@@ -404,7 +406,13 @@ def profile_notes(run: dict) -> list[str]:
             f"A frame whose skeleton counts per view were not met before also builds its graph: "
             f"{p['pp.graph_for_new_counts (build + to device)']:.2f} ms{_patterns(run, bd)}. The default "
             f"propose_with_matcher: "
-            f"{p['pp.propose_with_matcher (default 32-frame chunk)']:.2f} ms."
+            f"{p['pp.propose_with_matcher (default 32-frame chunk)']:.2f} ms"
+            + (
+                f"; combined with epipolar geometry (the pipeline's default with a matcher): "
+                f"{combined:.2f} ms."
+                if (combined := p.get(COMBINED_KEY)) is not None
+                else "."
+            )
         )
         row = _row(
             (run.get("latency") or {}).get("rows", []),

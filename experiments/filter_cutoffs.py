@@ -66,6 +66,7 @@ def main(argv=None) -> int:
         "gat_mlp": {
             "matcher": m["matcher"],
             "estimator": m["estimator"],
+            "proposals": "gat",
             "threshold": m["fit"]["threshold"],
         },
         "epipolar_dlt": {"half_score_px": m["fit"]["geometric_cutoff_px"]},

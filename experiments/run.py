@@ -61,6 +61,7 @@ from mvpose_jax.errors import InputError
 from mvpose_jax.features import people_from_identity, single_person_samples
 from mvpose_jax.inference import (
     composed_frames,
+    epipolar_distances_of_rows,
     epipolar_match_distances,
     estimate_grouped,
     gat_match_table,
@@ -80,7 +81,12 @@ from mvpose_jax.metrics import (
     reprojection_errors,
 )
 from mvpose_jax.models import GATConfig, MLPConfig
-from mvpose_jax.proposals import choose_geometric_cutoff, choose_proposal_threshold
+from mvpose_jax.proposals import (
+    CombinedConfig,
+    choose_combined_threshold,
+    choose_geometric_cutoff,
+    choose_proposal_threshold,
+)
 from mvpose_jax.render import curves_figure, save_figure, skeleton_figure
 from mvpose_jax.skeletons import Detections, Poses3D, evaluation_keypoints
 from mvpose_jax.smoothing import smooth_poses
@@ -413,11 +419,17 @@ def fit_matcher(data: Data, sc: Scale, cameras, seed: int, progress: bool):
         min_views=config.min_views,
         keypoint_dropout=config.keypoint_dropout,
     )
-    threshold, ari = choose_proposal_threshold(
-        *gat_match_table(matcher, composed), identity, composed.count
-    )
+    gat_rows, gat_scores = gat_match_table(matcher, composed)
+    threshold, ari = choose_proposal_threshold(gat_rows, gat_scores, identity, composed.count)
     rows, distances = epipolar_match_distances(matcher.rig, composed)
     cutoff, ari_geo = choose_geometric_cutoff(rows, distances, identity, composed.count)
+    # The combined matcher's threshold by the same rule, at that cutoff (its weight and
+    # half-score distance are the library's defaults, chosen on the domain-shift validation scenes).
+    combined = CombinedConfig(epipolar_cutoff_px=cutoff)
+    mean, median = epipolar_distances_of_rows(matcher.rig, composed, gat_rows)
+    combined_threshold, ari_comb = choose_combined_threshold(
+        gat_rows, gat_scores, mean, median, identity, composed.count, config=combined
+    )
     return matcher, {
         "train_seconds": round(seconds, 1),
         "train_steps": fit.steps,
@@ -427,6 +439,8 @@ def fit_matcher(data: Data, sc: Scale, cameras, seed: int, progress: bool):
         "dev_ari_by_threshold": {str(k): round(v, 5) for k, v in ari.items()},
         "geometric_cutoff_px": cutoff,
         "dev_ari_by_cutoff_px": {str(k): round(v, 5) for k, v in ari_geo.items()},
+        "combined": dataclasses.asdict(dataclasses.replace(combined, threshold=combined_threshold)),
+        "dev_ari_by_combined_threshold": {str(k): round(v, 5) for k, v in ari_comb.items()},
     }
 
 
@@ -464,8 +478,8 @@ def matching_rows(data: Data, split: str, matcher, cameras, fit: dict) -> dict:
     F = len(det.count)
     out = {}
     methods = {
-        "gat": dict(matcher=matcher),
-        "gat_chosen": dict(matcher=matcher, threshold=fit["threshold"]),
+        "gat": dict(matcher=matcher, proposals="gat"),
+        "gat_chosen": dict(matcher=matcher, proposals="gat", threshold=fit["threshold"]),
         "geometric": dict(half_score_px=fit["geometric_cutoff_px"]),
     }
     for method, kwargs in methods.items():
@@ -575,8 +589,15 @@ def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[di
     for variant in ("detected", "projected", "average"):
         det, ident, gt, ids = data.detections(split, rig.names, variant)
         scoring = {"up": up_vector(rig), "person_ids": ids}
+        # The paper's pipeline: the GAT's proposals alone (the combined matcher is measured by
+        # the domain-shift experiment).
         ours = _timed_pipeline(
-            rig, det, matcher=matcher, estimator=estimator, threshold=fit["threshold"]
+            rig,
+            det,
+            matcher=matcher,
+            estimator=estimator,
+            proposals="gat",
+            threshold=fit["threshold"],
         )
         pipeline, tris = _compare(rig, det, gt, ours, ours.members, scoring, _times(ours))
         # The 3D stage alone: the true groupings (people seen in 2+ views), ours and triangulation.
@@ -595,7 +616,9 @@ def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[di
         behind_geo, _ = _compare(rig, det, gt, geo, geo.members, scoring)
         # Ours behind the GAT at the paper's threshold: a lower threshold joins more true pairs
         # (ARI) but also a few wrong ones, and a wrong skeleton spoils a whole person's 3D.
-        at_half = run_pipeline(rig, det, matcher=matcher, estimator=estimator, threshold=0.5)
+        at_half = run_pipeline(
+            rig, det, matcher=matcher, estimator=estimator, proposals="gat", threshold=0.5
+        )
         behind_half = pose_metrics(at_half.poses, gt, confidence=at_half.confidence, **scoring)
         rows[variant] = {
             "pipeline": _rounded(pipeline),
@@ -673,7 +696,14 @@ def tracking_rows(rig, scenes: list, matcher, estimator, fit: dict) -> dict:
     fps = 1.0 / float(np.median(np.diff(scenes[0].timestamps)))
     layout = scenes[0].layout
     pipelines = {
-        "gat_mlp": {"matcher": matcher, "estimator": estimator, "threshold": fit["threshold"]},
+        # The learned pipeline as `infer` runs it: combined proposals, the blend.
+        "learned": {
+            "matcher": matcher,
+            "estimator": estimator,
+            "proposals": "combined",
+            "combined": combined_config(fit),
+            "method": "blend",
+        },
         "epipolar_dlt": {"half_score_px": fit["geometric_cutoff_px"]},
     }
     filters = {
@@ -769,7 +799,12 @@ def arp_rows(
         members = _true_members(ident, gt.valid.shape[1], min_views=1)
     else:
         members = run_pipeline(
-            rig, det, matcher=matcher6, estimator=estimators["M_6/6"], threshold=threshold
+            rig,
+            det,
+            matcher=matcher6,
+            estimator=estimators["M_6/6"],
+            proposals="gat",
+            threshold=threshold,
         ).members
     p_xy, p_sc = group_people(det.xy, det.score, members)
     out = {}
@@ -1151,8 +1186,13 @@ def tracking_table(runs: list[dict], split: str) -> list[str]:
     runs = [r for r in runs if "tracking" in r]  # runs saved before tracking have none
     if not runs:
         return []
-    names = {"gat_mlp": "GAT + MLP (learned)", "epipolar_dlt": "epipolar + DLT"}
-    first = runs[0]["tracking"][split]["gat_mlp"]
+    names = {
+        "learned": "combined + blend (learned, infer's default)",
+        "gat_mlp": "GAT + MLP",  # runs saved before the combined matcher and the blend
+        "epipolar_dlt": "epipolar + DLT",
+    }
+    names = {k: v for k, v in names.items() if k in runs[0]["tracking"][split]}
+    first = runs[0]["tracking"][split][next(iter(names))]
     people = first["scene_people"]
     lines = [
         f"### Tracks over time: panoptic5, {split} tracking scenes with {min(people)}-"
@@ -1186,7 +1226,7 @@ def tracking_table(runs: list[dict], split: str) -> list[str]:
     lines += [
         "",
         "Jitter: mean |second difference| of keypoints along tracks (mm per frame²); the ground "
-        f"truth's own: {_ms(runs, ('tracking', split, 'gat_mlp', 'gt_jitter_mm'), 2)}.",
+        f"truth's own: {_ms(runs, ('tracking', split, next(iter(names)), 'gt_jitter_mm'), 2)}.",
         "Filters: none; One-Euro (causal, as the stream runs it); Butterworth (zero-phase, "
         "offline) with outlier rejection and gaps up to 0.5 s filled (share of keypoints filled).",
         "",
@@ -1354,6 +1394,9 @@ def make_shifted_scenes(rig, sc: Scale, data_seed: int, shift) -> dict:
 
 SHIFT_PIPELINES = {
     # name: (grouping, 3D method)
+    "combined_mlp": ("combined", "mlp"),
+    "combined_robust": ("combined", "robust"),
+    "combined_blend": ("combined", "blend"),
     "gat_mlp": ("gat", "mlp"),
     "gat_dlt": ("gat", "dlt"),
     "gat_robust": ("gat", "robust"),
@@ -1371,28 +1414,38 @@ SHIFT_METRICS = ("pcp", "mpjpe_mm", "completeness", "map")
 # After `adapt`: the MLP adapted to the split's own detections, grouped by the same proposals it
 # then runs behind (no labels; issue 19 item 3).
 ADAPT_PIPELINES = {
-    "gat_mlp_adapted": ("gat", "mlp"),
-    "gat_blend_adapted": ("gat", "blend"),
-    "epipolar_mlp_adapted": ("epipolar", "mlp"),
+    "combined_mlp_adapted": ("combined", "mlp"),
+    "combined_blend_adapted": ("combined", "blend"),
 }
+
+
+def combined_config(fit: dict) -> CombinedConfig:
+    """The combined matcher's settings chosen with a matcher (`fit_matcher`'s record); for a
+    matcher fitted before they were recorded, the defaults at its epipolar cutoff."""
+    if "combined" in fit:
+        return CombinedConfig(**fit["combined"])
+    return CombinedConfig(epipolar_cutoff_px=fit["geometric_cutoff_px"])
 
 
 def shift_rows(
     data: Data, split: str, matcher, estimator, fit: dict, adapt: AdaptConfig | None = None
 ) -> dict:
-    """One shift, one split: per-frame ARI of both matchers, and PCP, MPJPE, completeness and
-    mAP of every grouping (GAT at its dev-chosen threshold, epipolar at its dev-chosen cutoff,
-    the true groups) with every 3D method (the MLP, DLT, robust triangulation, and the blend of
-    robust triangulation and the MLP); and each estimator method's MPJPE on the keypoints robust
-    triangulation reconstructs (``mpjpe_on_robust_keypoints_mm``, like with like); with
-    ``adapt``, also the estimator adapted to the split's detections behind each matcher
-    (`ADAPT_PIPELINES`)."""
+    """One shift, one split: per-frame ARI of every matcher, and PCP, MPJPE, completeness and
+    mAP of every grouping (the combined matcher and the GAT at their dev-chosen thresholds,
+    epipolar at its dev-chosen cutoff, the true groups) with every 3D method (the MLP, DLT,
+    robust triangulation, the blend of robust triangulation and the MLP); each estimator
+    method's MPJPE on the keypoints robust triangulation reconstructs
+    (``mpjpe_on_robust_keypoints_mm``, like with like); with ``adapt``, also the estimator
+    adapted to the split's own detections behind the combined proposals (`ADAPT_PIPELINES`)."""
     rig = data.rig
     det, ident, gt, ids = data.detections(split, rig.names)
     scoring = {"up": up_vector(rig), "person_ids": ids}
     count = np.asarray(det.count)
     groups = {
-        "gat": run_pipeline(rig, det, matcher=matcher, threshold=fit["threshold"]),
+        "combined": run_pipeline(
+            rig, det, matcher=matcher, proposals="combined", combined=combined_config(fit)
+        ),
+        "gat": run_pipeline(rig, det, matcher=matcher, proposals="gat", threshold=fit["threshold"]),
         "epipolar": run_pipeline(rig, det, half_score_px=fit["geometric_cutoff_px"]),
     }
     out = {"matching": {}, "pose": {}, "frames": int(len(count))}
@@ -1485,7 +1538,9 @@ def domain_shift(
 
 
 SHIFT_PIPELINE_NAMES = {
-    "gat_mlp": "GAT + MLP (learned)",
+    "combined_mlp": "combined + MLP",
+    "combined_robust": "combined + robust triangulation",
+    "gat_mlp": "GAT + MLP",
     "gat_dlt": "GAT + DLT",
     "gat_robust": "GAT + robust triangulation",
     "epipolar_mlp": "epipolar + MLP",
@@ -1497,9 +1552,9 @@ SHIFT_PIPELINE_NAMES = {
     "gat_blend": "GAT + MLP/robust blend",
     "epipolar_blend": "epipolar + MLP/robust blend",
     "true_blend": "true groups + MLP/robust blend",
-    "gat_mlp_adapted": "GAT + MLP after adapt",
-    "gat_blend_adapted": "GAT + blend after adapt",
-    "epipolar_mlp_adapted": "epipolar + MLP after adapt",
+    "combined_blend": "combined + MLP/robust blend (learned, the default)",
+    "combined_mlp_adapted": "combined + MLP after adapt",
+    "combined_blend_adapted": "combined + blend after adapt",
 }
 
 
@@ -1509,10 +1564,14 @@ def shift_tables(runs: list[dict]) -> list[str]:
     lines = []
     names = list(runs[0]["shifts"])
     # Runs from before `adapt` have no adapted rows: their tables keep the old columns.
+    present = runs[0]["shifts"][names[0]]
     adapted = all(
-        "gat_mlp_adapted" in r["shifts"][n][s]["pose"] for r in runs for n in names for s in SPLITS
+        "combined_blend_adapted" in r["shifts"][n][s]["pose"]
+        for r in runs
+        for n in names
+        for s in present
     )
-    for split in ("test", "validation"):
+    for split in (s for s in ("test", "validation") if s in present):
         role = (
             "the reported results; read only for these tables"
             if split == "test"
@@ -1523,39 +1582,56 @@ def shift_tables(runs: list[dict]) -> list[str]:
             "",
             f"### Summary: panoptic5, {split} scenes with 1-8 people, per shift",
             "",
-            _seeds_line(runs) + " ARI: mean of per-frame scores. Δ ARI = GAT − epipolar "
-            "(acceptance: ≥ −0.002); Δ PCP = GAT + MLP (or + blend) − epipolar + robust "
-            "triangulation (acceptance: ≥ +1 point).",
+            _seeds_line(runs) + " The learned proposals are the combined matcher's (GAT and "
+            "epipolar geometry, `proposals.propose_combined`), the learned 3D stage the blend "
+            "(robust triangulation wherever it reconstructs a keypoint, the MLP elsewhere); ARI: "
+            "mean of per-frame scores. Acceptance: Δ ARI = combined − epipolar ≥ −0.002; the "
+            "combined proposals cost at most 0.5 PCP points against the same 3D stage on the "
+            "true groups (Δ true, for the MLP, robust triangulation and the blend, each ≥ −0.5); "
+            "Δ PCP = learned pipeline − epipolar + robust triangulation ≥ +1 point (≥ +2 after "
+            "adapt: the estimator fine-tuned without labels on the split's own detections grouped "
+            "by the combined proposals).",
             "",
-            "| shift | what | GAT ARI | epipolar ARI | Δ ARI | GAT + MLP PCP "
-            "| GAT + blend PCP | epipolar + robust PCP | Δ PCP MLP | Δ PCP blend |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "| shift | combined ARI | GAT ARI | epipolar ARI | Δ ARI | Δ true MLP "
+            "| Δ true robust | Δ true blend | combined + MLP PCP | combined + blend PCP "
+            "| epipolar + robust PCP | Δ PCP MLP | Δ PCP blend"
+            + (" | combined + blend after adapt PCP | Δ PCP after adapt |" if adapted else " |"),
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+            + ("---|---|" if adapted else ""),
         ]
         for name in names:
             base = ("shifts", name, split)
-            d_ari = [
-                r["shifts"][name][split]["matching"]["gat"]["ari"]
-                - r["shifts"][name][split]["matching"]["epipolar"]["ari"]
-                for r in runs
-            ]
-            d_pcp, d_blend = (
-                [
-                    r["shifts"][name][split]["pose"][key]["pcp"]
-                    - r["shifts"][name][split]["pose"]["epipolar_robust"]["pcp"]
-                    for r in runs
-                ]
-                for key in ("gat_mlp", "gat_blend")
+            ari = (*base, "matching")
+            pcp = {k: (*base, "pose", k, "pcp") for k in {**SHIFT_PIPELINES, **ADAPT_PIPELINES}}
+            row = (
+                f"| {name} "
+                f"| {_ms(runs, (*ari, 'combined', 'ari'), 4)} "
+                f"| {_ms(runs, (*ari, 'gat', 'ari'), 4)} "
+                f"| {_ms(runs, (*ari, 'epipolar', 'ari'), 4)} "
+                f"| {_diff(runs, (*ari, 'combined', 'ari'), (*ari, 'epipolar', 'ari'), 4)} "
+                f"| {_diff(runs, pcp['combined_mlp'], pcp['true_mlp'], 2)} "
+                f"| {_diff(runs, pcp['combined_robust'], pcp['true_robust'], 2)} "
+                f"| {_diff(runs, pcp['combined_blend'], pcp['true_blend'], 2)} "
+                f"| {_ms(runs, pcp['combined_mlp'], 2)} "
+                f"| {_ms(runs, pcp['combined_blend'], 2)} "
+                f"| {_ms(runs, pcp['epipolar_robust'], 2)} "
+                f"| {_diff(runs, pcp['combined_mlp'], pcp['epipolar_robust'], 2)} "
+                f"| {_diff(runs, pcp['combined_blend'], pcp['epipolar_robust'], 2)} |"
             )
-            lines.append(
-                f"| {name} | {SHIFTS[name].description if name in SHIFTS else ''} "
-                f"| {_ms(runs, (*base, 'matching', 'gat', 'ari'), 4)} "
-                f"| {_ms(runs, (*base, 'matching', 'epipolar', 'ari'), 4)} "
-                f"| {_mean_sd(d_ari, 4)} "
-                f"| {_ms(runs, (*base, 'pose', 'gat_mlp', 'pcp'), 2)} "
-                f"| {_ms(runs, (*base, 'pose', 'gat_blend', 'pcp'), 2)} "
-                f"| {_ms(runs, (*base, 'pose', 'epipolar_robust', 'pcp'), 2)} "
-                f"| {_mean_sd(d_pcp, 2)} | {_mean_sd(d_blend, 2)} |"
-            )
+            if adapted:
+                row += (
+                    f" {_ms(runs, pcp['combined_blend_adapted'], 2)} "
+                    f"| {_diff(runs, pcp['combined_blend_adapted'], pcp['epipolar_robust'], 2)} |"
+                )
+            lines.append(row)
+        lines += [
+            "",
+            "| shift | what |",
+            "|---|---|",
+        ]
+        lines += [
+            f"| {name} | {SHIFTS[name].description if name in SHIFTS else ''} |" for name in names
+        ]
         lines += [
             "",
             f"### Every pipeline per shift ({split} scenes)",
@@ -1584,6 +1660,11 @@ def shift_tables(runs: list[dict]) -> list[str]:
                 lines.append(f"| {name} | {label} | {cells} | {like} |")
         lines.append("")
     return lines
+
+
+def _diff(runs: list[dict], a: tuple[str, ...], b: tuple[str, ...], nd: int) -> str:
+    """``a - b`` per training seed, as `_mean_sd`."""
+    return _mean_sd([float(_get(r, a)) - float(_get(r, b)) for r in runs], nd)
 
 
 def _mean_sd(values: list[float], nd: int) -> str:

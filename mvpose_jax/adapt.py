@@ -37,6 +37,7 @@ from mvpose_jax.checkpoints import Checkpoints
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.errors import InputError
 from mvpose_jax.inference import group_people, run_pipeline
+from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.train import (
     EstimatorBatch,
@@ -204,6 +205,8 @@ def adapt_estimator(
     matcher: Matcher | None = None,
     threshold: float = 0.5,
     half_score_px: float = 30.0,
+    proposals: str | None = None,
+    combined: CombinedConfig | None = None,
     config: AdaptConfig = AdaptConfig(),
     progress: bool = True,
 ) -> tuple[Estimator, AdaptReport]:
@@ -214,8 +217,9 @@ def adapt_estimator(
       detections: xy (F, C, P, K, 2) pixels, score (F, C, P, K), count (F, C).
       estimator: the starting point; its inference cameras must be among the grouping cameras.
       members: (F, G, C) person groups on ``rig``'s cameras (e.g. an earlier run's
-        `PipelineResult.members`); None: proposals of ``matcher`` (at ``threshold``) on its
-        cameras, or, without one, of the epipolar matcher (``half_score_px``) on every camera.
+        `PipelineResult.members`); None: the pipeline's proposals (``proposals``, ``combined``,
+        ``matcher``, ``threshold``, ``half_score_px`` as `inference.stream_pipeline` takes them:
+        by default the combined matcher with a ``matcher``, else the epipolar one).
       config: `AdaptConfig`.
     Returns:
       (the adapted `Estimator`: the parameters with the lowest held-out loss, possibly the given
@@ -236,6 +240,8 @@ def adapt_estimator(
             matcher=matcher,
             threshold=threshold,
             half_score_px=half_score_px,
+            proposals=proposals,
+            combined=combined,
             min_views=config.min_views,
         )
         members, cameras = res.members, res.cameras

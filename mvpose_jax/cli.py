@@ -537,7 +537,7 @@ def _train_matcher(args: argparse.Namespace) -> int:
     import dataclasses
 
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.inference import choose_matcher_threshold
+    from mvpose_jax.inference import choose_matcher_settings
     from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
     from mvpose_jax.proposals import write_proposal_threshold
     from mvpose_jax.train import train_matcher
@@ -587,11 +587,22 @@ def _train_matcher(args: argparse.Namespace) -> int:
     import jax
 
     if jax.process_index() == 0:
-        threshold, ari, composed = choose_matcher_threshold(matcher, dev_recs, seed=args.seed)
-        write_proposal_threshold(args.out, threshold, ari, composed)
+        chosen = choose_matcher_settings(matcher, dev_recs, seed=args.seed)
+        threshold, ari, combined = chosen.threshold, chosen.ari_by_threshold, chosen.combined
+        write_proposal_threshold(
+            args.out,
+            threshold,
+            ari,
+            chosen.composed_frames,
+            combined=combined,
+            combined_ari=chosen.ari_by_combined_threshold,
+        )
         print(
             f"proposal threshold {threshold} (ARI {ari[threshold]:.4f} on multi-person frames composed from "
-            f"--dev; 0.5: {ari[0.5]:.4f}), used by `infer --matcher {args.out}`"
+            f"--dev; 0.5: {ari[0.5]:.4f}); combined matcher: threshold {combined.threshold}, "
+            f"epipolar cutoff {combined.epipolar_cutoff_px:g} px (ARI "
+            f"{chosen.ari_by_combined_threshold[combined.threshold]:.4f}); used by "
+            f"`infer --matcher {args.out}`"
         )
     return 0
 
@@ -946,9 +957,10 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         "--method",
         choices=("mlp", "blend", "dlt", "centroid", "robust"),
         default=None,
-        help="the 3D stage. With --estimator: mlp (its output; the default) or blend (robust "
-        "triangulation wherever 2+ inlier views see a keypoint, the estimator elsewhere, placed "
-        "by the person's triangulated keypoints; docs/blend.md). Without: dlt (score-weighted "
+        help="the 3D stage. With --estimator: blend (the default: robust triangulation "
+        "wherever 2+ inlier views see a keypoint, the estimator elsewhere, placed by the "
+        "person's triangulated keypoints; it beat both on every shift of the domain-shift "
+        "experiment, docs/blend.md) or mlp (the estimator's output alone, the paper's). Without: dlt (score-weighted "
         "DLT; the default), centroid (the paper's pairwise centroid) or robust (DLT that drops "
         "a person's views that are not theirs, by the median keypoint reprojection error, then "
         "each keypoint's outlier views; never below 2)",
@@ -975,6 +987,16 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         "chose, in the --matcher folder's proposal_threshold.json; else 0.5, the paper's)",
     )
     p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
+    p.add_argument(
+        "--proposals",
+        choices=("combined", "gat", "epipolar"),
+        default=None,
+        help="how skeletons are grouped into people: combined (the default with --matcher: the "
+        "GAT's scores joined with epipolar geometry, each frame kept on the grouping that agrees "
+        "better with the geometry; settings from the --matcher folder), gat (the GAT's scores "
+        "alone, --threshold; the paper's) or epipolar (the default without --matcher: symmetric "
+        "epipolar distance, --half-score-px)",
+    )
     p.add_argument(
         "--half-score-px",
         type=float,
@@ -1186,7 +1208,7 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.data.chunks import ChunkStore
     from mvpose_jax.data.poses import PoseResults, load_poses, load_poses_chunk
     from mvpose_jax.inference import stream_pipeline
-    from mvpose_jax.proposals import read_proposal_threshold
+    from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
     from mvpose_jax.smoothing import smooth_chunk_files
     from mvpose_jax.tracking import TrackingConfig
     from mvpose_jax.trained import load_estimator, load_matcher
@@ -1232,6 +1254,10 @@ def _infer(args: argparse.Namespace) -> int:
         matcher = load_matcher(args.matcher, rig) if args.matcher else None
         estimator = load_estimator(args.estimator, rig) if args.estimator else None
         threshold = read_proposal_threshold(args.matcher, args.threshold)
+        proposals = args.proposals or ("combined" if matcher is not None else "epipolar")
+        if proposals != "epipolar" and matcher is None:
+            raise InputError(f"--proposals {proposals} needs --matcher", field="--proposals")
+        combined = read_combined_config(args.matcher) if proposals == "combined" else None
         if adapt is not None:
             from mvpose_jax.adapt import adapt_estimator
 
@@ -1242,13 +1268,15 @@ def _infer(args: argparse.Namespace) -> int:
                 matcher=matcher,
                 threshold=threshold,
                 half_score_px=args.half_score_px,
+                proposals=proposals,
+                combined=combined,
                 config=adapt,
             )
             print_adapt_report(report)
         tracking = None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s)
         store = ChunkStore(
             os.path.join(args.out, "chunks"),
-            settings=_infer_settings(args, stream, threshold, fps),
+            settings=_infer_settings(args, stream, threshold, fps, proposals, combined),
             frames_total=F,
             chunk_frames=args.chunk_frames,
         )
@@ -1302,7 +1330,9 @@ def _infer(args: argparse.Namespace) -> int:
                 chunks(),
                 matcher=matcher,
                 estimator=estimator,
-                method=args.method,
+                method=_infer_method(args),
+                proposals=proposals,
+                combined=combined,
                 threshold=threshold,
                 min_views=args.min_views,
                 half_score_px=args.half_score_px,
@@ -1434,9 +1464,17 @@ def _covered(done, num_frames: int) -> str:
     return f"frames 0-{done.frames - 1} of {num_frames}"
 
 
-def _infer_settings(args: argparse.Namespace, stream, threshold: float, fps: float) -> dict:
+def _infer_method(args) -> str:
+    """infer's 3D stage: --method, by default blend with an estimator and dlt without."""
+    return args.method or ("blend" if args.estimator else "dlt")
+
+
+def _infer_settings(
+    args: argparse.Namespace, stream, threshold: float, fps: float, proposals: str, combined
+) -> dict:
     """Every input and setting of ``infer`` that changes its results, by option name (what an
     unfinished run must share with the command that resumes it)."""
+    import dataclasses
     from pathlib import Path
 
     def where(path):
@@ -1458,14 +1496,18 @@ def _infer_settings(args: argparse.Namespace, stream, threshold: float, fps: flo
         "--threshold": threshold,
         "--min-views": args.min_views,
     }
-    method = args.method or ("mlp" if args.estimator else "dlt")
+    if args.matcher is not None:  # without one, proposals are always epipolar
+        settings["--proposals"] = proposals
+    if combined is not None:
+        settings["combined"] = dataclasses.asdict(combined)
+    method = _infer_method(args)
     if method != "mlp":  # runs with an estimator before --method blend existed recorded none
         settings["--method"] = method
     if args.adapt:
         # (Only when given: the manifests of runs without it stay as they were.) Such a run is
         # never resumed (`_infer` refuses), and a run without --adapt cannot resume its chunks.
         settings["--adapt"] = True
-    if args.matcher is None:
+    if proposals == "epipolar":
         settings["--half-score-px"] = args.half_score_px
     if method in ("robust", "blend"):
         settings["--outlier-px"] = args.outlier_px

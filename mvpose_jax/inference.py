@@ -37,7 +37,15 @@ from mvpose_jax.graphs import (
     next_power_of_two,
 )
 from mvpose_jax.models import to_world
-from mvpose_jax.proposals import Proposals, choose_proposal_threshold, propose_people
+from mvpose_jax.proposals import (
+    CombinedConfig,
+    Proposals,
+    choose_combined_threshold,
+    choose_geometric_cutoff,
+    choose_proposal_threshold,
+    propose_combined,
+    propose_people,
+)
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
 from mvpose_jax.tracking import TrackingConfig, track_frames
@@ -495,17 +503,21 @@ def gat_match_table(
     return np.concatenate(rows), np.concatenate(scores)
 
 
-@functools.partial(jax.jit, static_argnames=("min_shared",))
-def _epipolar_distances(rig: Rig, xy: jax.Array, score: jax.Array, *, min_shared: int) -> jax.Array:
-    """Mean symmetric epipolar distance (px) of every skeleton pair of every camera pair.
+@functools.partial(jax.jit, static_argnames=("min_shared", "median"))
+def _epipolar_distances(
+    rig: Rig, xy: jax.Array, score: jax.Array, *, min_shared: int, median: bool = False
+) -> tuple[jax.Array, jax.Array | None]:
+    """Mean and median symmetric epipolar distance (px) of every skeleton pair of every camera pair.
 
-    xy: (C, F, P, K, 2) distorted pixels; score: (C, F, P, K). Returns (Q, F, P, P), inf where
-    fewer than ``min_shared`` keypoints are seen in both views.
+    xy: (C, F, P, K, 2) distorted pixels; score: (C, F, P, K). Returns two (Q, F, P, P) (the
+    median None unless ``median``), inf where fewer than ``min_shared`` keypoints are seen in
+    both views. The median is the robust one: a few wrong keypoints (a limb of another person)
+    do not move it.
     """
     u = undistort_points(rig, xy)
     u_h = jnp.concatenate([u, jnp.ones_like(u[..., :1])], axis=-1)  # (C, F, P, K, 3)
     k_inv = jnp.linalg.inv(rig.K)
-    out = []
+    means, medians = [], []
     for i, j in camera_pairs(rig.num_cameras):
         r_rel = rig.R[j] @ rig.R[i].T
         t_rel = rig.t[j] - r_rel @ rig.t[i]
@@ -521,8 +533,11 @@ def _epipolar_distances(rig: Rig, xy: jax.Array, score: jax.Array, *, min_shared
         shared = (score[i] > 0)[:, :, None, :] & (score[j] > 0)[:, None, :, :]  # (F, P, P, K)
         n = shared.sum(-1)
         d = jnp.where(shared, 0.5 * (d_i + d_j), 0.0).sum(-1) / jnp.maximum(n, 1)
-        out.append(jnp.where(n >= min_shared, d, jnp.inf))
-    return jnp.stack(out)
+        means.append(jnp.where(n >= min_shared, d, jnp.inf))
+        if median:
+            med = jnp.nanmedian(jnp.where(shared, 0.5 * (d_i + d_j), jnp.nan), axis=-1)
+            medians.append(jnp.where(n >= min_shared, med, jnp.inf))
+    return jnp.stack(means), jnp.stack(medians) if median else None
 
 
 def geometric_match_table(
@@ -563,14 +578,62 @@ def epipolar_match_distances(
     Returns:
       rows (M, 5) as `gat_match_table`, distances (M,) pixels.
     """
-    xy = np.asarray(detections.xy, np.float32)
-    score = np.asarray(detections.score, np.float32)
     count = np.asarray(detections.count)
-    F, C, P, K = score.shape
+    F, C, P, _ = np.shape(detections.score)
     pairs = camera_pairs(C)
     if C < 2 or F == 0:
         return np.zeros((0, 5), np.int64), np.zeros(0, np.float32)
-    dist = []
+    dist, _ = _epipolar_dense(rig, detections, min_shared, frames_per_call, median=False)
+    ok = np.arange(P)[None, None] < count[..., None]  # (F, C, P)
+    both = ok[:, pairs[:, 0], :, None] & ok[:, pairs[:, 1], None, :]  # (F, Q, P, P)
+    f, q, pa, pb = np.nonzero(both)
+    rows = np.stack([f, pairs[q, 0], pa, pairs[q, 1], pb], axis=1).astype(np.int64)
+    return rows, dist[q, f, pa, pb]
+
+
+def epipolar_distances_of_rows(
+    rig: Rig,
+    detections: Detections,
+    rows: np.ndarray,
+    *,
+    min_shared: int = 3,
+    frames_per_call: int = FRAMES_PER_CALL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mean and the median symmetric epipolar distance of given skeleton pairs.
+
+    Args:
+      rig: the C cameras of the detections; detections: xy (F, C, P, K, 2), score (F, C, P, K).
+      rows: (M, 5) ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` (e.g. a GAT table's).
+    Returns:
+      mean (M,) and median (M,) pixels over the keypoints seen in both views, inf when fewer
+      than ``min_shared`` are.
+    """
+    rows = np.asarray(rows, np.int64).reshape(-1, 5)
+    C = np.shape(detections.score)[1]
+    if len(rows) == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.float32)
+    mean, median = _epipolar_dense(rig, detections, min_shared, frames_per_call, median=True)
+    pairs = camera_pairs(C)
+    pair_of = np.full((C, C), -1, np.int64)
+    pair_of[pairs[:, 0], pairs[:, 1]] = np.arange(len(pairs))
+    # The dense tables hold (lower camera, higher camera); a row may name them the other way.
+    swap = rows[:, 1] > rows[:, 3]
+    lo, hi = np.where(swap, rows[:, 3], rows[:, 1]), np.where(swap, rows[:, 1], rows[:, 3])
+    p_lo, p_hi = np.where(swap, rows[:, 4], rows[:, 2]), np.where(swap, rows[:, 2], rows[:, 4])
+    q = pair_of[lo, hi]
+    return mean[q, rows[:, 0], p_lo, p_hi], median[q, rows[:, 0], p_lo, p_hi]
+
+
+def _epipolar_dense(
+    rig: Rig, detections: Detections, min_shared: int, frames_per_call: int, *, median: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """`_epipolar_distances` of a whole recording, ``frames_per_call`` frames per jit call
+    (shorter chunks padded to the next power of two): mean and (if ``median``) median,
+    (Q, F, P, P) numpy."""
+    xy = np.asarray(detections.xy, np.float32)
+    score = np.asarray(detections.score, np.float32)
+    F = len(score)
+    means, medians = [], []
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
         pad = [(0, min(frames_per_call, next_power_of_two(stop - start)) - (stop - start))] + [
@@ -578,17 +641,11 @@ def epipolar_match_distances(
         ] * 3
         xy_c = np.moveaxis(np.pad(xy[start:stop], pad + [(0, 0)]), 1, 0)
         sc_c = np.moveaxis(np.pad(score[start:stop], pad), 1, 0)
-        dist.append(
-            np.asarray(_epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared))[
-                :, : stop - start
-            ]
-        )
-    dist = np.concatenate(dist, axis=1)  # (Q, F, P, P)
-    ok = np.arange(P)[None, None] < count[..., None]  # (F, C, P)
-    both = ok[:, pairs[:, 0], :, None] & ok[:, pairs[:, 1], None, :]  # (F, Q, P, P)
-    f, q, pa, pb = np.nonzero(both)
-    rows = np.stack([f, pairs[q, 0], pa, pairs[q, 1], pb], axis=1).astype(np.int64)
-    return rows, dist[q, f, pa, pb]
+        mean, med = _epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared, median=median)
+        means.append(np.asarray(mean)[:, : stop - start])
+        if median:
+            medians.append(np.asarray(med)[:, : stop - start])
+    return np.concatenate(means, axis=1), np.concatenate(medians, axis=1) if median else None
 
 
 def composed_frames(
@@ -683,22 +740,106 @@ def choose_matcher_threshold(
     return threshold, ari, len(count)
 
 
+class MatcherSettings(NamedTuple):
+    """A matcher's proposal settings chosen on frames composed from dev recordings
+    (`choose_matcher_settings`), with the per-frame ARI of every candidate."""
+
+    threshold: float  # the GAT's proposal threshold
+    ari_by_threshold: dict[float, float]
+    geometric_cutoff_px: float  # the epipolar matcher's cutoff on the matcher's cameras
+    ari_by_cutoff_px: dict[float, float]
+    combined: CombinedConfig  # the combined matcher (its threshold and cutoff chosen here)
+    ari_by_combined_threshold: dict[float, float]
+    composed_frames: int
+
+
+def choose_matcher_settings(
+    matcher: Matcher,
+    dev_recordings: Sequence,
+    *,
+    num_samples: int = 1024,
+    seed: int = 0,
+    combined: CombinedConfig = CombinedConfig(),
+) -> MatcherSettings:
+    """Every proposal setting of a matcher by one rule (the best per-frame ARI) on one set of
+    frames composed from held-out single-person recordings: the GAT's threshold, the epipolar
+    cutoff on the matcher's cameras, then the combined matcher's threshold at that cutoff
+    (``combined``'s weight and half-score distance kept).
+    """
+    cfg = matcher.config
+    det, identity = composed_frames(
+        matcher.rig,
+        dev_recordings,
+        num_samples=num_samples,
+        seed=seed,
+        max_people=cfg.max_people,
+        subset_probability=cfg.subset_probability,
+        min_views=cfg.min_views,
+        keypoint_dropout=cfg.keypoint_dropout,
+    )
+    count = np.asarray(det.count)
+    rows, scores = gat_match_table(matcher, det)
+    threshold, ari = choose_proposal_threshold(rows, scores, identity, count)
+    mean, median = epipolar_distances_of_rows(matcher.rig, det, rows)
+    cutoff, ari_cut = choose_geometric_cutoff(rows, mean, identity, count)
+    config = dataclasses.replace(combined, epipolar_cutoff_px=cutoff)
+    th, ari_comb = choose_combined_threshold(
+        rows, scores, mean, median, identity, count, config=config
+    )
+    return MatcherSettings(
+        threshold,
+        ari,
+        cutoff,
+        ari_cut,
+        dataclasses.replace(config, threshold=th),
+        ari_comb,
+        len(count),
+    )
+
+
+# How a pipeline with a learned matcher makes its proposals: the GAT's scores alone (the paper's),
+# the epipolar matcher alone (on the matcher's cameras), or both (`proposals.propose_combined`).
+PROPOSAL_MODES = ("gat", "epipolar", "combined")
+
+
 def propose_with_matcher(
-    matcher: Matcher, detections: Detections, *, threshold: float = 0.5, min_views: int = 2
+    matcher: Matcher,
+    detections: Detections,
+    *,
+    threshold: float = 0.5,
+    min_views: int = 2,
+    mode: str = "gat",
+    combined: CombinedConfig | None = None,
 ) -> Proposals:
-    """`gat_match_table` then `propose_people` (single-camera matchers: one person per skeleton)."""
+    """`gat_match_table` then `propose_people` (single-camera matchers: one person per skeleton).
+
+    With ``mode="combined"`` the GAT's scores are joined with the pairs' epipolar distances on
+    the matcher's cameras (`proposals.propose_combined`, settings ``combined``, default
+    `CombinedConfig()`; ``threshold`` is not used).
+    """
+    if mode not in ("gat", "combined"):
+        raise ValueError(f"mode must be 'gat' or 'combined', not {mode!r}")
     count = np.asarray(detections.count)
+    P = np.shape(detections.score)[2]
     if matcher.rig.num_cameras == 1:
         rows, scores = np.zeros((0, 5), np.int64), np.zeros(0)
     else:
         rows, scores = gat_match_table(matcher, detections)
+    if mode == "combined":
+        mean, median = epipolar_distances_of_rows(matcher.rig, detections, rows)
+        proposals, _ = propose_combined(
+            rows,
+            scores,
+            mean,
+            median,
+            count,
+            config=combined or CombinedConfig(),
+            num_skeletons=P,
+            min_views=min_views,
+        )
+        return proposals
     return propose_people(
-        rows,
-        scores,
-        count,
-        num_skeletons=np.shape(detections.score)[2],
-        threshold=threshold,
-        min_views=min_views,
+        rows, scores, count, num_skeletons=P, threshold=threshold, min_views=min_views
     )
 
 
@@ -842,6 +983,8 @@ def stream_pipeline(
     matcher: Matcher | None = None,
     estimator: Estimator | None = None,
     method: str | None = None,
+    proposals: str | None = None,
+    combined: CombinedConfig | None = None,
     threshold: float = 0.5,
     min_views: int = 2,
     half_score_px: float = 30.0,
@@ -865,6 +1008,14 @@ def stream_pipeline(
         only one chunk is in memory at a time, and ``chunk_frames`` is not used).
       matcher: proposals from this learned matcher, on its cameras (``matcher.rig.names``); None:
         the geometric matcher (symmetric epipolar distance, ``half_score_px``) on every camera.
+      proposals: how proposals are made (`PROPOSAL_MODES`): "combined" (the default with a
+        ``matcher``: its scores joined with epipolar geometry, `proposals.propose_combined`,
+        never worse than the epipolar matcher on the domain-shift experiment's validation
+        scenes), "gat" (its scores alone, ``threshold``; the paper's) or "epipolar" (the default
+        without a matcher: symmetric epipolar distance, ``half_score_px``, on the matcher's
+        cameras if there is one).
+      combined: the combined matcher's settings (default `CombinedConfig()`; a trained matcher's
+        are in its folder: `proposals.read_combined_config`).
       estimator: a trained estimator, on its inference cameras (a subset of the proposal
         cameras), for the methods "mlp" and "blend".
       method: the 3D stage (`poses_of_members`): with an estimator "mlp" (its output, the
@@ -891,6 +1042,11 @@ def stream_pipeline(
     """
     from tqdm.auto import tqdm
 
+    mode = proposals or ("combined" if matcher is not None else "epipolar")
+    if mode not in PROPOSAL_MODES:
+        raise ValueError(f"proposals must be one of {PROPOSAL_MODES}, not {mode!r}")
+    if mode != "epipolar" and matcher is None:
+        raise ValueError(f"proposals {mode!r} need a matcher")
     prop_cams = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
     prop_idx = _camera_columns(rig.names, prop_cams, "the matcher's")
     prop_rig = rig.select(list(prop_cams))
@@ -942,19 +1098,24 @@ def stream_pipeline(
             )
             stop = start + len(det.count)
             t0 = time.perf_counter()
-            if matcher is not None:
-                proposals = propose_with_matcher(
-                    matcher, det, threshold=threshold, min_views=min_views
-                )
-            else:
-                proposals = propose_geometric(
+            if mode == "epipolar":
+                grouped = propose_geometric(
                     prop_rig,
                     det,
                     threshold=threshold,
                     min_views=min_views,
                     half_score_px=half_score_px,
                 )
-            members = _members_table(proposals, stop - start, len(prop_cams))
+            else:
+                grouped = propose_with_matcher(
+                    matcher,
+                    det,
+                    threshold=threshold,
+                    min_views=min_views,
+                    mode=mode,
+                    combined=combined,
+                )
+            members = _members_table(grouped, stop - start, len(prop_cams))
             t1 = time.perf_counter()
             poses, conf = poses_of_members(
                 prop_rig,

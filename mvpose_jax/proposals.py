@@ -4,13 +4,34 @@
 first, joined by a union-find that never puts two skeletons of one camera in one person. Its
 settings are chosen here by one rule for every matcher: the best per-frame adjusted Rand index
 on labelled frames (in practice, frames composed from held-out single-person recordings):
-`choose_proposal_threshold` for the GAT, `choose_geometric_cutoff` for the epipolar matcher. The
-chosen GAT threshold travels beside the checkpoint (`write_proposal_threshold`,
-`read_proposal_threshold`). Host-side numpy; no model here.
+`choose_proposal_threshold` for the GAT, `choose_geometric_cutoff` for the epipolar matcher,
+`choose_combined_threshold` for the combined matcher. The chosen settings travel beside the
+checkpoint (`write_proposal_threshold`, `read_proposal_threshold`, `read_combined_config`).
+
+The combined matcher (`propose_combined`, issue 19) joins the GAT's decisions with epipolar
+geometry so that it does not lose to the epipolar matcher where the GAT meets data it was not
+trained on (a floor 0.6 m off: GAT ARI 0.20, epipolar 0.998 on the validation scenes):
+
+1. Pair score ``w * s_gat * [d < cutoff] + (1 - w) * 2^(-d / half_score_px)`` (d: the pair's
+   symmetric epipolar distance). Geometry carries most of the weight; the GAT moves the distance
+   under which a pair may join (with w = 0.2, threshold 0.2: from 40 px for s_gat = 0 to 100 px
+   for s_gat = 1) and orders near-ties. The gate: the GAT counts only for pairs the epipolar
+   matcher itself could join (d under its cutoff), so the network alone never joins a
+   geometrically impossible pair, or one the geometry cannot judge (fewer than 3 shared
+   keypoints).
+2. Per frame, a label-free check: the combined grouping and the epipolar matcher's are scored by
+   their geometric consistency (`grouping_consistency`: every pair of skeletons put into one
+   person adds ``cutoff - min(d_median, 1.5 cutoff)``, so consistent joins count for a grouping
+   and fewer, larger people are preferred while their views agree); the frame keeps the better
+   one (ties: the combined). This is what keeps the combined matcher from falling below the
+   epipolar one where the network is confidently wrong.
+
+Host-side numpy; no model here.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -224,13 +245,197 @@ def _ari_by_threshold(rows, scores, identity, count, thresholds, min_views) -> d
     return ari
 
 
+# =========================================================================== combined matcher
+
+
+@dataclasses.dataclass(frozen=True)
+class CombinedConfig:
+    """Settings of the combined matcher (`propose_combined`; the module docstring says how it works).
+
+    Attributes:
+      gat_weight: w, the GAT's share of the pair score.
+      half_score_px: the epipolar distance (px) at which the geometric part of the score halves.
+      threshold: the proposal threshold on the combined score; chosen per matcher on frames
+        composed from the dev recordings (`choose_combined_threshold`).
+      epipolar_cutoff_px: the epipolar matcher's cutoff (`choose_geometric_cutoff`, chosen on the
+        same frames): the GAT's gate, the fallback grouping's cutoff and the consistency scale.
+
+    The defaults of ``gat_weight`` and ``half_score_px`` were chosen on the validation scenes of
+    ``python -m experiments.run --experiment domain-shift`` (seed-0 quick models, every shift):
+    the largest worst-shift difference of per-frame ARI to the epipolar matcher, then the largest
+    mean (a grid of w in 0.05-0.5, 15-50 px, thresholds 0.1-0.35; at w 0.2, 20 px every
+    threshold from 0.1 to 0.3 keeps the worst shift within -0.0001 and the mean at +0.003,
+    part-mixing +0.017 to +0.025). ``threshold`` and ``epipolar_cutoff_px`` default to what frames
+    composed from that experiment's dev recordings choose for its seed-0 matcher (0.2; 100 px).
+    """
+
+    gat_weight: float = 0.2
+    half_score_px: float = 20.0
+    threshold: float = 0.2
+    epipolar_cutoff_px: float = 100.0
+
+    def __post_init__(self):
+        if not 0.0 <= self.gat_weight <= 1.0:
+            raise InputError(f"must be in [0, 1], not {self.gat_weight}", field="gat_weight")
+        for name in ("half_score_px", "epipolar_cutoff_px"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"must be > 0, not {getattr(self, name)}", field=name)
+
+
+def combined_pair_scores(
+    gat_scores: np.ndarray, distances_px: np.ndarray, config: CombinedConfig
+) -> np.ndarray:
+    """The combined matcher's pair scores (M,) from the GAT's (M,) and the epipolar distances (M,).
+
+    ``w * s_gat * [d < cutoff] + (1 - w) * 2^(-d / half_score_px)``; d = inf (too few shared
+    keypoints) leaves nothing: such a pair is never joined.
+    """
+    d = np.asarray(distances_px, np.float64)
+    w = config.gat_weight
+    gated = np.where(d < config.epipolar_cutoff_px, np.asarray(gat_scores, np.float64), 0.0)
+    return (w * gated + (1.0 - w) * np.exp2(-d / config.half_score_px)).astype(np.float32)
+
+
+def grouping_consistency(
+    rows: np.ndarray,
+    robust_distances_px: np.ndarray,
+    identity: np.ndarray,
+    *,
+    scale_px: float,
+) -> np.ndarray:
+    """How well a grouping's people agree with epipolar geometry, per frame (label-free).
+
+    Every pair of skeletons that the grouping puts into one person adds
+    ``scale_px - min(d, 1.5 * scale_px)``: a pair nearer than ``scale_px`` counts for the
+    grouping, a farther one (or one the geometry cannot judge, d = inf) against it, bounded so
+    that one wild pair does not decide a frame. A person of n consistent views adds n(n-1)/2
+    such terms, so of two groupings that agree in geometry the one with fewer, larger people
+    scores higher (splitting a person is penalised).
+
+    Args:
+      rows: (M, 5) ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``, every cross-view pair.
+      robust_distances_px: (M,) each pair's median symmetric epipolar distance (inf: not judged).
+      identity: (F, C, P) the grouping (`Proposals.identity`, -1 in no person).
+      scale_px: the distance under which a pair agrees (the epipolar matcher's cutoff).
+    Returns:
+      (F,) the consistency of each frame's grouping.
+    """
+    rows = np.asarray(rows, np.int64).reshape(-1, 5)
+    identity = np.asarray(identity)
+    a = identity[rows[:, 0], rows[:, 1], rows[:, 2]]
+    b = identity[rows[:, 0], rows[:, 3], rows[:, 4]]
+    together = (a >= 0) & (a == b)
+    d = np.minimum(np.asarray(robust_distances_px, np.float64), 1.5 * scale_px)
+    return np.bincount(
+        rows[:, 0], weights=np.where(together, scale_px - d, 0.0), minlength=identity.shape[0]
+    )
+
+
+def propose_combined(
+    rows: np.ndarray,
+    gat_scores: np.ndarray,
+    distances_px: np.ndarray,
+    robust_distances_px: np.ndarray,
+    count: np.ndarray,
+    *,
+    config: CombinedConfig = CombinedConfig(),
+    num_skeletons: int | None = None,
+    min_views: int = 2,
+) -> tuple[Proposals, np.ndarray]:
+    """The combined matcher's proposals: gated, blended pair scores, then per frame the grouping
+    (this or the epipolar matcher's) that agrees better with the geometry (module docstring).
+
+    Args:
+      rows: (M, 5) every cross-view pair of every frame; gat_scores (M,): the GAT's scores;
+        distances_px, robust_distances_px (M,): their mean and median symmetric epipolar
+        distances (`inference.epipolar_distances_of_rows`); count (F, C).
+      config: `CombinedConfig`.
+      num_skeletons, min_views: as `propose_people`.
+    Returns:
+      (`Proposals`, used_epipolar (F,) bool: the frames that kept the epipolar grouping).
+    """
+    count = np.asarray(count)
+    kw = dict(num_skeletons=num_skeletons, min_views=min_views)
+    d = np.asarray(distances_px, np.float64)
+    combined = propose_people(
+        rows,
+        combined_pair_scores(gat_scores, d, config),
+        count,
+        threshold=config.threshold,
+        **kw,
+    )
+    # The epipolar matcher at its cutoff: nearest first, pairs under the cutoff (its pipeline
+    # scores 2^(-d / cutoff) at threshold 0.5 give the same grouping).
+    epipolar = propose_people(rows, -d, count, threshold=-config.epipolar_cutoff_px, **kw)
+    robust = np.asarray(robust_distances_px)
+    scale = config.epipolar_cutoff_px
+    use_epipolar = grouping_consistency(
+        rows, robust, epipolar.identity, scale_px=scale
+    ) > grouping_consistency(rows, robust, combined.identity, scale_px=scale)
+    return pick_frames(combined, epipolar, use_epipolar), use_epipolar
+
+
+def pick_frames(first: Proposals, second: Proposals, take_second: np.ndarray) -> Proposals:
+    """Per frame, ``second``'s grouping where ``take_second`` (F,) else ``first``'s."""
+    take = np.asarray(take_second, bool)
+    identity = np.where(take[:, None, None], second.identity, first.identity)
+    people = [b if t else a for a, b, t in zip(first.people, second.people, take, strict=True)]
+    return Proposals(identity.astype(np.int32), people)
+
+
+def choose_combined_threshold(
+    rows: np.ndarray,
+    gat_scores: np.ndarray,
+    distances_px: np.ndarray,
+    robust_distances_px: np.ndarray,
+    identity: np.ndarray,
+    count: np.ndarray,
+    *,
+    config: CombinedConfig = CombinedConfig(),
+    thresholds: tuple[float, ...] = PROPOSAL_THRESHOLDS,
+    min_views: int = 2,
+) -> tuple[float, dict[float, float]]:
+    """The combined matcher's threshold by the GAT threshold's rule: the best per-frame ARI of its
+    proposals (`propose_combined` with ``config``'s other settings) on labelled frames, in
+    practice frames composed from the dev recordings. Ties go to the one nearest
+    ``config.threshold``.
+
+    Returns:
+      (the threshold, {threshold: ARI}).
+    """
+    count = np.asarray(count)
+    P = np.shape(identity)[2]
+    ari = {}
+    for th in thresholds:
+        pred, _ = propose_combined(
+            rows,
+            gat_scores,
+            distances_px,
+            robust_distances_px,
+            count,
+            config=dataclasses.replace(config, threshold=float(th)),
+            num_skeletons=P,
+            min_views=min_views,
+        )
+        ari[float(th)] = matching_scores(identity, pred.identity, count)["ari"]
+    best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - config.threshold)))
+    return best, ari
+
+
 PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
 
 
 def write_proposal_threshold(
-    folder: str | os.PathLike, threshold: float, ari: dict[float, float], composed_frames: int
+    folder: str | os.PathLike,
+    threshold: float,
+    ari: dict[float, float],
+    composed_frames: int,
+    *,
+    combined: CombinedConfig | None = None,
+    combined_ari: dict[float, float] | None = None,
 ) -> Path:
-    """Writes a matcher's chosen threshold beside its checkpoints (`PROPOSAL_THRESHOLD_FILE`)."""
+    """Writes a matcher's chosen threshold (and, when given, the combined matcher's settings with
+    the ARI of each threshold tried) beside its checkpoints (`PROPOSAL_THRESHOLD_FILE`)."""
     record = {
         "threshold": threshold,
         "ari_by_threshold": {str(k): round(v, 6) for k, v in ari.items()},
@@ -238,6 +443,12 @@ def write_proposal_threshold(
         "how": "the best per-frame adjusted Rand index of the proposals on multi-person frames composed "
         "from the dev recordings (inference.choose_matcher_threshold)",
     }
+    if combined is not None:
+        record["combined"] = dataclasses.asdict(combined)
+        if combined_ari is not None:
+            record["combined"]["ari_by_threshold"] = {
+                str(k): round(v, 6) for k, v in combined_ari.items()
+            }
     path = Path(folder) / PROPOSAL_THRESHOLD_FILE
     atomic_write_text(path, json.dumps(record, indent=1) + "\n")
     return path
@@ -255,4 +466,22 @@ def read_proposal_threshold(folder: str | os.PathLike | None, given: float | Non
     except (ValueError, KeyError, TypeError) as e:
         raise InputError(
             f"unreadable proposal threshold ({e})", file=path, field="threshold"
+        ) from e
+
+
+def read_combined_config(folder: str | os.PathLike | None) -> CombinedConfig:
+    """The combined matcher's settings recorded in a matcher folder (`write_proposal_threshold`),
+    else `CombinedConfig`'s defaults."""
+    path = Path(folder) / PROPOSAL_THRESHOLD_FILE if folder else None
+    if path is None or not path.exists():
+        return CombinedConfig()
+    try:
+        record = json.loads(path.read_text()).get("combined")
+        if record is None:
+            return CombinedConfig()
+        names = {f.name for f in dataclasses.fields(CombinedConfig)}
+        return CombinedConfig(**{k: float(v) for k, v in record.items() if k in names})
+    except (ValueError, AttributeError, TypeError) as e:
+        raise InputError(
+            f"unreadable combined matcher settings ({e})", file=path, field="combined"
         ) from e

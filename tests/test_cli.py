@@ -164,8 +164,8 @@ def test_infer_blend_of_estimator_and_robust_triangulation(files, tmp_path, caps
     outs = {}
     for method, argv in (
         ("robust", [*base, "--method", "robust"]),
-        ("mlp", with_est),  # the default with an estimator
-        ("blend", [*with_est, "--method", "blend"]),
+        ("mlp", [*with_est, "--method", "mlp"]),
+        ("blend", with_est),  # the default with an estimator
     ):
         outs[method] = tmp_path / method
         assert main([*argv, "--out", str(outs[method])]) == 0
@@ -1046,3 +1046,57 @@ def test_infer_tracks_across_a_resume_without_reusing_ids(
     old = set(after.track[:F0][after.poses.valid[:F0]].tolist()) - {-1}  # -1: tentative
     new = set(after.track[F0:][after.poses.valid[F0:]].tolist()) - {-1}
     assert old and new and min(new) > max(old)  # restarted tracks take fresh ids
+
+
+@pytest.mark.slow  # trains a tiny matcher for two steps, then four infer runs
+def test_infer_proposals_option_combined_by_default_with_a_matcher(
+    files, recording, tmp_path, monkeypatch, capsys
+):
+    import mvpose_jax.inference as inference
+    from mvpose_jax.inference import run_pipeline
+    from mvpose_jax.models import GATConfig
+    from mvpose_jax.proposals import CombinedConfig, write_proposal_threshold
+    from mvpose_jax.synthetic import generate_single_person_recordings
+    from mvpose_jax.train import train_matcher
+    from mvpose_jax.trained import MatcherConfig, TrainConfig, load_matcher
+
+    rig = load_rig("panoptic5")
+    recs = generate_single_person_recordings(rig, num_recordings=3, num_frames=4, seed=2)
+    config = MatcherConfig(
+        gat=GATConfig(widths=(8, 1), heads=(2, 1)),
+        train=TrainConfig(max_steps=2, batch_size=4, eval_every=1),
+        samples_per_epoch=4,
+        num_dev_samples=4,
+    )
+    folder = tmp_path / "matcher"
+    train_matcher(rig, recs[:2], recs[2:], config, checkpoint_dir=folder, progress=False)
+    chosen = CombinedConfig(threshold=0.3, epipolar_cutoff_px=60.0)
+    write_proposal_threshold(folder, 0.4, {0.4: 1.0}, 4, combined=chosen)
+    matcher = load_matcher(str(folder), rig)
+    base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"])]
+    base += ["--matcher", str(folder), "--no-track"]
+    expected = {
+        None: dict(combined=chosen),  # the default with --matcher: the folder's settings
+        "gat": dict(proposals="gat", threshold=0.4),
+        "epipolar": dict(proposals="epipolar", half_score_px=30.0),
+    }
+    seen = []
+    stream_pipeline = inference.stream_pipeline
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return stream_pipeline(*args, **kwargs)
+
+    monkeypatch.setattr(inference, "stream_pipeline", spy)
+    for mode, kwargs in expected.items():
+        out = tmp_path / f"poses-{mode}"
+        assert main([*base, "--out", str(out)] + (["--proposals", mode] if mode else [])) == 0
+        assert seen[-1]["proposals"] == (mode or "combined")
+        assert seen[-1]["combined"] == (chosen if mode is None else None)
+        got = load_poses(out / "poses.npz")
+        want = run_pipeline(rig, recording.detections, matcher=matcher, **kwargs)
+        np.testing.assert_array_equal(got.identity, want.identity)
+    capsys.readouterr()
+    argv = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out"]
+    assert main([*argv, str(tmp_path / "x"), "--proposals", "combined"]) == 2
+    assert "--proposals combined needs --matcher" in capsys.readouterr().err

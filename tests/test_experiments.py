@@ -138,12 +138,18 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "Δ ARI" in text and "floor+0.6" in text and "calibration" in text
+    assert "combined + MLP PCP" in text and "Δ true (robust)" in text
     (res,) = json.loads((out / "metrics.json").read_text())["runs"]
+    # The combined matcher's settings, chosen on composed dev frames, are recorded with the GAT's.
+    combined = res["training"]["matcher-5"]["combined"]
+    assert combined["epipolar_cutoff_px"] == res["training"]["matcher-5"]["geometric_cutoff_px"]
+    ari = res["training"]["matcher-5"]["dev_ari_by_combined_threshold"]
+    assert ari[str(combined["threshold"])] == max(ari.values())
     assert set(res["shifts"]) == set(SHIFTS)
     for splits in res["shifts"].values():
         assert set(splits) == {"validation", "test"}
         for row in splits.values():
-            assert set(row["matching"]) == {"gat", "epipolar"}
+            assert set(row["matching"]) == {"combined", "gat", "epipolar"}
             assert set(row["pose"]) == set(SHIFT_PIPELINES) | set(ADAPT_PIPELINES)
             for metrics in row["pose"].values():
                 assert 0 <= metrics["pcp"] <= 100 and 0 <= metrics["completeness"] <= 100

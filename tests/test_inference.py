@@ -516,3 +516,91 @@ def test_epipolar_distances_give_the_geometric_scores(ring_rig):
     rows_d, d = epipolar_match_distances(ring_rig, rec.detections)
     np.testing.assert_array_equal(rows, rows_d)
     np.testing.assert_allclose(scores, np.exp2(-d / 25.0), rtol=1e-6)
+
+
+@pytest.mark.slow  # compiles the epipolar distances with the median (~20 s on a busy CPU)
+def test_epipolar_distances_of_rows_mean_median_and_either_camera_order(ring_rig):
+    import cv2
+
+    from mvpose_jax.inference import epipolar_distances_of_rows, epipolar_match_distances
+
+    rec = generate_recording(ring_rig, num_people=2, num_frames=2, seed=3)
+    det = rec.detections
+    rows, d = epipolar_match_distances(ring_rig, det)
+    mean, median = epipolar_distances_of_rows(ring_rig, det, rows)
+    np.testing.assert_allclose(mean, d, rtol=1e-6)
+    swapped = rows[:, [0, 3, 4, 1, 2]]  # the same pairs named (camera_b, camera_a)
+    got_both = epipolar_distances_of_rows(ring_rig, det, swapped)
+    for got, want in zip(got_both, (mean, median), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+    # The median against OpenCV: undistorted pixels, the fundamental matrix of the two cameras,
+    # cv2.computeCorrespondEpilines, point-line distances, their numpy median.
+    xy, score = np.asarray(det.xy, np.float64), np.asarray(det.score)
+    K, dist = np.asarray(ring_rig.K, np.float64), np.asarray(ring_rig.dist, np.float64)
+    R, t = np.asarray(ring_rig.R, np.float64), np.asarray(ring_rig.t, np.float64)
+
+    def undistorted(c, pts):
+        return cv2.undistortPoints(pts.reshape(-1, 1, 2), K[c], dist[c], P=K[c]).reshape(-1, 2)
+
+    def line_distance(lines, pts):
+        return np.abs((lines[:, :2] * pts).sum(1) + lines[:, 2]) / np.hypot(*lines[:, :2].T)
+
+    for r, want in zip(rows[::7], median[::7], strict=True):
+        f, ca, pa, cb, pb = r
+        shared = (score[f, ca, pa] > 0) & (score[f, cb, pb] > 0)
+        if shared.sum() < 3:
+            assert want == np.inf
+            continue
+        ua, ub = undistorted(ca, xy[f, ca, pa][shared]), undistorted(cb, xy[f, cb, pb][shared])
+        r_rel = R[cb] @ R[ca].T
+        t_rel = t[cb] - r_rel @ t[ca]
+        tx = np.array(
+            [[0, -t_rel[2], t_rel[1]], [t_rel[2], 0, -t_rel[0]], [-t_rel[1], t_rel[0], 0]]
+        )
+        fund = np.linalg.inv(K[cb]).T @ tx @ r_rel @ np.linalg.inv(K[ca])
+        in_b = cv2.computeCorrespondEpilines(ua.reshape(-1, 1, 2), 1, fund).reshape(-1, 3)
+        in_a = cv2.computeCorrespondEpilines(ub.reshape(-1, 1, 2), 2, fund).reshape(-1, 3)
+        ref = np.median(0.5 * (line_distance(in_b, ub) + line_distance(in_a, ua)))
+        np.testing.assert_allclose(want, ref, rtol=1e-3, atol=1e-3)
+
+
+def _untrained_matcher(rig):
+    from mvpose_jax.trained import Matcher
+
+    tiny = GATConfig(widths=(8, 1), heads=(2, 1))
+    graphdef, params, rest = nnx.split(
+        MatchingGAT(rig.num_cameras, 18, tiny, rngs=nnx.Rngs(0)), nnx.Param, ...
+    )
+    return Matcher(graphdef, rest, params, rig, MatcherConfig(gat=tiny))
+
+
+@pytest.mark.slow  # four pipelines, a GAT among them
+def test_pipeline_proposal_modes_with_a_matcher(scene):
+    """An untrained matcher (scores near-random): the default, combined proposals still group the
+    people as the epipolar matcher does; "gat" is the GAT alone; "epipolar" ignores it."""
+    from mvpose_jax.inference import propose_with_matcher
+    from mvpose_jax.proposals import CombinedConfig
+
+    rig, rec = scene
+    det, count = rec.detections, np.asarray(rec.detections.count)
+    matcher = _untrained_matcher(rig)
+    ident = np.asarray(rec.identity)
+    epipolar = run_pipeline(rig, det, half_score_px=100.0)
+    combined = run_pipeline(rig, det, matcher=matcher)
+    assert matching_scores(ident, combined.identity, count)["ari"] >= (
+        matching_scores(ident, epipolar.identity, count)["ari"] - 1e-9
+    )
+    assert matching_scores(ident, combined.identity, count)["ari"] > 0.95
+    gat = run_pipeline(rig, det, matcher=matcher, proposals="gat", threshold=0.3)
+    alone = propose_with_matcher(matcher, det, threshold=0.3)
+    np.testing.assert_array_equal(gat.identity, alone.identity)
+    explicit = run_pipeline(
+        rig, det, matcher=matcher, proposals="combined", combined=CombinedConfig()
+    )
+    np.testing.assert_array_equal(explicit.identity, combined.identity)
+    geo = run_pipeline(rig, det, matcher=matcher, proposals="epipolar", half_score_px=100.0)
+    np.testing.assert_array_equal(geo.identity, epipolar.identity)
+    with pytest.raises(ValueError, match="need a matcher"):
+        run_pipeline(rig, det, proposals="combined")
+    with pytest.raises(ValueError, match="proposals must be one of"):
+        run_pipeline(rig, det, matcher=matcher, proposals="learned")

@@ -3,6 +3,7 @@ answers), and the chosen threshold written beside a matcher and read back."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -17,9 +18,15 @@ from mvpose_jax.models import GATConfig, MatchingGAT
 from mvpose_jax.proposals import (
     PROPOSAL_THRESHOLD_FILE,
     PROPOSAL_THRESHOLDS,
+    CombinedConfig,
+    choose_combined_threshold,
     choose_geometric_cutoff,
     choose_proposal_threshold,
+    combined_pair_scores,
+    grouping_consistency,
+    propose_combined,
     propose_people,
+    read_combined_config,
     read_proposal_threshold,
     union_find_exclusive,
     write_proposal_threshold,
@@ -94,6 +101,31 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
         read_proposal_threshold(str(tmp_path), None)
 
 
+@pytest.mark.slow  # a GAT on composed frames, the epipolar distances, 12 proposal runs
+def test_matcher_settings_come_from_one_composition():
+    from mvpose_jax.data.calibration import load_rig
+    from mvpose_jax.inference import choose_matcher_settings, choose_matcher_threshold
+    from mvpose_jax.trained import Matcher
+
+    rig = load_rig("panoptic5")
+    recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=3, seed=5)
+    tiny = GATConfig(widths=(8, 1), heads=(2, 1))
+    graphdef, params, rest = nnx.split(
+        MatchingGAT(rig.num_cameras, recs[0].num_keypoints, tiny, rngs=nnx.Rngs(0)), nnx.Param, ...
+    )
+    matcher = Matcher(graphdef, rest, params, rig, MatcherConfig(gat=tiny, max_people=3))
+    threshold, ari, _ = choose_matcher_threshold(matcher, recs, num_samples=24)
+    # The same GAT threshold, the epipolar cutoff, the combined matcher's threshold at it.
+    chosen = choose_matcher_settings(matcher, recs, num_samples=24)
+    assert chosen.threshold == threshold and chosen.ari_by_threshold == ari
+    assert chosen.combined.epipolar_cutoff_px == chosen.geometric_cutoff_px
+    assert chosen.ari_by_cutoff_px[chosen.geometric_cutoff_px] == max(
+        chosen.ari_by_cutoff_px.values()
+    )
+    best = chosen.ari_by_combined_threshold
+    assert best[chosen.combined.threshold] == max(best.values()) and chosen.composed_frames == 24
+
+
 def test_proposals_join_best_first_and_respect_cameras():
     count = np.array([[2, 2, 1]])  # one frame, 3 cameras
     rows = np.array(
@@ -154,3 +186,157 @@ def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, s
 def test_union_find_exclusive_plain():
     roots = union_find_exclusive(4, [0, 1, 2], [1, 2, 3], np.array([0, 1, 0, 2]))
     assert roots.tolist() == [0, 0, 2, 2]  # 1-2 refused (camera 0 twice), 2-3 joined
+
+
+# --------------------------------------------------------------------------- combined matcher
+
+
+def _two_people_three_views():
+    """One frame, 3 cameras, people A (skeleton 0) and B (skeleton 1) in each: every cross-view
+    pair, with a flag for the true ones."""
+    rows = np.array(
+        [
+            [0, ca, pa, cb, pb]
+            for ca, cb in ((0, 1), (0, 2), (1, 2))
+            for pa in (0, 1)
+            for pb in (0, 1)
+        ]
+    )
+    true = rows[:, 2] == rows[:, 4]
+    identity = np.array([[[0, 1], [0, 1], [0, 1]]])
+    return rows, true, identity, np.array([[2, 2, 2]])
+
+
+def test_combined_scores_gate_and_closed_form():
+    cfg = CombinedConfig(
+        gat_weight=0.2, half_score_px=20.0, threshold=0.2, epipolar_cutoff_px=100.0
+    )
+    s = combined_pair_scores(
+        np.array([0.5, 1.0, 1.0, 1.0]), np.array([20.0, 99.0, 150.0, np.inf]), cfg
+    )
+    # 0.2 * 0.5 + 0.8 / 2; at 99 px the GAT still counts; past the cutoff (and with too few
+    # shared keypoints, d = inf) only the geometry does.
+    np.testing.assert_allclose(
+        s, [0.5, 0.2 + 0.8 * 2 ** (-99 / 20), 0.8 * 2 ** (-150 / 20), 0.0], rtol=1e-6
+    )
+    # The gate drops a geometrically impossible pair the GAT is sure of: it is never joined,
+    # while the GAT alone joins it.
+    rows, count = np.array([[0, 0, 0, 1, 0]]), np.array([[1, 1]])
+    far = np.array([150.0])
+    p, _ = propose_combined(rows, np.array([1.0]), far, far, count, config=cfg)
+    assert (p.identity == -1).all()
+    assert (
+        propose_people(rows, np.array([1.0]), count, threshold=cfg.threshold).identity >= 0
+    ).all()
+    with pytest.raises(InputError, match="gat_weight"):
+        CombinedConfig(gat_weight=1.5)
+
+
+def test_combined_recovers_the_truth_when_the_gat_is_adversarially_wrong():
+    rows, true, identity, count = _two_people_three_views()
+    # The GAT is sure of every false pair and rejects every true one; the geometry is clean but
+    # close: true pairs 30 px, false 35 px. The blend then ranks the false pairs first
+    # (0.2 + 0.8 * 2^-1.75 = 0.44 > 0.8 * 2^-1.5 = 0.28), so the combined grouping alone is wrong;
+    # the epipolar grouping (nearest first) is right and agrees better with the geometry.
+    gat = np.where(true, 0.0, 1.0)
+    d = np.where(true, 30.0, 35.0)
+    cfg = CombinedConfig()
+    blended = propose_people(rows, combined_pair_scores(gat, d, cfg), count, threshold=0.2)
+    assert matching_scores(identity, blended.identity, count)["ari"] < 1.0
+    p, used_epipolar = propose_combined(rows, gat, d, d, count, config=cfg)
+    assert used_epipolar.tolist() == [True]
+    assert matching_scores(identity, p.identity, count)["ari"] == pytest.approx(1.0)
+    # Far false pairs (200 px): the gate alone is enough, the blend's grouping is kept.
+    d = np.where(true, 30.0, 200.0)
+    p, used_epipolar = propose_combined(rows, gat, d, d, count, config=cfg)
+    assert used_epipolar.tolist() == [False]
+    assert matching_scores(identity, p.identity, count)["ari"] == pytest.approx(1.0)
+
+
+def test_combined_changes_nothing_where_gat_and_geometry_agree():
+    rows, true, identity, count = _two_people_three_views()
+    gat, d = np.where(true, 0.97, 0.01), np.where(true, 6.0, 80.0)
+    p, used_epipolar = propose_combined(rows, gat, d, d, count)
+    for other in (
+        propose_people(rows, gat, count, threshold=0.5),
+        propose_people(rows, -d, count, threshold=-100.0),
+    ):
+        np.testing.assert_array_equal(p.identity, other.identity)
+    assert used_epipolar.tolist() == [False]  # equal consistency: the combined grouping
+
+
+def test_grouping_consistency_closed_form_prefers_consistent_joins_and_penalises_splits():
+    rows, true, identity, _ = _two_people_three_views()
+    d = np.where(true, 10.0, 400.0)
+    score = grouping_consistency(rows, d, identity, scale_px=100.0)
+    assert score.tolist() == [6 * 90.0]  # 2 people x 3 pairs, each 100 - 10
+    split = identity.copy()
+    split[0, 2] = -1  # camera 2's skeletons in no person: 2 consistent pairs lost
+    assert grouping_consistency(rows, d, split, scale_px=100.0).tolist() == [2 * 90.0]
+    wrong = np.array([[[0, 1], [1, 0], [0, 1]]])  # camera 1 swapped: 4 far pairs, 2 near
+    # far pairs count -50 each (bounded at 1.5 x 100), near ones +90.
+    assert grouping_consistency(rows, d, wrong, scale_px=100.0).tolist() == [2 * 90.0 - 4 * 50.0]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 3), st.integers(2, 4), st.integers(1, 4), st.integers(0, 2**31 - 1))
+def test_combined_proposals_shapes_masks_and_exclusivity(F, cams, P, seed):
+    rng = np.random.default_rng(seed)
+    count = rng.integers(0, P + 1, (F, cams))
+    f, ca, pa, cb, pb = np.meshgrid(
+        np.arange(F), np.arange(cams), np.arange(P), np.arange(cams), np.arange(P), indexing="ij"
+    )
+    rows = np.stack([a.ravel() for a in (f, ca, pa, cb, pb)], 1)
+    rows = rows[
+        (rows[:, 1] < rows[:, 3])
+        & (rows[:, 2] < count[rows[:, 0], rows[:, 1]])
+        & (rows[:, 4] < count[rows[:, 0], rows[:, 3]])
+    ]
+    d = np.where(rng.random(len(rows)) < 0.1, np.inf, rng.uniform(0, 200, len(rows)))
+    p, used = propose_combined(
+        rows, rng.random(len(rows)), d, d * rng.uniform(0.5, 1.5, len(rows)), count, num_skeletons=P
+    )
+    assert p.identity.shape == (F, cams, P) and used.shape == (F,) and len(p.people) == F
+    assert (p.identity[np.arange(P)[None, None] >= count[..., None]] == -1).all()
+    for fr in range(F):
+        ident = p.identity[fr]
+        for person in np.unique(ident[ident >= 0]):
+            per_cam = (ident == person).sum(axis=1)
+            assert per_cam.max() == 1 and per_cam.sum() >= 2
+        for g, person in enumerate(p.people[fr]):
+            for c, sk in enumerate(person):
+                assert (sk < 0) or ident[c, sk] == g
+
+
+def test_choose_combined_threshold_and_the_record(tmp_path):
+    # Camera 0 sees A and B, camera 1 sees A and a false detection X (the frame of the GAT
+    # threshold test). A-A: GAT 0.9 at 50 px (combined 0.32); the false pairs: GAT 0 at 90 px
+    # (0.035), past the 80 px cutoff.
+    identity, count = np.array([[[0, 1], [0, -1]]]), np.array([[2, 2]])
+    rows = np.array([[0, 0, 0, 1, 0], [0, 0, 1, 1, 1], [0, 0, 0, 1, 1], [0, 0, 1, 1, 0]])
+    gat, d = np.array([0.9, 0.0, 0.0, 0.0]), np.array([50.0, 90.0, 90.0, 90.0])
+    cfg = CombinedConfig(epipolar_cutoff_px=80.0)
+    best, ari = choose_combined_threshold(rows, gat, d, d, identity, count, config=cfg)
+    for th, value in ari.items():  # each threshold's ARI is its proposals' (fallback included)
+        p, used = propose_combined(
+            rows, gat, d, d, count, config=dataclasses.replace(cfg, threshold=th)
+        )
+        assert matching_scores(identity, p.identity, count)["ari"] == value
+        # At 0.02 the blend also joins B-X, at 0.4 nobody: either way the frame falls back to
+        # the epipolar grouping (A-A alone), which agrees better with the geometry.
+        assert used.tolist() == [th in (0.02,) or th >= 0.4]
+    assert all(v == pytest.approx(1.0) for v in ari.values()) and best == 0.2  # ties: nearest
+    assert (
+        choose_combined_threshold(
+            rows, gat, d, d, identity, count, config=dataclasses.replace(cfg, threshold=0.6)
+        )[0]
+        == 0.6
+    )
+    cfg = CombinedConfig(threshold=best, epipolar_cutoff_px=80.0)
+    write_proposal_threshold(tmp_path, 0.3, {0.3: 0.9}, 6, combined=cfg, combined_ari=ari)
+    assert read_combined_config(tmp_path) == cfg
+    assert read_combined_config(None) == CombinedConfig()
+    assert read_combined_config(tmp_path / "elsewhere") == CombinedConfig()
+    (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text('{"threshold": 0.3, "combined": 3}')
+    with pytest.raises(InputError, match="combined"):
+        read_combined_config(tmp_path)
