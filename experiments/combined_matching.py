@@ -36,6 +36,9 @@ def main(argv=None) -> int:
     ap.add_argument("--splits", default="validation", help="validation and/or test (comma list)")
     ap.add_argument("--shifts", default=",".join(SHIFTS), help="comma list of shift names")
     ap.add_argument("--out", type=Path, help="write every number as JSON")
+    ap.add_argument(
+        "--adapt", action="store_true", help="also the rows after adapt (quick scale's settings)"
+    )
     args = ap.parse_args(argv)
     rig = load_rig("panoptic5")
     m = models(rig, args.models)
@@ -44,7 +47,14 @@ def main(argv=None) -> int:
     for name in args.shifts.split(","):
         scenes = Data(rig, [], [], make_shifted_scenes(rig, SCALES["quick"], 0, SHIFTS[name]))
         run["shifts"][name] = {
-            split: shift_rows(scenes, split, m["matcher"], m["estimator"], m["fit"])
+            split: shift_rows(
+                scenes,
+                split,
+                m["matcher"],
+                m["estimator"],
+                m["fit"],
+                adapt=SCALES["quick"].adapt if args.adapt else None,
+            )
             for split in splits
         }
         print(f"{name}: {json.dumps(run['shifts'][name])}", flush=True)
