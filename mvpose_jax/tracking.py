@@ -212,11 +212,15 @@ def _masked_median(values: np.ndarray, mask: np.ndarray, count: np.ndarray) -> n
     Robust where the mean is not: a few keypoints of a person built from two people's skeletons
     lie far off, and must not decide the match or the velocity.
     """
-    ranked = np.sort(np.where(mask, values, np.inf), axis=-1)
-    at = np.broadcast_to(np.maximum((count - 1) // 2, 0), ranked.shape[:-1]).ravel()
-    # Flat indexing: np.take_along_axis costs several times more on these small arrays.
+    ranked = np.where(mask, values, np.inf)
+    ranked.sort(axis=-1)
+    # With none, the index is -1: the last, inf. Flat indexing: np.take_along_axis costs several
+    # times more on these small arrays.
+    at = (count - 1) // 2
+    if at.shape != ranked.shape[:-1]:
+        at = np.broadcast_to(at, ranked.shape[:-1])
     flat = ranked.reshape(-1, ranked.shape[-1])
-    return flat[np.arange(len(flat)), at].reshape(ranked.shape[:-1])
+    return flat[np.arange(len(flat)), at.ravel()].reshape(ranked.shape[:-1])
 
 
 def _centres(xyz: np.ndarray, valid: np.ndarray) -> np.ndarray:
