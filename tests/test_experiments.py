@@ -138,7 +138,7 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "Δ ARI" in text and "floor+0.6" in text and "calibration" in text
-    assert "combined + MLP PCP" in text and "Δ true (robust)" in text
+    assert "combined + blend PCP" in text and "Δ true robust" in text
     (res,) = json.loads((out / "metrics.json").read_text())["runs"]
     # The combined matcher's settings, chosen on composed dev frames, are recorded with the GAT's.
     combined = res["training"]["matcher-5"]["combined"]
@@ -154,7 +154,7 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
             for metrics in row["pose"].values():
                 assert 0 <= metrics["pcp"] <= 100 and 0 <= metrics["completeness"] <= 100
             # On robust triangulation's keypoints the blend IS robust triangulation.
-            for g in ("gat", "epipolar", "true"):
+            for g in ("combined", "gat", "epipolar", "true"):
                 blend, robust = row["pose"][f"{g}_blend"], row["pose"][f"{g}_robust"]
                 if robust["completeness"] > 0:
                     assert blend["mpjpe_on_robust_keypoints_mm"] == pytest.approx(
