@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
 from experiments.run import main
@@ -120,57 +119,3 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert main(["--experiment", "paper-arp", "--out", str(joined), "--tables-from", *parts]) == 0
     text = (joined / "tables.md").read_text()
     assert "over 2 training seeds (0, 1)" in text and "both from seed 0" in text
-
-
-def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
-    from experiments.run import (
-        ADAPT_PIPELINES,
-        SCALES,
-        SHIFT_PIPELINES,
-        make_scenes,
-        make_shifted_scenes,
-    )
-    from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.synthetic import SHIFTS
-
-    out = tmp_path / "shift"
-    argv = ["--experiment", "domain-shift", "--smoke", "--out", str(out), "--no-progress"]
-    assert main(argv) == 0
-    text = capsys.readouterr().out
-    assert "Δ ARI" in text and "floor+0.6" in text and "calibration" in text
-    assert "combined + blend PCP" in text and "Δ true robust" in text
-    (res,) = json.loads((out / "metrics.json").read_text())["runs"]
-    # The combined matcher's settings, chosen on composed dev frames, are recorded with the GAT's.
-    combined = res["training"]["matcher-5"]["combined"]
-    assert combined["epipolar_cutoff_px"] == res["training"]["matcher-5"]["geometric_cutoff_px"]
-    ari = res["training"]["matcher-5"]["dev_ari_by_combined_threshold"]
-    assert ari[str(combined["threshold"])] == max(ari.values())
-    assert set(res["shifts"]) == set(SHIFTS)
-    for splits in res["shifts"].values():
-        assert set(splits) == {"validation", "test"}
-        for row in splits.values():
-            assert set(row["matching"]) == {"combined", "gat", "epipolar"}
-            assert set(row["pose"]) == set(SHIFT_PIPELINES) | set(ADAPT_PIPELINES)
-            for metrics in row["pose"].values():
-                assert 0 <= metrics["pcp"] <= 100 and 0 <= metrics["completeness"] <= 100
-            # On robust triangulation's keypoints the blend IS robust triangulation.
-            for g in ("combined", "gat", "epipolar", "true"):
-                blend, robust = row["pose"][f"{g}_blend"], row["pose"][f"{g}_robust"]
-                if robust["completeness"] > 0:
-                    assert blend["mpjpe_on_robust_keypoints_mm"] == pytest.approx(
-                        robust["mpjpe_mm"], abs=2e-3
-                    )
-    # The unshifted reference is exactly paper-panoptic's scenes.
-    rig = load_rig("panoptic5")
-    plain = make_scenes(rig, SCALES["smoke"], 0)
-    none = make_shifted_scenes(rig, SCALES["smoke"], 0, SHIFTS["none"])
-    for split in plain:
-        for a, b in zip(plain[split], none[split], strict=True):
-            np.testing.assert_array_equal(a.detections.xy, b.detections.xy)
-            np.testing.assert_array_equal(a.detections.score, b.detections.score)
-    # Tables again from the saved seed.
-    again = tmp_path / "again"
-    argv = ["--experiment", "domain-shift", "--out", str(again)]
-    assert main([*argv, "--tables-from", str(out / "runs_partial.json")]) == 0
-    first = (out / "tables.md").read_text().split("\n", 3)[3]
-    assert (again / "tables.md").read_text().split("\n", 3)[3] == first
