@@ -709,8 +709,17 @@ def composed_match_table(
     Returns:
       rows (M, 5) and scores (M,) as `gat_match_table`, identity (S, C, Q) and count (S, C).
     """
+    det, ident = _composed_for(matcher, recordings, num_samples=num_samples, seed=seed)
+    rows, scores = gat_match_table(matcher, det, frames_per_call=frames_per_call)
+    return rows, scores, ident, np.asarray(det.count)
+
+
+def _composed_for(
+    matcher: Matcher, recordings: Sequence, *, num_samples: int, seed: int
+) -> tuple[Detections, np.ndarray]:
+    """`composed_frames` on the matcher's cameras with the matcher's own composition settings."""
     cfg = matcher.config
-    det, ident = composed_frames(
+    return composed_frames(
         matcher.rig,
         recordings,
         num_samples=num_samples,
@@ -720,8 +729,6 @@ def composed_match_table(
         min_views=cfg.min_views,
         keypoint_dropout=cfg.keypoint_dropout,
     )
-    rows, scores = gat_match_table(matcher, det, frames_per_call=frames_per_call)
-    return rows, scores, ident, np.asarray(det.count)
 
 
 def choose_matcher_threshold(
@@ -766,17 +773,7 @@ def choose_matcher_settings(
     cutoff on the matcher's cameras, then the combined matcher's threshold at that cutoff
     (``combined``'s weight and half-score distance kept).
     """
-    cfg = matcher.config
-    det, identity = composed_frames(
-        matcher.rig,
-        dev_recordings,
-        num_samples=num_samples,
-        seed=seed,
-        max_people=cfg.max_people,
-        subset_probability=cfg.subset_probability,
-        min_views=cfg.min_views,
-        keypoint_dropout=cfg.keypoint_dropout,
-    )
+    det, identity = _composed_for(matcher, dev_recordings, num_samples=num_samples, seed=seed)
     count = np.asarray(det.count)
     rows, scores = gat_match_table(matcher, det)
     threshold, ari = choose_proposal_threshold(rows, scores, identity, count)

@@ -157,10 +157,9 @@ def test_proposals_threshold_min_views_and_single_camera():
     assert single.identity[0, 0].tolist() == [0, 1, 2] and len(single.people[1]) == 0
 
 
-@settings(max_examples=60, deadline=None)
-@given(st.integers(1, 4), st.integers(2, 4), st.integers(1, 4), st.integers(0, 2**31 - 1))
-def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, seed):
-    rng = np.random.default_rng(seed)
+def _random_frames(rng, F, cams, P):
+    """Random skeleton counts (F, cams) (up to P per camera) and every cross-camera pair of
+    skeletons that exist, as rows (frame, camera a, skeleton a, camera b, skeleton b)."""
     count = rng.integers(0, P + 1, (F, cams))
     f, ca, pa, cb, pb = np.meshgrid(
         np.arange(F), np.arange(cams), np.arange(P), np.arange(cams), np.arange(P), indexing="ij"
@@ -171,6 +170,14 @@ def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, s
         & (rows[:, 2] < count[rows[:, 0], rows[:, 1]])
         & (rows[:, 4] < count[rows[:, 0], rows[:, 3]])
     ]
+    return count, rows
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 4), st.integers(2, 4), st.integers(1, 4), st.integers(0, 2**31 - 1))
+def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, seed):
+    rng = np.random.default_rng(seed)
+    count, rows = _random_frames(rng, F, cams, P)
     p = propose_people(rows, rng.random(len(rows)), count, num_skeletons=P, min_views=2)
     for fr in range(F):
         ident = p.identity[fr]
@@ -282,16 +289,7 @@ def test_grouping_consistency_closed_form_prefers_consistent_joins_and_penalises
 @given(st.integers(1, 3), st.integers(2, 4), st.integers(1, 4), st.integers(0, 2**31 - 1))
 def test_combined_proposals_shapes_masks_and_exclusivity(F, cams, P, seed):
     rng = np.random.default_rng(seed)
-    count = rng.integers(0, P + 1, (F, cams))
-    f, ca, pa, cb, pb = np.meshgrid(
-        np.arange(F), np.arange(cams), np.arange(P), np.arange(cams), np.arange(P), indexing="ij"
-    )
-    rows = np.stack([a.ravel() for a in (f, ca, pa, cb, pb)], 1)
-    rows = rows[
-        (rows[:, 1] < rows[:, 3])
-        & (rows[:, 2] < count[rows[:, 0], rows[:, 1]])
-        & (rows[:, 4] < count[rows[:, 0], rows[:, 3]])
-    ]
+    count, rows = _random_frames(rng, F, cams, P)
     d = np.where(rng.random(len(rows)) < 0.1, np.inf, rng.uniform(0, 200, len(rows)))
     p, used = propose_combined(
         rows, rng.random(len(rows)), d, d * rng.uniform(0.5, 1.5, len(rows)), count, num_skeletons=P
