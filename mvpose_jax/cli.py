@@ -772,7 +772,7 @@ def _adapt(args: argparse.Namespace) -> int:
 
     from mvpose_jax.adapt import adapt_estimator, save_adapted_estimator
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.proposals import read_proposal_threshold
+    from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
     from mvpose_jax.trained import load_estimator, load_matcher
 
     out = check_writable(args.out, folder=True)
@@ -794,6 +794,8 @@ def _adapt(args: argparse.Namespace) -> int:
         matcher=matcher,
         threshold=threshold,
         half_score_px=args.half_score_px,
+        # The grouping infer's default makes with this matcher: its folder's combined settings.
+        combined=read_combined_config(args.matcher) if matcher is not None else None,
         config=config,
     )
     report.settings["estimator"] = str(Path(args.estimator).resolve())
