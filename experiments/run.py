@@ -634,12 +634,17 @@ def make_tracking_scenes(rig, sc: Scale, data_seed: int) -> dict:
     return make_scenes(rig, sc, data_seed, splits=TRACKING_SPLITS, num_frames=sc.tracking_frames)
 
 
+def _views_of(rec) -> np.ndarray:
+    """(F, G) how many cameras detected each ground-truth person in each frame."""
+    ident = np.asarray(rec.identity)  # (F, C, S)
+    G = rec.ground_truth.valid.shape[1]
+    return (ident[..., None] == np.arange(G)).any(-2).sum(-2)
+
+
 def _seen_truth(rec) -> Poses3D:
     """The ground truth of the people at least one camera detected in each frame."""
     gt = rec.ground_truth
-    ident = np.asarray(rec.identity)
-    seen = (ident[:, :, :, None] == np.arange(gt.valid.shape[1])).any(axis=(1, 2))
-    return gt._replace(valid=np.asarray(gt.valid) & seen)
+    return gt._replace(valid=np.asarray(gt.valid) & (_views_of(rec) > 0))
 
 
 def _stack_frames(parts: list[np.ndarray], fill=0) -> np.ndarray:
@@ -668,12 +673,7 @@ def tracking_truth(scenes: list) -> tuple[Poses3D, np.ndarray]:
 def tracking_views(scenes: list) -> np.ndarray:
     """(F, G) how many cameras detected each ground-truth person, the scenes' frames stacked as
     `tracking_truth` stacks them."""
-    counts = []
-    for rec in scenes:
-        ident = np.asarray(rec.identity)  # (F, C, S)
-        G = rec.ground_truth.valid.shape[1]
-        counts.append((ident[..., None] == np.arange(G)).any(-2).sum(-2))
-    return _stack_frames(counts)
+    return _stack_frames([_views_of(rec) for rec in scenes])
 
 
 def pooled_tracks(poses: list[Poses3D], tracks: list[np.ndarray]) -> tuple[Poses3D, np.ndarray]:
