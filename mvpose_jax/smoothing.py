@@ -38,6 +38,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+import numba
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
@@ -98,10 +99,44 @@ def _norm(a: np.ndarray, axis: int = -1, keepdims: bool = False) -> np.ndarray:
     return np.sqrt(np.square(a).sum(axis, keepdims=keepdims))
 
 
-def _alpha(cutoff_hz, dt):
+@numba.njit(cache=True)
+def _alpha(cutoff_hz: float, dt: float) -> float:
     """The smoothing factor of a first-order low-pass with this cut-off over a step dt."""
     tau = 1.0 / (2 * np.pi * cutoff_hz)
     return 1.0 / (1.0 + tau / dt)
+
+
+@numba.njit(cache=True)
+def _one_euro_step(rows, time, xyz, kv, memory_xyz, memory_v, memory_t, min_cutoff, beta, d_cutoff):
+    """One frame of the filter, compiled (a frame is a few people: numpy's per-call overhead
+    would dominate). Updates the memory rows (T, K, 3), (T, K, 3), (T, K) in place.
+
+    Args:
+      rows: (D,) each person's memory row; xyz (D, K, 3) metres; kv (D, K) measured keypoints.
+    Returns:
+      (D, K, 3) filtered positions (unmeasured keypoints pass through).
+    """
+    out = xyz.copy()
+    for i in range(len(rows)):
+        r = rows[i]
+        for k in range(xyz.shape[1]):
+            if not kv[i, k]:
+                continue
+            if np.isnan(memory_t[r, k]):  # a keypoint's first sample passes through
+                memory_xyz[r, k] = xyz[i, k]
+                memory_v[r, k] = 0.0
+                memory_t[r, k] = time
+                continue
+            dt = max(time - memory_t[r, k], 1e-9)
+            x_prev, v_prev = memory_xyz[r, k], memory_v[r, k]
+            v_hat = v_prev + _alpha(d_cutoff, dt) * ((xyz[i, k] - x_prev) / dt - v_prev)
+            cutoff = min_cutoff + beta * np.sqrt(np.sum(v_hat**2))
+            x_hat = x_prev + _alpha(cutoff, dt) * (xyz[i, k] - x_prev)
+            memory_xyz[r, k] = x_hat
+            memory_v[r, k] = v_hat
+            memory_t[r, k] = time
+            out[i, k] = x_hat
+    return out
 
 
 def one_euro_update(
@@ -143,22 +178,19 @@ def one_euro_update(
         )
         ids = state.ids
         rows = np.searchsorted(ids, track)
-    x_prev, v_prev, t_prev = state.xyz[rows], state.velocity[rows], state.time[rows]
-    first = np.isnan(t_prev)  # (D, K)
-    dt = np.where(first, 1.0, time - t_prev)
-    dt = np.maximum(dt, 1e-9)[..., None]
-    v = (xyz - x_prev) / dt
-    v_hat = v_prev + _alpha(config.d_cutoff_hz, dt) * (v - v_prev)
-    cutoff = config.min_cutoff_hz + config.beta * _norm(v_hat, axis=-1, keepdims=True)
-    x_hat = x_prev + _alpha(cutoff, dt) * (xyz - x_prev)
-    x_hat = np.where(first[..., None], xyz, x_hat)
-    v_hat = np.where(first[..., None], 0.0, v_hat)
-    kv = np.asarray(keypoint_valid, bool)
     new_x, new_v, new_t = state.xyz.copy(), state.velocity.copy(), state.time.copy()
-    new_x[rows] = np.where(kv[..., None], x_hat, x_prev)
-    new_v[rows] = np.where(kv[..., None], v_hat, v_prev)
-    new_t[rows] = np.where(kv, time, t_prev)
-    out = np.where(kv[..., None], x_hat, xyz)
+    out = _one_euro_step(
+        rows,
+        float(time),
+        np.asarray(xyz, np.float64),
+        np.asarray(keypoint_valid, bool),
+        new_x,
+        new_v,
+        new_t,
+        config.min_cutoff_hz,
+        config.beta,
+        config.d_cutoff_hz,
+    )
     return OneEuroState(ids, new_x, new_v, new_t), out
 
 

@@ -1,8 +1,8 @@
 """Persistent person identities over time: a track id for every reconstructed person.
 
 The pipeline's person axis is a slot within one frame; this module links slots of consecutive
-frames into tracks. Host-side numpy, one frame at a time (the problem is sequential), vectorised
-over tracks, people, cameras and keypoints.
+frames into tracks. Host-side, one frame at a time (the problem is sequential): the numeric core
+of a frame is compiled with numba, the assignment is scipy's, the tracks' bookkeeping numpy.
 
 Per frame (`update_tracks`):
 
@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numba
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -42,6 +43,11 @@ from mvpose_jax.cameras import Rig
 
 # A cost larger than any gate: "no match" for the assignment.
 _NO_MATCH = 1e6
+# No 2D evidence: `_match_costs`'s 2D arguments, typed as the real ones (one compiled version).
+_NO_XY = np.zeros((0, 0, 0, 2), np.float32)
+_NO_SCORE = np.zeros((0, 0, 0), np.float32)
+_NO_RECENT = np.zeros(0, bool)
+_NO_PER_PX = np.zeros((0, 0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,27 +212,191 @@ def _norm(a: np.ndarray, axis: int = -1, keepdims: bool = False) -> np.ndarray:
     return np.sqrt(np.square(a).sum(axis, keepdims=keepdims))
 
 
-def _masked_median(values: np.ndarray, mask: np.ndarray, count: np.ndarray) -> np.ndarray:
-    """(..., K) values -> (...) the (lower) median of the masked ones; inf where none.
-
-    Robust where the mean is not: a few keypoints of a person built from two people's skeletons
-    lie far off, and must not decide the match or the velocity.
-    """
-    ranked = np.where(mask, values, np.inf)
-    ranked.sort(axis=-1)
-    # With none, the index is -1: the last, inf. Flat indexing: np.take_along_axis costs several
-    # times more on these small arrays.
-    at = (count - 1) // 2
-    if at.shape != ranked.shape[:-1]:
-        at = np.broadcast_to(at, ranked.shape[:-1])
-    flat = ranked.reshape(-1, ranked.shape[-1])
-    return flat[np.arange(len(flat)), at.ravel()].reshape(ranked.shape[:-1])
-
-
 def _centres(xyz: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(N, K, 3), (N, K) -> (N, 3) mean of the valid keypoints (0 where none)."""
     n = valid.sum(-1, keepdims=True)
     return (xyz * valid[..., None]).sum(-2) / np.maximum(n, 1)
+
+
+# ------------------------------------------------------------------ compiled per-frame kernels
+# The tracker runs once per frame on a handful of people: as numpy, every small array operation
+# costs its call overhead (about 2 us here), and a lone person's frame needs about a hundred of
+# them. The numeric core is therefore compiled with numba (loops over tracks, people, cameras and
+# keypoints), leaving the assignment (scipy) and the bookkeeping of tracks in Python.
+
+
+@numba.njit(cache=True)
+def _lower_median(buf: np.ndarray, n: int) -> float:
+    """The lower median of buf[:n] (inf when n is 0). Robust where the mean is not: a few
+    keypoints of a person built from two people's skeletons lie far off, and must not decide the
+    match or the velocity."""
+    if n == 0:
+        return np.inf
+    return np.sort(buf[:n])[(n - 1) // 2]
+
+
+@numba.njit(cache=True)
+def _row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(N, P) values -> (N,) the lower median of each row's masked ones; inf where none."""
+    N, P = values.shape
+    out = np.empty(N)
+    buf = np.empty(P)
+    for i in range(N):
+        n = 0
+        for p in range(P):
+            if mask[i, p]:
+                buf[n] = values[i, p]
+                n += 1
+        out[i] = _lower_median(buf, n)
+    return out
+
+
+@numba.njit(cache=True)
+def _centre(xyz: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(K, 3), (K,) -> (3,) mean of the valid keypoints (0 where none)."""
+    out = np.zeros(3)
+    n = 0
+    for k in range(xyz.shape[0]):
+        if valid[k]:
+            out += xyz[k]
+            n += 1
+    return out / max(n, 1)
+
+
+@numba.njit(cache=True)
+def _match_costs(
+    pred, kv_track, xyz, kv, min_common, track_xy, track_score, recent, xy, score, m_per_px, w
+):
+    """The costs of matching T tracks to D people.
+
+    Args:
+      pred: (T, K, 3) metres, the tracks' predicted poses; kv_track (T, K) their valid keypoints.
+      xyz: (D, K, 3) metres, the people; kv (D, K).
+      min_common: fewer shared keypoints: the 3D cost is the distance of the centres.
+      track_xy, track_score: (T, C, K, 2) pixels and (T, C, K) scores of the tracks' last
+        skeletons; recent (T,) whether they are from the previous frame.
+      xy, score: (D, C, K, 2), (D, C, K) the people's skeletons; m_per_px (D, C).
+      w: weight of the 2D evidence (0: none; then the 2D arrays may hold no camera).
+    Returns:
+      dist (T, D, K) keypoint distances (metres), d3 (T, D) 3D cost (metres), cost (T, D) with
+      the 2D evidence blended in.
+    """
+    T, K = kv_track.shape
+    D = kv.shape[0]
+    C = track_xy.shape[1]
+    dist = np.empty((T, D, K))
+    d3 = np.empty((T, D))
+    cost = np.empty((T, D))
+    buf = np.empty(K)
+    for t in range(T):
+        for d in range(D):
+            n = 0
+            for k in range(K):
+                e = np.sqrt(
+                    (pred[t, k, 0] - xyz[d, k, 0]) ** 2
+                    + (pred[t, k, 1] - xyz[d, k, 1]) ** 2
+                    + (pred[t, k, 2] - xyz[d, k, 2]) ** 2
+                )
+                dist[t, d, k] = e
+                if kv_track[t, k] and kv[d, k]:
+                    buf[n] = e
+                    n += 1
+            if n >= min_common:
+                c3 = _lower_median(buf, n)
+            else:
+                c3 = np.sqrt(np.sum((_centre(pred[t], kv_track[t]) - _centre(xyz[d], kv[d])) ** 2))
+            d3[t, d] = c3
+            cost[t, d] = c3
+            if w <= 0 or not recent[t]:
+                continue
+            # Per camera: mean pixel distance of the two skeletons, in metres at the person.
+            acc, views = 0.0, 0
+            for c in range(C):
+                if not np.isfinite(m_per_px[d, c]):
+                    continue
+                n2, px = 0, 0.0
+                for k in range(K):
+                    if track_score[t, c, k] > 0 and score[d, c, k] > 0:
+                        px += np.sqrt(
+                            (track_xy[t, c, k, 0] - xy[d, c, k, 0]) ** 2
+                            + (track_xy[t, c, k, 1] - xy[d, c, k, 1]) ** 2
+                        )
+                        n2 += 1
+                if n2 >= min_common:
+                    acc += px / n2 * m_per_px[d, c]
+                    views += 1
+            if views:
+                cost[t, d] = (1 - w) * c3 + w * acc / views
+    return dist, d3, cost
+
+
+@numba.njit(cache=True)
+def _move_tracks(
+    t_idx,
+    d_idx,
+    xyz,
+    kv,
+    dist,
+    gate,
+    dt,
+    time,
+    track_xyz,
+    track_kv,
+    velocity,
+    keypoint_time,
+    hits,
+    smoothing,
+    max_speed,
+):
+    """Moves matched track rows t_idx (M,) to their people d_idx (M,), in place.
+
+    Per track: the velocity is the median displacement of the keypoints the track and the person
+    share (the centres' displacement when none), clipped to ``max_speed`` and blended with the
+    estimate (weight ``smoothing``; the first measurement whole); measured keypoints are stored,
+    the others moved by the velocity. A keypoint beyond the track's gate from its prediction (a
+    gross reconstruction error) is neither used nor stored where the track has it.
+
+    Args:
+      xyz: (D, K, 3) metres, the people; kv (D, K); dist (T, D, K) metres from the predictions
+        (`_match_costs`); gate (T,) metres; dt (T,) seconds since each track was seen.
+      track_xyz, track_kv, velocity, keypoint_time, hits: the track rows' fields (updated).
+    Returns:
+      (M, K) the keypoints stored from each person.
+    """
+    M = len(t_idx)
+    K = kv.shape[1]
+    stored = np.zeros((M, K), np.bool_)
+    buf = np.empty((3, K))
+    for m in range(M):
+        t, d = t_idx[m], d_idx[m]
+        step = max(dt[t], 1e-9)
+        off = dist[t, d] > gate[t]
+        n = 0
+        for k in range(K):
+            if track_kv[t, k] and kv[d, k] and not off[k]:
+                for a in range(3):
+                    buf[a, n] = xyz[d, k, a] - track_xyz[t, k, a]
+                n += 1
+        v = np.empty(3)
+        if n:
+            for a in range(3):
+                v[a] = _lower_median(buf[a], n) / step
+        else:
+            v[:] = (_centre(xyz[d], kv[d]) - _centre(track_xyz[t], track_kv[t])) / step
+        speed = np.sqrt(np.sum(v**2))
+        v *= min(1.0, max_speed / max(speed, 1e-12))
+        a_new = 1.0 if hits[t] == 1 else smoothing
+        velocity[t] = a_new * v + (1 - a_new) * velocity[t]
+        for k in range(K):
+            keep = kv[d, k] and not (off[k] and track_kv[t, k])
+            stored[m, k] = keep
+            if keep:
+                track_xyz[t, k] = xyz[d, k]
+                track_kv[t, k] = True
+                keypoint_time[t, k] = time
+            else:
+                track_xyz[t, k] += v * dt[t]
+    return stored
 
 
 def update_tracks(
@@ -255,14 +425,15 @@ def update_tracks(
       or part of a person already on a track, see ``TrackingConfig.confirm_hits`` and
       ``split_m``).
     """
+    views = xy is not None
     state, track, _ = _update_tracks(
         state,
         time=time,
-        xyz=xyz,
-        keypoint_valid=keypoint_valid,
-        xy=xy,
-        score=score,
-        metres_per_px=metres_per_px,
+        xyz=np.asarray(xyz, np.float64),
+        keypoint_valid=np.asarray(keypoint_valid, bool),
+        xy=np.asarray(xy, np.float32) if views else None,
+        score=np.asarray(score, np.float32) if views else None,
+        metres_per_px=np.asarray(metres_per_px, np.float64) if views else None,
         config=config,
     )
     return state, track
@@ -289,92 +460,67 @@ def _update_tracks(
     active = state.time - state.last_time <= config.max_gap_s
     # Keypoints the track's matches have lacked for too long are forgotten (not the keypoints
     # of a track unseen: its last pose is all there is to find it again).
-    kv_track = state.keypoint_valid
+    kv_track = state.keypoint_valid.copy()
     if np.isfinite(config.keypoint_ttl_s):
-        stale = state.last_time[:, None] - state.keypoint_time > config.keypoint_ttl_s
-        kv_track = kv_track & ~stale
+        kv_track &= state.last_time[:, None] - state.keypoint_time <= config.keypoint_ttl_s
     matched_track = np.full(D, -1, np.int64)
     fragment = np.zeros(D, bool)
     if T and D:
         # (T, K, 3) constant-velocity prediction.
         pred = state.xyz + state.velocity[:, None] * dt[:, None, None]
-        common = kv_track[:, None] & keypoint_valid[None]  # (T, D, K)
-        n_common = common.sum(-1)
-        dist = _norm(pred[:, None] - xyz[None], axis=-1)  # (T, D, K)
-        d_kp = _masked_median(dist, common, n_common)
-        few = n_common < config.min_common_keypoints
-        d3 = d_kp  # (T, D)
-        if few.any():
-            d_centre = _norm(
-                _centres(pred, kv_track)[:, None] - _centres(xyz, keypoint_valid)[None]
-            )
-            d3 = np.where(few, d_centre, d_kp)
-        cost = d3
         # One track and one person: the assignment is decided by the gate (3D) alone.
         if views and T * D > 1:
-            # Tracks seen in the previous frame, against each person's skeletons per camera.
-            recent = state.last_time == state.time  # (T,)
-            both = (state.score[:, None] > 0) & (score[None] > 0)  # (T, D, C, K)
-            n2 = both.sum(-1)  # (T, D, C)
-            px = _norm(state.xy[:, None] - xy[None], axis=-1)  # (T, D, C, K)
-            d_px = (px * both).sum(-1) / np.maximum(n2, 1)
-            have = (n2 >= config.min_common_keypoints) & recent[:, None, None]
-            have &= np.isfinite(metres_per_px)[None]
-            m_per_px = np.where(np.isfinite(metres_per_px), metres_per_px, 0.0)
-            d_view = (d_px * m_per_px[None] * have).sum(-1) / np.maximum(have.sum(-1), 1)
+            recent = state.last_time == state.time  # tracks seen in the previous frame
+            evidence = (state.xy, state.score, recent, xy, score, metres_per_px)
             w = config.view_weight
-            cost = np.where(have.any(-1), (1 - w) * cost + w * d_view, cost)
+        else:
+            evidence = (_NO_XY, _NO_SCORE, _NO_RECENT, _NO_XY, _NO_SCORE, _NO_PER_PX)
+            w = 0.0
+        dist, d3, cost = _match_costs(
+            pred, kv_track, xyz, keypoint_valid, config.min_common_keypoints, *evidence, w
+        )
         # The gate is on the 3D distance alone: a wrong grouping (a ghost built from this
         # person's skeletons and another's) shares 2D skeletons with the person but lies apart.
         gate = config.gate_m + config.gate_speed_mps * dt  # (T,)
         ok = (d3 <= gate[:, None]) & active[:, None]
         # Confirmed tracks first: a tentative track (perhaps a ghost's) cannot take their people.
         _assign(cost, ok & confirmed[:, None], matched_track)
-        if config.split_m > 0 and (matched_track < 0).any() and (matched_track >= 0).any():
+        if config.split_m > 0 and T * D > 1 and (matched_track < 0).any():
             _split_people(d3, keypoint_valid, matched_track, fragment, config.split_m)
         if not confirmed.all():
             free = (matched_track < 0) & ~fragment
             _assign(cost, ok & ~confirmed[:, None] & free[None], matched_track)
 
     # Update the matched tracks.
-    rows = {name: getattr(state, name) for name in _TRACK_FIELDS}
-    rows = {name: a.copy() for name, a in rows.items()}
-    rows["keypoint_valid"] = kv_track.copy()
+    rows = {name: getattr(state, name).copy() for name in _TRACK_FIELDS}
+    rows["keypoint_valid"] = kv_track
     relink = config.relink_gap_s > 0
     m = matched_track >= 0
     if m.any():
         t_idx, d_idx = matched_track[m], np.nonzero(m)[0]
-        xyz_t, kv_t = rows["xyz"], rows["keypoint_valid"]
-        dt_m = dt[t_idx][:, None]  # (M, 1)
-        new_kv = keypoint_valid[d_idx]
-        # A keypoint far off the prediction (a gross reconstruction error) neither moves the
-        # track nor is stored: the track keeps its prediction there.
-        off = dist[t_idx, d_idx] > gate[t_idx, None]  # (M, K)
-        common = kv_t[t_idx] & new_kv & ~off
-        n_common = common.sum(-1)
-        disp = xyz[d_idx] - xyz_t[t_idx]  # (M, K, 3)
-        disp_kp = _masked_median(disp.transpose(0, 2, 1), common[:, None], n_common[:, None])
-        if (n_common == 0).any():
-            disp_centre = _centres(xyz[d_idx], new_kv) - _centres(xyz_t[t_idx], kv_t[t_idx])
-            disp_kp = np.where(n_common[:, None] >= 1, disp_kp, disp_centre)
-        v_new = disp_kp / np.maximum(dt_m, 1e-9)
-        new_kv = new_kv & ~(off & kv_t[t_idx])
-        speed = _norm(v_new, axis=-1, keepdims=True)
-        v_new *= np.minimum(1.0, config.max_speed_mps / np.maximum(speed, 1e-12))
-        # The first measured velocity is taken whole; later ones blended with the estimate.
-        hits = rows["hits"]
-        a = np.where(hits[t_idx] == 1, 1.0, config.velocity_smoothing)[:, None]
-        rows["velocity"][t_idx] = a * v_new + (1 - a) * rows["velocity"][t_idx]
-        moved = xyz_t[t_idx] + (v_new * dt_m)[:, None]
-        xyz_t[t_idx] = np.where(new_kv[..., None], xyz[d_idx], moved)
-        kv_t[t_idx] |= new_kv
-        rows["keypoint_time"][t_idx] = np.where(new_kv, time, rows["keypoint_time"][t_idx])
+        new_kv = _move_tracks(
+            t_idx,
+            d_idx,
+            xyz,
+            keypoint_valid,
+            dist,
+            gate,
+            dt,
+            time,
+            rows["xyz"],
+            rows["keypoint_valid"],
+            rows["velocity"],
+            rows["keypoint_time"],
+            rows["hits"],
+            config.velocity_smoothing,
+            config.max_speed_mps,
+        )
         rows["last_time"][t_idx] = time
-        hits[t_idx] += 1
+        rows["hits"][t_idx] += 1
         if views:
             rows["xy"][t_idx], rows["score"][t_idx] = xy[d_idx], score[d_idx]
         if relink:
-            sample = hits[t_idx] % _SIZE_EVERY == 1
+            sample = rows["hits"][t_idx] % _SIZE_EVERY == 1
             if sample.any():
                 _add_sizes(rows, t_idx[sample], xyz[d_idx[sample]], new_kv[sample])
 
@@ -520,7 +666,7 @@ def _relink_candidate(
     pairs = rigid & (n_new > 0)[None]  # (N, P)
     n_pairs = pairs.sum(-1)
     rel = np.abs(mean_new[None] - mean_old) / np.where(mean_old > 0, mean_old, 1.0)
-    rel_med = _masked_median(rel, pairs, n_pairs)
+    rel_med = _row_medians(rel, pairs)
     same_size = np.where(
         n_pairs >= config.relink_min_pairs, rel_med <= config.relink_size_tolerance, True
     )

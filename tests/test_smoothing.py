@@ -266,3 +266,43 @@ def test_chunk_files_smoothed_with_their_neighbours_equal_the_whole_recording(tm
     bare = smooth_chunk_files(paths, tmp_path / "bare", fps=fps, context_s=0.0)
     cut = smoothing._joined([load_poses_chunk(p)[1] for p in bare])
     assert np.abs(cut.poses.xyz - whole.poses.xyz)[kvw].max() > 1e-3
+
+
+def test_one_euro_follows_the_published_recurrence_with_gaps():
+    """Casiez et al.'s filter written out per keypoint in plain Python (speed-adaptive cut-off,
+    derivative filtered at d_cutoff), with a keypoint missing for some frames: it passes through
+    there and the filter resumes from its memory, over the real elapsed time."""
+    cfg = OneEuroConfig(min_cutoff_hz=1.5, beta=3.0, d_cutoff_hz=1.0)
+    rng = np.random.default_rng(3)
+    F, K = 30, 2
+    x = np.cumsum(rng.normal(0, 0.05, (F, 1, K, 3)), axis=0)
+    kv = np.ones((F, 1, K), bool)
+    kv[10:14, 0, 1] = False
+    _, out = one_euro_frames(
+        one_euro_initial(K),
+        times=np.arange(F) / FPS,
+        track=np.zeros((F, 1), int),
+        xyz=x,
+        keypoint_valid=kv,
+        config=cfg,
+    )
+
+    def alpha(cutoff, dt):
+        return 1.0 / (1.0 + 1.0 / (2 * np.pi * cutoff * dt))
+
+    for k in range(K):
+        prev = None
+        for f in range(F):
+            if not kv[f, 0, k]:
+                np.testing.assert_array_equal(out[f, 0, k], x[f, 0, k])
+                continue
+            if prev is None:
+                x_hat, dx_hat = x[f, 0, k], np.zeros(3)
+            else:
+                t0, x0, dx0 = prev
+                dt = f / FPS - t0
+                dx_hat = dx0 + alpha(cfg.d_cutoff_hz, dt) * ((x[f, 0, k] - x0) / dt - dx0)
+                cutoff = cfg.min_cutoff_hz + cfg.beta * np.linalg.norm(dx_hat)
+                x_hat = x0 + alpha(cutoff, dt) * (x[f, 0, k] - x0)
+            np.testing.assert_allclose(out[f, 0, k], x_hat, rtol=1e-10, atol=1e-12)
+            prev = (f / FPS, x_hat, dx_hat)

@@ -327,3 +327,55 @@ def test_one_track_per_true_person_on_a_synthetic_recording():
         # and that track is (almost) only this person
         others = (res.track == main) & valid & (truth != person)
         assert others.sum() <= 0.05 * counts.max()
+
+
+def test_the_compiled_costs_equal_their_definition():
+    """`_match_costs` (numba) against the costs written out in numpy: the lower median of the
+    shared keypoints' distances (the centres' distance with fewer than 3 shared), blended with
+    the per-camera mean pixel distance in metres where 3+ keypoints are shared and the track was
+    seen in the previous frame."""
+    from mvpose_jax.tracking import _match_costs, _row_medians
+
+    rng = np.random.default_rng(0)
+    T, D, C, K, min_common, w = 3, 4, 2, 6, 3, 0.5
+    pred, xyz = rng.normal(size=(T, K, 3)), rng.normal(size=(D, K, 3))
+    kv_track, kv = rng.random((T, K)) < 0.7, rng.random((D, K)) < 0.7
+    kv[0, :] = False
+    kv[1, :2], kv[1, 2:] = True, False  # fewer shared keypoints than min_common
+    t_xy, xy = (rng.normal(0, 50, (n, C, K, 2)).astype(np.float32) for n in (T, D))
+    t_score = (rng.random((T, C, K)) < 0.8).astype(np.float32)
+    score = (rng.random((D, C, K)) < 0.8).astype(np.float32)
+    per_px = rng.uniform(0.001, 0.01, (D, C))
+    per_px[2, 0] = np.inf  # behind camera 0
+    recent = np.array([True, True, False])
+    dist, d3, cost = _match_costs(
+        pred, kv_track, xyz, kv, min_common, t_xy, t_score, recent, xy, score, per_px, w
+    )
+
+    def centre(p, v):
+        return p[v].mean(0) if v.any() else np.zeros(3)
+
+    for t in range(T):
+        for d in range(D):
+            e = np.linalg.norm(pred[t] - xyz[d], axis=-1)
+            np.testing.assert_allclose(dist[t, d], e)
+            shared = np.sort(e[kv_track[t] & kv[d]])
+            if len(shared) >= min_common:
+                want = shared[(len(shared) - 1) // 2]
+            else:
+                want = np.linalg.norm(centre(pred[t], kv_track[t]) - centre(xyz[d], kv[d]))
+            assert d3[t, d] == pytest.approx(want)
+            views = []
+            for c in range(C):
+                both = (t_score[t, c] > 0) & (score[d, c] > 0)
+                if recent[t] and both.sum() >= min_common and np.isfinite(per_px[d, c]):
+                    px = np.linalg.norm(t_xy[t, c] - xy[d, c], axis=-1)[both].mean()
+                    views.append(px * per_px[d, c])
+            if views:
+                want = (1 - w) * want + w * np.mean(views)
+            assert cost[t, d] == pytest.approx(want, rel=1e-5)
+    values, mask = rng.normal(size=(5, 7)), rng.random((5, 7)) < 0.5
+    mask[0] = False
+    for row, got in zip(range(5), _row_medians(values, mask), strict=True):
+        kept = np.sort(values[row][mask[row]])
+        assert got == (kept[(len(kept) - 1) // 2] if len(kept) else np.inf)
