@@ -183,6 +183,8 @@ class Scale:
       train_floor_jitter_m: each training and dev recording gets its own floor within this
         distance of the rig's (`SceneConfig.floor_jitter_m`); 0: the paper's setting, one floor.
       adapt: how the domain-shift experiment adapts the MLP to each split's scenes (`adapt`).
+      shifts: the shifts the domain-shift experiment tests (names of `synthetic.SHIFTS`, in its
+        order); None: all of them.
     """
 
     train_recordings: int
@@ -198,6 +200,7 @@ class Scale:
     tracking_frames: int = 300
     train_floor_jitter_m: float = 0.0
     adapt: AdaptConfig = SHIFT_ADAPT
+    shifts: tuple[str, ...] | None = None
 
 
 def _estimator(mlp: MLPConfig, steps: int, batch: int = 256) -> EstimatorConfig:
@@ -1130,7 +1133,8 @@ def paper_panoptic(
     runs = []
     for i, seed in enumerate(seeds):
         data = make_data(rig, scenes, sc, seed, progress)
-        res = {"seed": seed, "matching": {s: {} for s in SPLITS}, "training": {}, "pose": {}}
+        res = {"seed": seed, "scenes_seed": data_seed, "matching": {s: {} for s in SPLITS}}
+        res |= {"training": {}, "pose": {}}
         matchers = {}
         for n, cams in views.items():
             print(f"== seed {seed}: matcher, {n} views: {', '.join(cams)}", flush=True)
@@ -1268,7 +1272,8 @@ def paper_arp(
     }
     for i, seed in enumerate(seeds):
         data = make_data(rig, scenes, sc, seed, progress)
-        res = {"seed": seed, "matching": {s: {} for s in SPLITS}, "training": {}}
+        res = {"seed": seed, "scenes_seed": data_seed, "matching": {s: {} for s in SPLITS}}
+        res["training"] = {}
         matchers = {}
         for n, cams in ((2, ROBOT), (6, rig.names)):
             print(f"== seed {seed}: matcher, {n} views", flush=True)
@@ -1512,7 +1517,8 @@ def domain_shift(
 ) -> tuple[list[dict], list[str]]:
     """Models trained on the default simulator, tested on scenes made with every shift."""
     rig = load_rig("panoptic5")
-    shifted = {name: make_shifted_scenes(rig, sc, data_seed, s) for name, s in SHIFTS.items()}
+    names = [n for n in SHIFTS if sc.shifts is None or n in sc.shifts]
+    shifted = {name: make_shifted_scenes(rig, sc, data_seed, SHIFTS[name]) for name in names}
     runs = []
     for seed in seeds:
         data = make_data(rig, {}, sc, seed, progress)
@@ -1522,10 +1528,11 @@ def domain_shift(
         est, est_fit = fit_estimator(data, sc, rig.names, rig.names, seed, progress)
         res = {
             "seed": seed,
+            "scenes_seed": data_seed,
             "training": {"matcher-5": fit, "estimator": est_fit},
             "shifts": {},
         }
-        for name in SHIFTS:
+        for name in names:
             print(f"== seed {seed}: shift {name}", flush=True)
             scenes = Data(rig, [], [], shifted[name])
             res["shifts"][name] = {
@@ -1562,7 +1569,8 @@ def shift_tables(runs: list[dict]) -> list[str]:
     """Per split (test first): a summary against the acceptance margins, then per shift the
     matching and every pipeline's PCP, MPJPE, completeness and mAP."""
     lines = []
-    names = list(runs[0]["shifts"])
+    # The shifts every run tested (`--shifts` may have chosen some).
+    names = [n for n in runs[0]["shifts"] if all(n in r["shifts"] for r in runs)]
     # Runs from before `adapt` have no adapted rows: their tables keep the old columns.
     present = runs[0]["shifts"][names[0]]
     adapted = all(
@@ -1740,6 +1748,13 @@ def main(argv=None) -> int:
         help="training and dev recordings each get their own floor within M metres of the "
         "rig's (models that tolerate a wrong floor; default 0: one floor, the paper's setting)",
     )
+    ap.add_argument(
+        "--shifts",
+        type=lambda text: tuple(text.split(",")),
+        metavar="NAME,...",
+        help="domain-shift: test only these shifts (default: all; 'none' is the unshifted "
+        f"reference): {', '.join(SHIFTS)}",
+    )
     ap.add_argument("--out", type=Path, help="output folder (default results/<experiment>)")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument(
@@ -1773,10 +1788,35 @@ def main(argv=None) -> int:
         runs = []
         for path in args.tables_from:
             saved = json.loads(path.read_text())
-            runs += saved["runs"] if isinstance(saved, dict) else saved
+            for run in saved["runs"] if isinstance(saved, dict) else saved:
+                # Older runs record their scenes' seed only in their metrics.json's header.
+                known = saved.get("scenes_seed") if isinstance(saved, dict) else None
+                runs.append({"scenes_seed": known} | run)
+        if not runs:
+            ap.error("--tables-from: no finished run in " + ", ".join(map(str, args.tables_from)))
         seeds = [r["seed"] for r in runs]
         if len(set(seeds)) != len(seeds):
             ap.error(f"the runs repeat training seeds: {seeds}")
+        # A table's seeds are measured on the same scenes, or their mean means nothing.
+        for run in runs:
+            if run["scenes_seed"] is None:
+                if args.scenes_seed is None:
+                    ap.error(
+                        f"the run of training seed {run['seed']} does not record its scenes' seed "
+                        "(an older runs_partial.json): say it with --scenes-seed"
+                    )
+                run["scenes_seed"] = args.scenes_seed
+        scene_seeds = sorted({r["scenes_seed"] for r in runs})
+        if len(scene_seeds) > 1:
+            ap.error(
+                f"the runs were measured on different scenes (scenes seeds {scene_seeds}): "
+                "re-run them with one --scenes-seed"
+            )
+        if args.scenes_seed is not None and scene_seeds != [args.scenes_seed]:
+            ap.error(
+                f"--scenes-seed {args.scenes_seed}: the runs' scenes are seed {scene_seeds[0]}"
+            )
+        scenes_seed = scene_seeds[0]
         tables = {
             "paper-panoptic": panoptic_tables,
             "paper-arp": arp_tables,
@@ -1790,8 +1830,15 @@ def main(argv=None) -> int:
     else:
         if args.train_floor_jitter < 0:
             ap.error("--train-floor-jitter must be >= 0")
+        if args.shifts is not None:
+            if args.experiment != "domain-shift":
+                ap.error("--shifts applies to --experiment domain-shift")
+            unknown = sorted(set(args.shifts) - set(SHIFTS))
+            if unknown:
+                ap.error(f"--shifts: no shift named {unknown}; the shifts: {', '.join(SHIFTS)}")
+        settings = {"train_floor_jitter_m": args.train_floor_jitter, "shifts": args.shifts}
         runs, lines = EXPERIMENTS[args.experiment](
-            dataclasses.replace(SCALES[scale], train_floor_jitter_m=args.train_floor_jitter),
+            dataclasses.replace(SCALES[scale], **settings),
             seeds,
             scenes_seed,
             out,

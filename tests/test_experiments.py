@@ -110,12 +110,18 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert main(argv) == 0
     first = (out / "tables.md").read_text().split("\n", 3)[3]
     assert (again / "tables.md").read_text().split("\n", 3)[3] == first
-    # A second part of the same table: training seed 1 on the same scenes, then both joined.
-    part = tmp_path / "part2"
-    argv = ["--experiment", "paper-arp", "--smoke", "--seed", "1", "--scenes-seed", "0"]
-    assert main([*argv, "--out", str(part), "--no-progress"]) == 0
+    # A second part of the same table (as `--seed 1 --scenes-seed 0` writes it: the same scenes),
+    # joined with the first; a part measured on other scenes is refused.
+    (run,) = json.loads((out / "runs_partial.json").read_text())
+    assert run["scenes_seed"] == 0
+    part, other = tmp_path / "part2.json", tmp_path / "other.json"
+    part.write_text(json.dumps([run | {"seed": 1}]))
+    other.write_text(json.dumps([run | {"seed": 1, "scenes_seed": 1}]))
     joined = tmp_path / "joined"
-    parts = [str(out / "runs_partial.json"), str(part / "metrics.json")]
-    assert main(["--experiment", "paper-arp", "--out", str(joined), "--tables-from", *parts]) == 0
+    argv = ["--experiment", "paper-arp", "--out", str(joined), "--tables-from"]
+    assert main([*argv, str(out / "runs_partial.json"), str(part)]) == 0
     text = (joined / "tables.md").read_text()
     assert "over 2 training seeds (0, 1)" in text and "both from seed 0" in text
+    with pytest.raises(SystemExit):
+        main([*argv, str(out / "runs_partial.json"), str(other)])
+    assert "different scenes (scenes seeds [0, 1])" in capsys.readouterr().err
