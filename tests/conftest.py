@@ -2,6 +2,23 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+
+# One compilation cache for the whole run, shared by the parallel workers and the CLI
+# subprocesses (they inherit the environment): the experiments' smoke runs, the benchmarks' smoke
+# run and many tests compile the same programs, and XLA's compiles are most of the suite's time.
+# A fresh folder per run (made by the first process, removed by it at the end), so no test ever
+# sees another version's programs; jax keys its entries by program, options and version anyway.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="mvpose-jax-tests-")
+    _OWN_CACHE = os.environ["JAX_COMPILATION_CACHE_DIR"]
+else:
+    _OWN_CACHE = None
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+
 import jax
 import pytest
 
@@ -9,6 +26,11 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 
 from mvpose_jax.data.calibration import PRESETS, load_preset  # noqa: E402
 from tests.helpers import random_rig  # noqa: E402
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE is not None:
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(scope="session", params=PRESETS)
