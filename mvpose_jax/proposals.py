@@ -63,12 +63,21 @@ def propose_people(
     num_skeletons: int | None = None,
     threshold: float = 0.5,
     min_views: int = 2,
+    repair_splits: bool = False,
 ) -> Proposals:
     """Groups skeletons into people from scored cross-view pairs (DESIGN.md §1.2).
 
     Pairs scoring above ``threshold`` are taken best first; each joins its two skeletons' groups
     unless the joined group would hold two skeletons of one camera. A person is a group of at
     least ``min_views`` skeletons. With a single camera every skeleton is its own person.
+
+    ``repair_splits``: a bottom-up detector reports some people twice in a view (a duplicate, or
+    a fragment beside the whole skeleton); the greedy pass then splits that person into two
+    groups that both hold a skeleton of that camera, each taking some of the other views. Two
+    groups that share exactly one camera and are joined by at least two pairs above the
+    threshold, at least half of the pairs they could have across cameras, are one person: they
+    are merged, keeping in the shared camera the skeleton with the better mean pair score to the
+    other views (the other is left out, as a false positive is). One pass, most links first.
 
     Args:
       rows: (M, 5) int ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``.
@@ -87,6 +96,7 @@ def propose_people(
     n = F * C * P
     rows = np.asarray(rows, np.int64).reshape(-1, 5)
     scores = np.asarray(scores).reshape(-1)
+    rows_all, scores_all = rows, scores
     if C == 1:
         parent = np.arange(n)
     else:
@@ -96,7 +106,74 @@ def propose_people(
         a = ((rows[order, 0] * C + rows[order, 1]) * P + rows[order, 2]).tolist()
         b = ((rows[order, 0] * C + rows[order, 3]) * P + rows[order, 4]).tolist()
         parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
+        if repair_splits:
+            every = np.asarray(rows_all, np.int64)
+            pair_items = (every[:, [0]] * C + every[:, [1, 3]]) * P + every[:, [2, 4]]
+            parent = _merge_split_people(parent, a, b, scores[order], pair_items, scores_all, C, P)
     return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
+
+
+def _merge_split_people(
+    root: np.ndarray,
+    a: list[int],
+    b: list[int],
+    strength: np.ndarray,
+    pair_items: np.ndarray,
+    pair_scores: np.ndarray,
+    C: int,
+    P: int,
+) -> np.ndarray:
+    """`propose_people`'s ``repair_splits`` on a grouping: root (n,) each item's group; a, b the
+    joining pairs (above the threshold) and their scores ``strength``; pair_items (M, 2) and
+    pair_scores (M,) every scored pair. Returns the new roots (a dropped skeleton: its own)."""
+    root = root.copy()
+    camera = lambda item: item // P % C  # noqa: E731
+    links: dict[tuple[int, int], list[float]] = {}
+    for x, y, s in zip(a, b, strength.tolist(), strict=True):
+        rx, ry = int(root[x]), int(root[y])
+        if rx != ry:
+            links.setdefault((min(rx, ry), max(rx, ry)), []).append(s)
+    if not links:
+        return root
+    involved = np.array(sorted({r for key in links for r in key}))
+    in_groups = np.isin(root, involved)
+    members: dict[int, list[int]] = {}
+    for item in np.nonzero(in_groups)[0].tolist():
+        members.setdefault(int(root[item]), []).append(item)
+    candidates = []
+    for (ra, rb), scores in links.items():
+        cams_a = {camera(x) for x in members[ra]}
+        cams_b = {camera(y) for y in members[rb]}
+        shared = cams_a & cams_b
+        possible = sum(camera(x) != camera(y) for x in members[ra] for y in members[rb])
+        if len(shared) == 1 and len(scores) >= 2 and len(scores) >= 0.5 * possible:
+            candidates.append((len(scores), sum(scores) / len(scores), ra, rb, shared.pop()))
+    if not candidates:
+        return root
+    # Every scored pair of the candidates' skeletons, to choose the one kept in the shared camera.
+    items = {x for *_, ra, rb, _ in candidates for x in members[ra] + members[rb]}
+    known = np.isin(pair_items, list(items)).all(-1)
+    score_of = {}
+    for (x, y), s in zip(pair_items[known].tolist(), pair_scores[known].tolist(), strict=True):
+        score_of[(x, y)] = score_of[(y, x)] = s
+    touched: set[int] = set()
+    for *_, ra, rb, c in sorted(candidates, reverse=True):  # most links first
+        if ra in touched or rb in touched:
+            continue
+        touched |= {ra, rb}
+        group = members[ra] + members[rb]
+        twins = [x for x in group if camera(x) == c]
+        others = [x for x in group if camera(x) != c]
+
+        def support(x: int) -> float:
+            got = [score_of[(x, y)] for y in others if (x, y) in score_of]
+            return sum(got) / len(got) if got else -np.inf
+
+        drop = min(twins, key=lambda x: (support(x), -x))
+        kept = [x for x in group if x != drop]
+        root[kept] = min(kept)
+        root[drop] = drop
+    return root
 
 
 def union_find_exclusive(
@@ -259,6 +336,8 @@ class CombinedConfig:
         composed from the dev recordings (`choose_combined_threshold`).
       epipolar_cutoff_px: the epipolar matcher's cutoff (`choose_geometric_cutoff`, chosen on the
         same frames): the GAT's gate, the fallback grouping's cutoff and the consistency scale.
+      repair_splits: merge a person split over two groups by a duplicate or fragment skeleton
+        (`propose_people`'s ``repair_splits``), in both groupings.
 
     The defaults of ``gat_weight`` and ``half_score_px`` were chosen on the validation scenes of
     ``python -m experiments.run --experiment domain-shift`` (seed-0 quick models, every shift):
@@ -273,6 +352,7 @@ class CombinedConfig:
     half_score_px: float = 20.0
     threshold: float = 0.2
     epipolar_cutoff_px: float = 100.0
+    repair_splits: bool = True
 
     def __post_init__(self):
         if not 0.0 <= self.gat_weight <= 1.0:
@@ -355,7 +435,7 @@ def propose_combined(
       (`Proposals`, used_epipolar (F,) bool: the frames that kept the epipolar grouping).
     """
     count = np.asarray(count)
-    kw = dict(num_skeletons=num_skeletons, min_views=min_views)
+    kw = dict(num_skeletons=num_skeletons, min_views=min_views, repair_splits=config.repair_splits)
     d = np.asarray(distances_px, np.float64)
     combined = propose_people(
         rows,
@@ -479,8 +559,9 @@ def read_combined_config(folder: str | os.PathLike | None) -> CombinedConfig:
         record = json.loads(path.read_text()).get("combined")
         if record is None:
             return CombinedConfig()
-        names = {f.name for f in dataclasses.fields(CombinedConfig)}
-        return CombinedConfig(**{k: float(v) for k, v in record.items() if k in names})
+        # Each setting as its field's type (a float, or repair_splits' bool).
+        types = {f.name: type(f.default) for f in dataclasses.fields(CombinedConfig)}
+        return CombinedConfig(**{k: types[k](v) for k, v in record.items() if k in types})
     except (ValueError, AttributeError, TypeError) as e:
         raise InputError(
             f"unreadable combined matcher settings ({e})", file=path, field="combined"

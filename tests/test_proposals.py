@@ -178,7 +178,13 @@ def _random_frames(rng, F, cams, P):
 def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, seed):
     rng = np.random.default_rng(seed)
     count, rows = _random_frames(rng, F, cams, P)
-    p = propose_people(rows, rng.random(len(rows)), count, num_skeletons=P, min_views=2)
+    scores = rng.random(len(rows))
+    for repair in (False, True):
+        _check_exclusive(propose_people(rows, scores, count, num_skeletons=P, repair_splits=repair))
+
+
+def _check_exclusive(p):
+    F = p.identity.shape[0]
     for fr in range(F):
         ident = p.identity[fr]
         for person in np.unique(ident[ident >= 0]):
@@ -188,6 +194,42 @@ def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, s
         for g, person in enumerate(p.people[fr]):
             for c, sk in enumerate(person):
                 assert (sk < 0) or ident[c, sk] == g
+
+
+def test_a_person_split_by_a_duplicate_is_merged_keeping_the_better_skeleton():
+    # One person in cameras 0-3 (skeleton 0 each) and a duplicate in camera 0 (skeleton 1) that
+    # grabs camera 1 first: the greedy pass makes two groups sharing camera 0.
+    count = np.array([[2, 1, 1, 1]])
+    pairs = {
+        (0, 1, 1, 0): 0.95,  # duplicate - camera 1
+        (0, 0, 2, 0): 0.9,
+        (0, 0, 3, 0): 0.9,
+        (2, 0, 3, 0): 0.9,
+        (1, 0, 2, 0): 0.85,
+        (1, 0, 3, 0): 0.85,
+        (0, 0, 1, 0): 0.8,
+        (0, 1, 2, 0): 0.6,
+        (0, 1, 3, 0): 0.6,
+    }
+    rows = np.array([[0, *key] for key in pairs])
+    scores = np.array(list(pairs.values()))
+    split = propose_people(rows, scores, count).identity[0]
+    assert split[0, 1] == split[1, 0] != split[0, 0] == split[2, 0] == split[3, 0]
+    merged = propose_people(rows, scores, count, repair_splits=True)
+    ident = merged.identity[0]
+    # The original's mean score to the other views is 0.87, the duplicate's 0.72: it is left out.
+    assert ident[0, 0] == ident[1, 0] == ident[2, 0] == ident[3, 0] == 0 and ident[0, 1] == -1
+    assert len(merged.people[0]) == 1
+
+
+def test_two_people_sharing_a_camera_with_one_link_stay_apart():
+    # X = camera 0 skeleton 0 + camera 1; Y = camera 0 skeleton 1 + camera 2; one pair across.
+    count = np.array([[2, 1, 1]])
+    rows = np.array([[0, 0, 0, 1, 0], [0, 0, 1, 2, 0], [0, 1, 0, 2, 0], [0, 0, 0, 2, 0]])
+    scores = np.array([0.9, 0.9, 0.6, 0.1])
+    for repair in (False, True):
+        ident = propose_people(rows, scores, count, repair_splits=repair).identity[0]
+        assert ident[0, 0] == ident[1, 0] != ident[0, 1] == ident[2, 0]
 
 
 def test_union_find_exclusive_plain():
