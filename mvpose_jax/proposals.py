@@ -75,9 +75,11 @@ def propose_people(
     a fragment beside the whole skeleton); the greedy pass then splits that person into two
     groups that both hold a skeleton of that camera, each taking some of the other views. Two
     groups that share exactly one camera and are joined by at least two pairs above the
-    threshold, at least half of the pairs they could have across cameras, are one person: they
-    are merged, keeping in the shared camera the skeleton with the better mean pair score to the
-    other views (the other is left out, as a false positive is). One pass, most links first.
+    threshold, at least half of the pairs they could have across cameras, and whose two skeletons
+    of the shared camera both score above the threshold on average with the other views, are one
+    person: they are merged, keeping in the shared camera the skeleton with the better mean pair
+    score to the other views (the other is left out, as a false positive is). One pass, most
+    links first.
 
     Args:
       rows: (M, 5) int ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``.
@@ -109,7 +111,9 @@ def propose_people(
         if repair_splits:
             every = np.asarray(rows_all, np.int64)
             pair_items = (every[:, [0]] * C + every[:, [1, 3]]) * P + every[:, [2, 4]]
-            parent = _merge_split_people(parent, a, b, scores[order], pair_items, scores_all, C, P)
+            parent = _merge_split_people(
+                parent, a, b, scores[order], pair_items, scores_all, threshold, C, P
+            )
     return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
 
 
@@ -120,6 +124,7 @@ def _merge_split_people(
     strength: np.ndarray,
     pair_items: np.ndarray,
     pair_scores: np.ndarray,
+    threshold: float,
     C: int,
     P: int,
 ) -> np.ndarray:
@@ -160,7 +165,6 @@ def _merge_split_people(
     for *_, ra, rb, c in sorted(candidates, reverse=True):  # most links first
         if ra in touched or rb in touched:
             continue
-        touched |= {ra, rb}
         group = members[ra] + members[rb]
         twins = [x for x in group if camera(x) == c]
         others = [x for x in group if camera(x) != c]
@@ -169,6 +173,11 @@ def _merge_split_people(
             got = [score_of[(x, y)] for y in others if (x, y) in score_of]
             return sum(got) / len(got) if got else -np.inf
 
+        # Both twins must belong with the other views (a duplicate or fragment does; another
+        # person's skeleton does not): else the groups are two people.
+        if min(support(x) for x in twins) <= threshold:
+            continue
+        touched |= {ra, rb}
         drop = min(twins, key=lambda x: (support(x), -x))
         kept = [x for x in group if x != drop]
         root[kept] = min(kept)
