@@ -1139,8 +1139,13 @@ def paper_panoptic(
     runs = []
     for i, seed in enumerate(seeds):
         data = make_data(rig, scenes, sc, seed, progress)
-        res = {"seed": seed, "scenes_seed": data_seed, "matching": {s: {} for s in SPLITS}}
-        res |= {"training": {}, "pose": {}}
+        res = {
+            "seed": seed,
+            "scenes_seed": data_seed,
+            "matching": {s: {} for s in SPLITS},
+            "training": {},
+            "pose": {},
+        }
         matchers = {}
         for n, cams in views.items():
             print(f"== seed {seed}: matcher, {n} views: {', '.join(cams)}", flush=True)
@@ -1278,8 +1283,12 @@ def paper_arp(
     }
     for i, seed in enumerate(seeds):
         data = make_data(rig, scenes, sc, seed, progress)
-        res = {"seed": seed, "scenes_seed": data_seed, "matching": {s: {} for s in SPLITS}}
-        res["training"] = {}
+        res = {
+            "seed": seed,
+            "scenes_seed": data_seed,
+            "matching": {s: {} for s in SPLITS},
+            "training": {},
+        }
         matchers = {}
         for n, cams in ((2, ROBOT), (6, rig.names)):
             print(f"== seed {seed}: matcher, {n} views", flush=True)

@@ -98,7 +98,7 @@ def propose_people(
     n = F * C * P
     rows = np.asarray(rows, np.int64).reshape(-1, 5)
     scores = np.asarray(scores).reshape(-1)
-    rows_all, scores_all = rows, scores
+    rows_all, scores_all = rows, scores  # every scored pair (the split repair reads them all)
     if C == 1:
         parent = np.arange(n)
     else:
@@ -109,8 +109,7 @@ def propose_people(
         b = ((rows[order, 0] * C + rows[order, 3]) * P + rows[order, 4]).tolist()
         parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
         if repair_splits:
-            every = np.asarray(rows_all, np.int64)
-            pair_items = (every[:, [0]] * C + every[:, [1, 3]]) * P + every[:, [2, 4]]
+            pair_items = (rows_all[:, [0]] * C + rows_all[:, [1, 3]]) * P + rows_all[:, [2, 4]]
             parent = _merge_split_people(
                 parent, a, b, scores[order], pair_items, scores_all, threshold, C, P
             )
@@ -173,12 +172,13 @@ def _merge_split_people(
             got = [score_of[(x, y)] for y in others if (x, y) in score_of]
             return sum(got) / len(got) if got else -np.inf
 
+        of_twin = {x: support(x) for x in twins}
         # Both twins must belong with the other views (a duplicate or fragment does; another
         # person's skeleton does not): else the groups are two people.
-        if min(support(x) for x in twins) <= threshold:
+        if min(of_twin.values()) <= threshold:
             continue
         touched |= {ra, rb}
-        drop = min(twins, key=lambda x: (support(x), -x))
+        drop = min(twins, key=lambda x: (of_twin[x], -x))
         kept = [x for x in group if x != drop]
         root[kept] = min(kept)
         root[drop] = drop
@@ -572,8 +572,12 @@ def read_combined_config(folder: str | os.PathLike | None) -> CombinedConfig:
         record = json.loads(path.read_text()).get("combined")
         if record is None:
             return CombinedConfig()
-        # Each setting as its field's type (a float, or repair_splits' bool).
+        # Each setting as its field's type: numbers as floats; a switch only as a JSON boolean
+        # (bool("false") would be True).
         types = {f.name: type(f.default) for f in dataclasses.fields(CombinedConfig)}
+        for k, v in record.items():
+            if types.get(k) is bool and not isinstance(v, bool):
+                raise TypeError(f"{k} must be true or false, not {v!r}")
         return CombinedConfig(**{k: types[k](v) for k, v in record.items() if k in types})
     except (ValueError, AttributeError, TypeError) as e:
         raise InputError(

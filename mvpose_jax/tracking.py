@@ -492,8 +492,11 @@ def _update_tracks(
             _assign(cost, ok & ~confirmed[:, None] & free[None], matched_track)
 
     # Update the matched tracks.
-    rows = {name: getattr(state, name).copy() for name in _TRACK_FIELDS}
-    rows["keypoint_valid"] = kv_track
+    # kv_track is already this frame's copy of the keypoints' validity.
+    rows = {
+        name: kv_track if name == "keypoint_valid" else getattr(state, name).copy()
+        for name in _TRACK_FIELDS
+    }
     relink = config.relink_gap_s > 0
     m = matched_track >= 0
     if m.any():

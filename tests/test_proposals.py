@@ -377,6 +377,14 @@ def test_choose_combined_threshold_and_the_record(tmp_path):
     assert read_combined_config(tmp_path) == cfg
     assert read_combined_config(None) == CombinedConfig()
     assert read_combined_config(tmp_path / "elsewhere") == CombinedConfig()
+    on = dataclasses.replace(cfg, repair_splits=True)
+    write_proposal_threshold(tmp_path, 0.3, {0.3: 0.9}, 6, combined=on, combined_ari=ari)
+    assert read_combined_config(tmp_path) == on
     (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text('{"threshold": 0.3, "combined": 3}')
     with pytest.raises(InputError, match="combined"):
+        read_combined_config(tmp_path)
+    # A switch written by hand as a string is refused, not read as true.
+    bad = '{"threshold": 0.3, "combined": {"threshold": 0.2, "repair_splits": "false"}}'
+    (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text(bad)
+    with pytest.raises(InputError, match="repair_splits must be true or false"):
         read_combined_config(tmp_path)
