@@ -742,20 +742,7 @@ def _adapt_arguments(p: argparse.ArgumentParser) -> None:
         help="group the detections into people with this trained matcher (train-matcher --out); "
         "default: the geometric matcher (symmetric epipolar distance) on every camera",
     )
-    p.add_argument(
-        "--threshold",
-        type=float,
-        default=None,
-        help="proposals: least match score (default: the matcher's proposal_threshold.json, "
-        "else 0.5)",
-    )
-    p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
-    p.add_argument(
-        "--half-score-px",
-        type=float,
-        default=30.0,
-        help="geometric matcher: epipolar distance (px) that scores 0.5",
-    )
+    _proposal_arguments(p)
     p.add_argument("--out", required=True, help="the adapted model's folder (new or empty)")
     p.add_argument("--seed", type=int, default=0, help="batch order and augmentation")
     add_adapt_arguments(p)
@@ -772,7 +759,6 @@ def _adapt(args: argparse.Namespace) -> int:
 
     from mvpose_jax.adapt import adapt_estimator, save_adapted_estimator
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
     from mvpose_jax.trained import load_estimator, load_matcher
 
     out = check_writable(args.out, folder=True)
@@ -785,8 +771,9 @@ def _adapt(args: argparse.Namespace) -> int:
     )
     rec, rig = _load_detections(args, rig_all)
     matcher = load_matcher(args.matcher, rig) if args.matcher else None
+    # The grouping infer makes with the same options (by default: the combined matcher).
+    proposals, threshold, combined = _proposal_settings(args, matcher)
     estimator = load_estimator(args.estimator, rig)
-    threshold = read_proposal_threshold(args.matcher, args.threshold)
     adapted, report = adapt_estimator(
         rig,
         rec.detections,
@@ -794,8 +781,8 @@ def _adapt(args: argparse.Namespace) -> int:
         matcher=matcher,
         threshold=threshold,
         half_score_px=args.half_score_px,
-        # The grouping infer's default makes with this matcher: its folder's combined settings.
-        combined=read_combined_config(args.matcher) if matcher is not None else None,
+        proposals=proposals,
+        combined=combined,
         config=config,
     )
     report.settings["estimator"] = str(Path(args.estimator).resolve())
@@ -940,6 +927,58 @@ def _convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _proposal_arguments(p: argparse.ArgumentParser) -> None:
+    """How detections are grouped into people (infer and adapt; `_proposal_settings` reads them)."""
+    p.add_argument(
+        "--proposals",
+        choices=("combined", "gat", "epipolar"),
+        default=None,
+        help="how skeletons are grouped into people: combined (the default with --matcher: the "
+        "GAT's scores joined with epipolar geometry, each frame kept on the grouping that agrees "
+        "better with the geometry; settings from the --matcher folder), gat (the GAT's scores "
+        "alone, --threshold; the paper's) or epipolar (the default without --matcher: symmetric "
+        "epipolar distance, --half-score-px)",
+    )
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="--proposals gat or epipolar: least match score to join two skeletons (default: the "
+        "one train-matcher chose, in the --matcher folder's proposal_threshold.json; else 0.5, "
+        "the paper's)",
+    )
+    p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
+    p.add_argument(
+        "--half-score-px",
+        type=float,
+        default=30.0,
+        help="geometric matcher: epipolar distance (px) that scores 0.5",
+    )
+
+
+def _proposal_settings(args: argparse.Namespace, matcher):
+    """(proposals, threshold, combined config or None) of `_proposal_arguments`' options.
+
+    --threshold is the GAT's and the epipolar matcher's setting; the combined matcher's come from
+    the --matcher folder, so a given one would be silently ignored: it is refused instead.
+    """
+    from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
+
+    proposals = args.proposals or ("combined" if matcher is not None else "epipolar")
+    if proposals != "epipolar" and matcher is None:
+        raise InputError(f"--proposals {proposals} needs --matcher", field="--proposals")
+    if args.threshold is not None and proposals == "combined":
+        raise InputError(
+            "sets the GAT's or the epipolar matcher's proposals, not the combined matcher's (its "
+            "settings are the --matcher folder's proposal_threshold.json); add --proposals gat "
+            "to group by the GAT alone at this threshold",
+            field="--threshold",
+        )
+    threshold = read_proposal_threshold(args.matcher, args.threshold)
+    combined = read_combined_config(args.matcher) if proposals == "combined" else None
+    return proposals, threshold, combined
+
+
 def _infer_arguments(p: argparse.ArgumentParser) -> None:
     _detection_arguments(p)
     p.add_argument(
@@ -981,30 +1020,7 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         help="--method robust or blend: median keypoint reprojection error (px) that marks a "
         "whole view as not the person's (default 30)",
     )
-    p.add_argument(
-        "--threshold",
-        type=float,
-        default=None,
-        help="proposals: least match score to join two skeletons (default: the one train-matcher "
-        "chose, in the --matcher folder's proposal_threshold.json; else 0.5, the paper's)",
-    )
-    p.add_argument("--min-views", type=int, default=2, help="proposals: least views of a person")
-    p.add_argument(
-        "--proposals",
-        choices=("combined", "gat", "epipolar"),
-        default=None,
-        help="how skeletons are grouped into people: combined (the default with --matcher: the "
-        "GAT's scores joined with epipolar geometry, each frame kept on the grouping that agrees "
-        "better with the geometry; settings from the --matcher folder), gat (the GAT's scores "
-        "alone, --threshold; the paper's) or epipolar (the default without --matcher: symmetric "
-        "epipolar distance, --half-score-px)",
-    )
-    p.add_argument(
-        "--half-score-px",
-        type=float,
-        default=30.0,
-        help="geometric matcher: epipolar distance (px) that scores 0.5",
-    )
+    _proposal_arguments(p)
     p.add_argument(
         "--chunk-frames",
         type=int,
@@ -1210,7 +1226,6 @@ def _infer(args: argparse.Namespace) -> int:
     from mvpose_jax.data.chunks import ChunkStore
     from mvpose_jax.data.poses import PoseResults, load_poses, load_poses_chunk
     from mvpose_jax.inference import stream_pipeline
-    from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
     from mvpose_jax.smoothing import smooth_chunk_files
     from mvpose_jax.tracking import TrackingConfig
     from mvpose_jax.trained import load_estimator, load_matcher
@@ -1255,11 +1270,7 @@ def _infer(args: argparse.Namespace) -> int:
         fps = args.fps or _recording_fps(head.timestamps if head is not None else None)
         matcher = load_matcher(args.matcher, rig) if args.matcher else None
         estimator = load_estimator(args.estimator, rig) if args.estimator else None
-        threshold = read_proposal_threshold(args.matcher, args.threshold)
-        proposals = args.proposals or ("combined" if matcher is not None else "epipolar")
-        if proposals != "epipolar" and matcher is None:
-            raise InputError(f"--proposals {proposals} needs --matcher", field="--proposals")
-        combined = read_combined_config(args.matcher) if proposals == "combined" else None
+        proposals, threshold, combined = _proposal_settings(args, matcher)
         if adapt is not None:
             from mvpose_jax.adapt import adapt_estimator
 

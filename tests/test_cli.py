@@ -1100,3 +1100,11 @@ def test_infer_proposals_option_combined_by_default_with_a_matcher(
     argv = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--out"]
     assert main([*argv, str(tmp_path / "x"), "--proposals", "combined"]) == 2
     assert "--proposals combined needs --matcher" in capsys.readouterr().err
+    # A threshold the combined matcher would not read is refused, in infer and in adapt.
+    for command in ("infer", "adapt"):
+        argv = [command, "--rig", "panoptic5", "--detections", str(files["npz"])]
+        argv += ["--matcher", str(folder), "--threshold", "0.3", "--out", str(tmp_path / "y")]
+        argv += ["--estimator", str(tmp_path / "no-estimator")] if command == "adapt" else []
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "--threshold" in err and "--proposals gat" in err, err
