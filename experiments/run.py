@@ -1139,9 +1139,7 @@ def paper_panoptic(
     runs = []
     for i, seed in enumerate(seeds):
         data = make_data(rig, scenes, sc, seed, progress)
-        res = {
-            "seed": seed,
-            "scenes_seed": data_seed,
+        res = _run_record(seed, data_seed, sc) | {
             "matching": {s: {} for s in SPLITS},
             "training": {},
             "pose": {},
@@ -1283,9 +1281,7 @@ def paper_arp(
     }
     for i, seed in enumerate(seeds):
         data = make_data(rig, scenes, sc, seed, progress)
-        res = {
-            "seed": seed,
-            "scenes_seed": data_seed,
+        res = _run_record(seed, data_seed, sc) | {
             "matching": {s: {} for s in SPLITS},
             "training": {},
         }
@@ -1337,6 +1333,20 @@ def arp_tables(runs: list[dict]) -> list[str]:
         runs, "validation", PAPER_TABLE4, "Matching: arplab6, validation scenes with 1-8 people"
     )
     return lines
+
+
+# What a table's runs must share to be averaged (`--tables-from` checks them).
+RUN_SETTINGS = ("scenes_seed", "train_floor_jitter_m", "train_floor_offset_m")
+
+
+def _run_record(seed: int, data_seed: int, sc: Scale) -> dict:
+    """The head of one training seed's record: its seed and what its tables depend on."""
+    return {
+        "seed": seed,
+        "scenes_seed": data_seed,
+        "train_floor_jitter_m": sc.train_floor_jitter_m,
+        "train_floor_offset_m": sc.train_floor_offset_m,
+    }
 
 
 def _save_partial(runs: list[dict], out: Path) -> None:
@@ -1541,9 +1551,7 @@ def domain_shift(
         matcher, fit = fit_matcher(data, sc, rig.names, seed, progress)
         print(f"== seed {seed}: estimator, 5 views", flush=True)
         est, est_fit = fit_estimator(data, sc, rig.names, rig.names, seed, progress)
-        res = {
-            "seed": seed,
-            "scenes_seed": data_seed,
+        res = _run_record(seed, data_seed, sc) | {
             "training": {"matcher-5": fit, "estimator": est_fit},
             "shifts": {},
         }
@@ -1758,7 +1766,7 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--train-floor-jitter",
         type=float,
-        default=0.0,
+        default=None,
         metavar="M",
         help="training and dev recordings each get their own floor within M metres of the "
         "rig's (models that tolerate a wrong floor; default 0: one floor, the paper's setting)",
@@ -1766,7 +1774,7 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--train-floor-offset",
         type=float,
-        default=0.0,
+        default=None,
         metavar="M",
         help="training and dev recordings on a floor M metres above the rig's (negative: below), "
         "the test scenes on the rig's: models trained on a wrong floor (default 0)",
@@ -1807,39 +1815,49 @@ def main(argv=None) -> int:
         ap.error("--seeds must be at least 1")
     seeds = [args.seed + i for i in range(args.seeds)]
     scenes_seed = args.seed if args.scenes_seed is None else args.scenes_seed
+    given = {
+        "scenes_seed": args.scenes_seed,
+        "train_floor_jitter_m": args.train_floor_jitter,
+        "train_floor_offset_m": args.train_floor_offset,
+    }
+    option = {
+        "scenes_seed": "--scenes-seed",
+        "train_floor_jitter_m": "--train-floor-jitter",
+        "train_floor_offset_m": "--train-floor-offset",
+    }
     if args.tables_from is not None:
+        if args.shifts is not None:
+            ap.error("--shifts applies to a run, not to --tables-from (its runs' shifts are used)")
         runs = []
         for path in args.tables_from:
             saved = json.loads(path.read_text())
             for run in saved["runs"] if isinstance(saved, dict) else saved:
-                # Older runs record their scenes' seed only in their metrics.json's header.
-                known = saved.get("scenes_seed") if isinstance(saved, dict) else None
-                runs.append({"scenes_seed": known} | run)
+                # Older runs record these only in their metrics.json's header.
+                header = saved if isinstance(saved, dict) else {}
+                runs.append({k: header.get(k) for k in RUN_SETTINGS} | run)
         if not runs:
             ap.error("--tables-from: no finished run in " + ", ".join(map(str, args.tables_from)))
         seeds = [r["seed"] for r in runs]
         if len(set(seeds)) != len(seeds):
             ap.error(f"the runs repeat training seeds: {seeds}")
-        # A table's seeds are measured on the same scenes, or their mean means nothing.
-        for run in runs:
-            if run["scenes_seed"] is None:
-                if args.scenes_seed is None:
-                    ap.error(
-                        f"the run of training seed {run['seed']} does not record its scenes' seed "
-                        "(an older runs_partial.json): say it with --scenes-seed"
-                    )
-                run["scenes_seed"] = args.scenes_seed
-        scene_seeds = sorted({r["scenes_seed"] for r in runs})
-        if len(scene_seeds) > 1:
-            ap.error(
-                f"the runs were measured on different scenes (scenes seeds {scene_seeds}): "
-                "re-run them with one --scenes-seed"
-            )
-        if args.scenes_seed is not None and scene_seeds != [args.scenes_seed]:
-            ap.error(
-                f"--scenes-seed {args.scenes_seed}: the runs' scenes are seed {scene_seeds[0]}"
-            )
-        scenes_seed = scene_seeds[0]
+        # A table's seeds are measured on the same scenes after training on the same floors, or
+        # their mean means nothing.
+        for key in RUN_SETTINGS:
+            for run in runs:
+                if run[key] is None:
+                    if given[key] is None:
+                        ap.error(
+                            f"the run of training seed {run['seed']} does not record its {key} "
+                            f"(an older runs_partial.json): say it with {option[key]}"
+                        )
+                    run[key] = given[key]
+            values = sorted({r[key] for r in runs})
+            if len(values) > 1:
+                ap.error(f"the runs differ in {key} ({values}): re-run them with one {option[key]}")
+            if given[key] is not None and values != [given[key]]:
+                ap.error(f"{option[key]} {given[key]}: the runs' {key} is {values[0]}")
+            given[key] = values[0]
+        scenes_seed = given["scenes_seed"]
         tables = {
             "paper-panoptic": panoptic_tables,
             "paper-arp": arp_tables,
@@ -1851,7 +1869,9 @@ def main(argv=None) -> int:
         sources = ", ".join(str(p) for p in args.tables_from)
         command += f" (the runs of {sources}; their training seeds {seeds})"
     else:
-        if args.train_floor_jitter < 0:
+        for key in ("train_floor_jitter_m", "train_floor_offset_m"):
+            given[key] = given[key] or 0.0
+        if given["train_floor_jitter_m"] < 0:
             ap.error("--train-floor-jitter must be >= 0")
         if args.shifts is not None:
             if args.experiment != "domain-shift":
@@ -1860,8 +1880,8 @@ def main(argv=None) -> int:
             if unknown:
                 ap.error(f"--shifts: no shift named {unknown}; the shifts: {', '.join(SHIFTS)}")
         settings = {
-            "train_floor_jitter_m": args.train_floor_jitter,
-            "train_floor_offset_m": args.train_floor_offset,
+            "train_floor_jitter_m": given["train_floor_jitter_m"],
+            "train_floor_offset_m": given["train_floor_offset_m"],
             "shifts": args.shifts,
         }
         runs, lines = EXPERIMENTS[args.experiment](
@@ -1878,8 +1898,8 @@ def main(argv=None) -> int:
         "seed": args.seed,
         "scenes_seed": scenes_seed,
         "seeds": seeds,
-        "train_floor_jitter_m": args.train_floor_jitter,
-        "train_floor_offset_m": args.train_floor_offset,
+        "train_floor_jitter_m": given["train_floor_jitter_m"],
+        "train_floor_offset_m": given["train_floor_offset_m"],
         "command": command,
         "seconds": round(seconds, 1),
         "machine": machine(),
@@ -1891,15 +1911,15 @@ def main(argv=None) -> int:
         f"({meta['machine']['cores']} cores, jax {meta['machine']['jax']}, {meta['machine']['device']}).",
         "Synthetic data on the paper's real camera geometry; trained from scratch in this run, no 3D labels."
         + (
-            f" Training and dev recordings each on their own floor within {args.train_floor_jitter:g} m"
+            f" Training and dev recordings each on their own floor within {meta['train_floor_jitter_m']:g} m"
             " of the rig's (--train-floor-jitter)."
-            if args.train_floor_jitter
+            if meta["train_floor_jitter_m"]
             else ""
         )
         + (
-            f" Training and dev recordings on a floor {args.train_floor_offset:+g} m from the rig's"
+            f" Training and dev recordings on a floor {meta['train_floor_offset_m']:+g} m from the rig's"
             " (--train-floor-offset: a wrong floor guess); the scenes on the rig's."
-            if args.train_floor_offset
+            if meta["train_floor_offset_m"]
             else ""
         ),
         "Splits: single-person training and dev recordings per training seed; multi-person validation scenes",

@@ -124,4 +124,22 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert "over 2 training seeds (0, 1)" in text and "both from seed 0" in text
     with pytest.raises(SystemExit):
         main([*argv, str(out / "runs_partial.json"), str(other)])
-    assert "different scenes (scenes seeds [0, 1])" in capsys.readouterr().err
+    assert "differ in scenes_seed ([0, 1])" in capsys.readouterr().err
+    # So is a part trained on another floor; the joined tables say which floor they trained on.
+    assert run["train_floor_offset_m"] == 0.0 and run["train_floor_jitter_m"] == 0.0
+    other.write_text(json.dumps([run | {"seed": 1, "train_floor_offset_m": -0.6}]))
+    with pytest.raises(SystemExit):
+        main([*argv, str(out / "runs_partial.json"), str(other)])
+    assert "differ in train_floor_offset_m ([-0.6, 0.0])" in capsys.readouterr().err
+    both = [run | {"train_floor_offset_m": -0.6}, run | {"seed": 1, "train_floor_offset_m": -0.6}]
+    other.write_text(json.dumps(both))
+    assert main([*argv, str(other)]) == 0
+    assert "on a floor -0.6 m from the rig's" in (joined / "tables.md").read_text()
+    # A record older than the floor fields needs them said (they were not recorded).
+    old = {k: v for k, v in run.items() if not k.startswith("train_floor")}
+    other.write_text(json.dumps([old]))
+    with pytest.raises(SystemExit):
+        main([*argv, str(other)])
+    assert "say it with --train-floor-jitter" in capsys.readouterr().err
+    argv += [str(other), "--train-floor-jitter", "0", "--train-floor-offset", "0"]
+    assert main(argv) == 0
