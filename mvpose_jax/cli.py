@@ -1349,6 +1349,7 @@ def _infer(args: argparse.Namespace) -> int:
                 threshold=threshold,
                 min_views=args.min_views,
                 half_score_px=args.half_score_px,
+                layout=stream.layout,
                 num_frames=F - start,
                 progress=True,
                 tracking=tracking,

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, undistort_points
+from mvpose_jax.cameras import Rig, undistort_points, up_vector
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import (
     NUM_KEYPOINT_FEATURES,
@@ -46,7 +46,7 @@ from mvpose_jax.proposals import (
     propose_combined,
     propose_people,
 )
-from mvpose_jax.skeletons import Detections, Poses3D
+from mvpose_jax.skeletons import Detections, Poses3D, get_layout, leg_chains
 from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
 from mvpose_jax.tracking import TrackingConfig, track_frames
 from mvpose_jax.tracking import initial_state as tracker_initial_state
@@ -101,7 +101,7 @@ def _predict_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score):
     return to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
 
 
-def _blend_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score, thresholds):
+def _blend_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score, thresholds, legs, up):
     """Method "blend": robust triangulation once, as the estimator's initial 3D (in place of the
     pairwise centroid it was trained on: on validation scenes that helped on every shift, most
     with wrong groupings) and where it reconstructs a keypoint (`triangulate.blend_skeletons`)."""
@@ -114,7 +114,9 @@ def _blend_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score, thresh
     inputs = estimator_inputs(rig, xy, score, normalisation)
     feats = assemble_features(inputs, (score > 0).any(axis=-1), initial)
     model = to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
-    return blend_skeletons(rig, px, w, model_xyz=model, tri_xyz=tri, tri_valid=ok, kept=kept)[0]
+    return blend_skeletons(
+        rig, px, w, model_xyz=model, tri_xyz=tri, tri_valid=ok, kept=kept, legs=legs, up=up
+    )[0]
 
 
 def predict_people(
@@ -125,6 +127,7 @@ def predict_people(
     method: str = "mlp",
     outlier_px: float = OUTLIER_PX,
     view_outlier_px: float = VIEW_OUTLIER_PX,
+    layout: str = "coco18",
     mesh: jax.sharding.Mesh | None = None,
 ) -> np.ndarray:
     """3D keypoints of N people from their views in the estimator's inference cameras.
@@ -135,7 +138,8 @@ def predict_people(
       method: "mlp", the estimator's output; or "blend", robust triangulation
         (`triangulate.triangulate_skeletons_robust` with ``outlier_px``, ``view_outlier_px``)
         where it reconstructs a keypoint and the estimator, given it as its initial 3D,
-        elsewhere (`triangulate.blend_skeletons`).
+        elsewhere (`triangulate.blend_skeletons`, legs placed by their bones' lengths).
+      layout: the keypoints' layout ("blend": where the legs are).
       mesh: optional data mesh (`parallel.make_data_mesh`): people are split over its devices
         (padded to a multiple of the device count), parameters replicated.
     Returns:
@@ -144,7 +148,18 @@ def predict_people(
     if method not in ESTIMATOR_METHODS:
         raise ValueError(f"method must be one of {ESTIMATOR_METHODS}, not {method!r}")
     fn = _predict_fn if method == "mlp" else _blend_fn
-    extra = () if method == "mlp" else (np.array([outlier_px, view_outlier_px], np.float32),)
+    extra = ()
+    if method == "blend":
+        lay = get_layout(layout)
+        if lay.num_keypoints != np.shape(score)[-1]:
+            raise InputError(
+                f"layout {lay.name!r} has {lay.num_keypoints} keypoints, the people "
+                f"{np.shape(score)[-1]}",
+                field="layout",
+            )
+        thresholds = np.array([outlier_px, view_outlier_px], np.float32)
+        up = np.asarray(up_vector(estimator.rig_infer), np.float32)
+        extra = (thresholds, leg_chains(lay), up)
     xy_p, score_p = _pad_people(xy, score)
     jitted = bound_model_fn(fn, estimator.graphdef)
     if mesh is None:
@@ -912,6 +927,7 @@ def poses_of_members(
     min_views: int = 2,
     outlier_px: float = OUTLIER_PX,
     view_outlier_px: float = VIEW_OUTLIER_PX,
+    layout: str = "coco18",
 ) -> tuple[Poses3D, np.ndarray]:
     """The 3D stage on given person groupings (proposals, or any other).
 
@@ -928,6 +944,7 @@ def poses_of_members(
       min_views: a person needs skeletons in this many (inference) views.
       outlier_px, view_outlier_px: the thresholds of robust triangulation (methods "robust" and
         "blend"; `triangulate_people`).
+      layout: the keypoints' layout (method "blend", `predict_people`).
     Returns:
       (`Poses3D` (F, G, ...), confidence (F, G)).
     Raises:
@@ -943,7 +960,7 @@ def poses_of_members(
         p_xy, p_score = p_xy[:, :, idx], p_score[:, :, idx]
     if method == "mlp":
         return estimate_grouped(estimator, p_xy, p_score, min_views)
-    return estimate_grouped(estimator, p_xy, p_score, min_views, method, **robust)
+    return estimate_grouped(estimator, p_xy, p_score, min_views, method, **robust, layout=layout)
 
 
 def check_method(method: str | None, estimator: Estimator | None) -> str:
@@ -987,6 +1004,7 @@ def stream_pipeline(
     half_score_px: float = 30.0,
     outlier_px: float = OUTLIER_PX,
     view_outlier_px: float = VIEW_OUTLIER_PX,
+    layout: str = "coco18",
     chunk_frames: int = 256,
     progress: bool = False,
     num_frames: int | None = None,
@@ -1023,6 +1041,7 @@ def stream_pipeline(
       threshold, min_views: the proposal step (`propose_people`).
       outlier_px, view_outlier_px: the thresholds of robust triangulation, methods "robust"
         and "blend" (`triangulate_people`).
+      layout: the keypoints' layout (method "blend": `predict_people`).
       chunk_frames: frames per chunk (memory is bounded by it).
       progress: show a progress bar.
       num_frames: frames the chunks hold in all (the progress bar's length) when ``detections``
@@ -1123,6 +1142,7 @@ def stream_pipeline(
                 min_views=min_views,
                 outlier_px=outlier_px,
                 view_outlier_px=view_outlier_px,
+                layout=layout,
             )
             t2 = time.perf_counter()
             # A person is kept only where the 3D stage produced one; its members say so too.

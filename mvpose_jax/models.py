@@ -34,18 +34,11 @@ class MLPConfig:
         themselves. "anchored": offsets from the person's anchor, the mean of its initial 3D
         estimates. "residual": offsets from each keypoint's initial 3D estimate where it has
         one, else from the anchor. All three read only the network's own inputs.
-      frame: where the network's inputs are expressed. "rig" (the paper): the rig-normalised
-        world. "person" (offset outputs only): the camera centres and initial 3D estimates
-        relative to the person's anchor, so nothing the network reads says where the person
-        stands, only how the cameras see them; a floor other than the training one then moves
-        the cameras relative to the person (what floor jitter in training covers) instead of
-        moving every input out of the trained range.
     """
 
     widths: tuple[int, ...] = PAPER_MLP_WIDTHS
     slope: float = 0.1
     output: str = "absolute"
-    frame: str = "rig"
 
     @classmethod
     def quick(cls) -> MLPConfig:
@@ -84,14 +77,9 @@ class PoseMLP(nnx.Module):
             raise ValueError(
                 f"MLPConfig.output must be absolute, anchored or residual, not {config.output!r}"
             )
-        if config.frame not in ("rig", "person"):
-            raise ValueError(f"MLPConfig.frame must be rig or person, not {config.frame!r}")
-        if config.frame == "person" and config.output == "absolute":
-            raise ValueError('MLPConfig.frame="person" needs offset outputs (anchored, residual)')
         self.num_keypoints = num_keypoints
         self.slope = config.slope
         self.output = config.output
-        self.frame = config.frame
         num_inputs = num_cameras * num_keypoints * NUM_ESTIMATOR_FEATURES
         if config.output != "absolute":
             num_inputs += num_keypoints * 4  # the pose-relative initial estimate, see __call__
@@ -113,9 +101,7 @@ class PoseMLP(nnx.Module):
 
     def __call__(self, features: jax.Array) -> jax.Array:
         batch = features.shape[:-3]
-        h = (person_frame_features(features) if self.frame == "person" else features).reshape(
-            batch + (-1,)
-        )
+        h = features.reshape(batch + (-1,))
         if self.output != "absolute":
             # The initial estimate once per keypoint, relative to the person's anchor: the
             # per-slot copies are zero in absent views, so reading them needs a division by
@@ -147,22 +133,6 @@ def _initial_estimate(features: jax.Array) -> tuple[jax.Array, jax.Array, jax.Ar
     )
     anchor = jnp.sum(xyz * has[..., None], axis=-2) / jnp.maximum(has.sum(axis=-1), 1.0)[..., None]
     return xyz, has, anchor
-
-
-def person_frame_features(features: jax.Array) -> jax.Array:
-    """Estimator features with the camera centres and initial estimates relative to the
-    person's anchor (`MLPConfig.frame` "person"); absent slots stay all zeros.
-
-    Args:
-      features: (..., C, K, 14) as `features.assemble_features` makes them.
-    Returns:
-      (..., C, K, 14).
-    """
-    _, _, anchor = _initial_estimate(features)
-    a = anchor[..., None, None, :]
-    cam = jnp.where(features[..., :1] > 0, features[..., 4:7] - a, 0.0)
-    init = jnp.where(features[..., 10:11] > 0, features[..., 11:14] - a, 0.0)
-    return jnp.concatenate([features[..., :4], cam, features[..., 7:11], init], axis=-1)
 
 
 def initial_estimate(features: jax.Array, per_keypoint: bool) -> jax.Array:

@@ -509,6 +509,27 @@ def get_layout(layout: str | Layout) -> Layout:
         ) from None
 
 
+def leg_chains(layout: str | Layout) -> np.ndarray:
+    """The layout's legs as parent-child bones, for placing a keypoint by its bone's length.
+
+    Returns:
+      (J, 4) int32 rows (parent, child, mirrored parent, mirrored child): each side's thigh (hip,
+      knee) before its shank (knee, ankle), so a child is placed after its parent; (0, 4) for
+      a layout without hips, knees and ankles on both sides.
+    """
+    lay = get_layout(layout)
+    names = ("hip", "knee", "ankle")
+    if not all(f"{s}_{n}" in lay.keypoints for s in "lr" for n in names):
+        return np.zeros((0, 4), np.int32)
+    i = lay.keypoints.index
+    rows = [
+        (i(f"{s}_{a}"), i(f"{s}_{b}"), i(f"{m}_{a}"), i(f"{m}_{b}"))
+        for s, m in (("l", "r"), ("r", "l"))
+        for a, b in zip(names[:-1], names[1:], strict=True)
+    ]
+    return np.asarray(rows, np.int32)
+
+
 def evaluation_keypoints(layout: str | Layout) -> np.ndarray:
     """Indices of the keypoints the paper's 3D metrics use (all but eyes and ears): (K_eval,)."""
     lay = get_layout(layout)

@@ -247,7 +247,20 @@ def test_blend_is_robust_triangulation_where_it_reconstructs_and_the_estimator_e
     kv = robust.keypoint_valid[..., None]
     anchor = (robust.xyz * kv).sum(-2) / np.maximum(kv.sum(-2), 1)  # (F, G, 3)
     depth = np.linalg.norm(anchor[:, :, None] - origin, axis=-1, keepdims=True)
-    np.testing.assert_allclose(blend.xyz[one], (origin + ray * depth)[one], atol=1e-4)
+    legs = np.zeros(one.shape[-1], bool)
+    legs[[13, 14, 15, 16]] = True  # knees and ankles hang from their parents instead
+    np.testing.assert_allclose(
+        blend.xyz[one & ~legs], (origin + ray * depth)[one & ~legs], atol=1e-4
+    )
+    # ... still on their ray (tests/test_triangulate.py checks where on it).
+    assert (one & legs).any()
+    v = blend.xyz - origin
+    off_ray = np.linalg.norm(v - ray * np.sum(v * ray, -1, keepdims=True), axis=-1)
+    assert off_ray[one & legs].max() < 1e-3
+    from mvpose_jax.errors import InputError
+
+    with pytest.raises(InputError, match="layout 'body25' has 25 keypoints"):
+        poses_of_members(rig, det, members, estimator=est, method="blend", layout="body25")
     # The pipeline gives the same, and the method is checked.
     res = run_pipeline(rig, det, estimator=est, method="blend")
     again, _ = poses_of_members(rig, det, res.members, estimator=est, method="blend")

@@ -410,3 +410,113 @@ def test_blend_shapes_masks_and_padding(ring_rig, batch):
     np.testing.assert_array_equal(from_tri, ok)
     if batch:
         np.testing.assert_allclose(xyz[0], model[0], atol=1e-6)
+
+
+def _lower_on_ray_by_search(origin, ray, parent, length, up):
+    """Brute-force reference for `hang_on_ray`: depths in front of the camera, on a fine grid."""
+    t = np.linspace(1e-3, 20.0, 2_000_001)
+    pts = origin + t[:, None] * ray
+    d = np.linalg.norm(pts - parent, axis=-1)
+    hits = np.abs(d - length) < 2e-5
+    if not hits.any():  # the ray passes farther than the length: its closest point
+        return pts[np.argmin(d)]
+    return pts[hits][np.argmin(pts[hits] @ up)]
+
+
+@pytest.mark.parametrize(
+    "climb, offset, length",
+    [(-0.7, 0.2, 0.5), (0.4, 0.2, 0.5), (-0.7, 0.2, 0.1), (0.4, 0.05, 3.5)],
+)
+def test_hang_on_ray_is_the_lower_point_at_the_length(climb, offset, length):
+    """Descending and climbing rays, a ray that passes too far, a near point behind the camera."""
+    up = np.array([0.0, 0.0, 1.0])
+    origin = np.array([0.3, -0.2, 2.5])
+    ray = np.array([1.0, 0.2, climb])
+    ray /= np.linalg.norm(ray)
+    side = np.cross(ray, up)
+    side /= np.linalg.norm(side)
+    parent = origin + 3.0 * ray + offset * side
+    got = np.asarray(
+        triangulate.hang_on_ray(
+            *(jnp.asarray(a, jnp.float32) for a in (origin, ray, parent, length, up))
+        )
+    )
+    want = _lower_on_ray_by_search(origin, ray, parent, length, up)
+    np.testing.assert_allclose(got, want, atol=1e-3)
+    assert np.dot(got - origin, ray) > 0
+
+
+def _legs_person(rig, seed):
+    """A person whose hips, knees and ankles (coco18) hang below each other, the world's up
+    being the rig's (-y); other keypoints around them."""
+    X = scene_points(rig, seed, (18,))
+    down = np.array([0.0, 1.0, 0.0], np.float32)
+    hip = X.mean(axis=0)
+    for side, dx, lean in ((11, 0.12, 0.08), (12, -0.12, -0.08)):  # l_hip, r_hip: one length
+        X[side] = hip + np.array([dx, 0.0, 0.0], np.float32)
+        X[side + 2] = X[side] + 0.45 * down + np.array([0.0, 0.0, lean], np.float32)  # knee
+        X[side + 4] = X[side + 2] + 0.42 * down - np.array([0.0, 0.0, lean], np.float32)  # ankle
+    return X
+
+
+def test_blend_hangs_one_view_knees_and_ankles_at_their_bone_length():
+    """A knee or ankle one view sees, the model's depth off along the ray (a wrong floor): it is
+    put back where the ray meets the other leg's bone length below its parent; without the leg
+    chains, it stays at the model's depth."""
+    from mvpose_jax.skeletons import leg_chains
+
+    rig = random_rig(seed=40, num_cameras=5)
+    X = np.stack([_legs_person(rig, 41), _legs_person(rig, 42)])
+    px = np.array(cameras.project_points(rig, jnp.asarray(X)))
+    w = np.ones(px.shape[:-1], np.float32)
+    w[1:, 0, 15] = 0.0  # person 0: left ankle in camera 0 only
+    w[[0, 2, 3, 4], 1, 14] = 0.0  # person 1: right knee and ankle in camera 1 only
+    w[[0, 2, 3, 4], 1, 16] = 0.0
+    centres = np.asarray(cameras.camera_centres(rig))
+    model = X.copy()
+    for n, k, c in ((0, 15, 0), (1, 14, 1), (1, 16, 1)):
+        ray = (X[n, k] - centres[c]) / np.linalg.norm(X[n, k] - centres[c])
+        model[n, k] += 0.5 * ray  # on the ray, 0.5 m too deep
+    up = np.array([0.0, -1.0, 0.0], np.float32)
+    for n, k, c, parent in ((0, 15, 0, 13), (1, 14, 1, 12), (1, 16, 1, 14)):
+        # The set-up's truth is the lower of the ray's two points at the bone length.
+        ray = (X[n, k] - centres[c]) / np.linalg.norm(X[n, k] - centres[c])
+        length = np.linalg.norm(X[n, k] - X[n, parent])
+        want = _lower_on_ray_by_search(centres[c], ray, X[n, parent], length, up)
+        np.testing.assert_allclose(want, X[n, k], atol=1e-3)
+    pxj, wj = jnp.asarray(px, jnp.float32), jnp.asarray(w, jnp.float32)
+    tri, ok, kept = triangulate.triangulate_skeletons_robust(rig, pxj, wj)
+    kw = dict(model_xyz=jnp.asarray(model), tri_xyz=tri, tri_valid=ok, kept=kept)
+    hung, from_tri = triangulate.blend_skeletons(
+        rig, pxj, wj, **kw, legs=jnp.asarray(leg_chains("coco18")), up=jnp.asarray(up)
+    )
+    plain, _ = triangulate.blend_skeletons(rig, pxj, wj, **kw)
+    hung, plain = np.asarray(hung), np.asarray(plain)
+    for n, k in ((0, 15), (1, 14), (1, 16)):
+        assert not np.asarray(from_tri)[n, k]
+        np.testing.assert_allclose(hung[n, k], X[n, k], atol=2e-3)
+        np.testing.assert_allclose(plain[n, k], model[n, k], atol=2e-3)
+    # Every other keypoint is the plain blend's.
+    other = np.ones((2, 18), bool)
+    other[0, 15] = other[1, 14] = other[1, 16] = False
+    np.testing.assert_allclose(hung[other], plain[other], atol=1e-6)
+    # A layout without legs changes nothing.
+    none, _ = triangulate.blend_skeletons(
+        rig, pxj, wj, **kw, legs=jnp.zeros((0, 4), jnp.int32), up=jnp.asarray(up)
+    )
+    np.testing.assert_allclose(np.asarray(none), plain, atol=1e-6)
+
+
+def test_leg_chains_name_the_layouts_legs_parents_first():
+    from mvpose_jax.skeletons import get_layout, leg_chains
+
+    for name in ("coco18", "body25", "halpe26", "openpose_coco18"):
+        lay = get_layout(name)
+        rows = [[lay.keypoints[i] for i in row] for row in leg_chains(name)]
+        assert rows == [
+            ["l_hip", "l_knee", "r_hip", "r_knee"],
+            ["l_knee", "l_ankle", "r_knee", "r_ankle"],
+            ["r_hip", "r_knee", "l_hip", "l_knee"],
+            ["r_knee", "r_ankle", "l_knee", "l_ankle"],
+        ]
+    assert leg_chains("mpii").shape == (4, 4)
