@@ -98,20 +98,18 @@ def propose_people(
     n = F * C * P
     rows = np.asarray(rows, np.int64).reshape(-1, 5)
     scores = np.asarray(scores).reshape(-1)
-    rows_all, scores_all = rows, scores  # every scored pair (the split repair reads them all)
     if C == 1:
         parent = np.arange(n)
     else:
-        keep = scores > threshold
-        rows, scores = rows[keep], scores[keep]
-        order = np.argsort(-scores, kind="stable")
-        a = ((rows[order, 0] * C + rows[order, 1]) * P + rows[order, 2]).tolist()
-        b = ((rows[order, 0] * C + rows[order, 3]) * P + rows[order, 4]).tolist()
+        # Each pair's two skeletons as flat item indices (frame, camera, skeleton).
+        pair_items = (rows[:, [0]] * C + rows[:, [1, 3]]) * P + rows[:, [2, 4]]  # (M, 2)
+        keep = np.nonzero(scores > threshold)[0]
+        joins = keep[np.argsort(-scores[keep], kind="stable")]  # best first
+        a, b = pair_items[joins, 0].tolist(), pair_items[joins, 1].tolist()
         parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
-        if repair_splits:
-            pair_items = (rows_all[:, [0]] * C + rows_all[:, [1, 3]]) * P + rows_all[:, [2, 4]]
+        if repair_splits:  # it reads every scored pair, not only the joins
             parent = _merge_split_people(
-                parent, a, b, scores[order], pair_items, scores_all, threshold, C, P
+                parent, a, b, scores[joins], pair_items, scores, threshold, C, P
             )
     return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
 
