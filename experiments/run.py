@@ -435,9 +435,16 @@ def fit_matcher(data: Data, sc: Scale, cameras, seed: int, progress: bool):
     # The combined matcher's threshold by the same rule, at that cutoff (its weight and
     # half-score distance are the library's defaults, chosen on the domain-shift validation scenes).
     combined = CombinedConfig(epipolar_cutoff_px=cutoff)
-    mean, median = epipolar_distances_of_rows(matcher.rig, composed, gat_rows)
+    mean, median, shared = epipolar_distances_of_rows(matcher.rig, composed, gat_rows)
     combined_threshold, ari_comb = choose_combined_threshold(
-        gat_rows, gat_scores, mean, median, identity, composed.count, config=combined
+        gat_rows,
+        gat_scores,
+        mean,
+        median,
+        identity,
+        composed.count,
+        config=combined,
+        shared_keypoints=shared,
     )
     return matcher, {
         "train_seconds": round(seconds, 1),

@@ -621,12 +621,12 @@ def epipolar_distances_of_rows(
       rows: (M, 5) ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` (e.g. a GAT table's).
     Returns:
       mean (M,) and median (M,) pixels over the keypoints seen in both views, inf when fewer
-      than ``min_shared`` are.
+      than ``min_shared`` are; shared (M,) int32, how many keypoints both views see.
     """
     rows = np.asarray(rows, np.int64).reshape(-1, 5)
     C = np.shape(detections.score)[1]
     if len(rows) == 0:
-        return np.zeros(0, np.float32), np.zeros(0, np.float32)
+        return np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32)
     mean, median = _epipolar_dense(rig, detections, min_shared, frames_per_call, median=True)
     pairs = camera_pairs(C)
     pair_of = np.full((C, C), -1, np.int64)
@@ -636,7 +636,15 @@ def epipolar_distances_of_rows(
     lo, hi = np.where(swap, rows[:, 3], rows[:, 1]), np.where(swap, rows[:, 1], rows[:, 3])
     p_lo, p_hi = np.where(swap, rows[:, 4], rows[:, 2]), np.where(swap, rows[:, 2], rows[:, 4])
     q = pair_of[lo, hi]
-    return mean[q, rows[:, 0], p_lo, p_hi], median[q, rows[:, 0], p_lo, p_hi]
+    seen = np.asarray(detections.score) > 0
+    shared = (
+        seen[rows[:, 0], rows[:, 1], rows[:, 2]] & seen[rows[:, 0], rows[:, 3], rows[:, 4]]
+    ).sum(-1)
+    return (
+        mean[q, rows[:, 0], p_lo, p_hi],
+        median[q, rows[:, 0], p_lo, p_hi],
+        shared.astype(np.int32),
+    )
 
 
 def _epipolar_dense(
@@ -792,11 +800,11 @@ def choose_matcher_settings(
     count = np.asarray(det.count)
     rows, scores = gat_match_table(matcher, det)
     threshold, ari = choose_proposal_threshold(rows, scores, identity, count)
-    mean, median = epipolar_distances_of_rows(matcher.rig, det, rows)
+    mean, median, shared = epipolar_distances_of_rows(matcher.rig, det, rows)
     cutoff, ari_cut = choose_geometric_cutoff(rows, mean, identity, count)
     config = dataclasses.replace(combined, epipolar_cutoff_px=cutoff)
     th, ari_comb = choose_combined_threshold(
-        rows, scores, mean, median, identity, count, config=config
+        rows, scores, mean, median, identity, count, config=config, shared_keypoints=shared
     )
     return MatcherSettings(
         threshold,
@@ -838,13 +846,14 @@ def propose_with_matcher(
     else:
         rows, scores = gat_match_table(matcher, detections)
     if mode == "combined":
-        mean, median = epipolar_distances_of_rows(matcher.rig, detections, rows)
+        mean, median, shared = epipolar_distances_of_rows(matcher.rig, detections, rows)
         proposals, _ = propose_combined(
             rows,
             scores,
             mean,
             median,
             count,
+            shared_keypoints=shared,
             config=combined or CombinedConfig(),
             num_skeletons=P,
             min_views=min_views,

@@ -540,11 +540,11 @@ def test_epipolar_distances_of_rows_mean_median_and_either_camera_order(ring_rig
     rec = generate_recording(ring_rig, num_people=2, num_frames=2, seed=3)
     det = rec.detections
     rows, d = epipolar_match_distances(ring_rig, det)
-    mean, median = epipolar_distances_of_rows(ring_rig, det, rows)
+    mean, median, shared_count = epipolar_distances_of_rows(ring_rig, det, rows)
     np.testing.assert_allclose(mean, d, rtol=1e-6)
     swapped = rows[:, [0, 3, 4, 1, 2]]  # the same pairs named (camera_b, camera_a)
-    got_both = epipolar_distances_of_rows(ring_rig, det, swapped)
-    for got, want in zip(got_both, (mean, median), strict=True):
+    got_all = epipolar_distances_of_rows(ring_rig, det, swapped)
+    for got, want in zip(got_all, (mean, median, shared_count), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-6)
     # The median against OpenCV: undistorted pixels, the fundamental matrix of the two cameras,
     # cv2.computeCorrespondEpilines, point-line distances, their numpy median.
@@ -558,9 +558,10 @@ def test_epipolar_distances_of_rows_mean_median_and_either_camera_order(ring_rig
     def line_distance(lines, pts):
         return np.abs((lines[:, :2] * pts).sum(1) + lines[:, 2]) / np.hypot(*lines[:, :2].T)
 
-    for r, want in zip(rows[::7], median[::7], strict=True):
-        f, ca, pa, cb, pb = r
+    for i in range(0, len(rows), 7):
+        (f, ca, pa, cb, pb), want = rows[i], median[i]
         shared = (score[f, ca, pa] > 0) & (score[f, cb, pb] > 0)
+        assert shared_count[i] == shared.sum()
         if shared.sum() < 3:
             assert want == np.inf
             continue

@@ -22,6 +22,7 @@ from mvpose_jax.proposals import (
     choose_combined_threshold,
     choose_geometric_cutoff,
     choose_proposal_threshold,
+    combined_pair_distances,
     combined_pair_scores,
     grouping_consistency,
     propose_combined,
@@ -300,6 +301,36 @@ def test_combined_recovers_the_truth_when_the_gat_is_adversarially_wrong():
     p, used_epipolar = propose_combined(rows, gat, d, d, count, config=cfg)
     assert used_epipolar.tolist() == [False]
     assert matching_scores(identity, p.identity, count)["ari"] == pytest.approx(1.0)
+
+
+def test_combined_pair_distance_is_the_median_only_over_enough_shared_keypoints():
+    cfg = CombinedConfig(median_min_shared=6)
+    mean, median = np.array([150.0, 150.0, 20.0, np.inf]), np.array([10.0, 10.0, 30.0, np.inf])
+    got = combined_pair_distances(mean, median, np.array([12, 5, 12, 2]), cfg)
+    np.testing.assert_array_equal(got, [10.0, 150.0, 20.0, np.inf])
+    np.testing.assert_array_equal(combined_pair_distances(mean, median, None, cfg), mean)
+    with pytest.raises(InputError, match="median_min_shared"):
+        CombinedConfig(median_min_shared=0)
+
+
+def test_combined_joins_a_part_mixed_skeleton_by_its_median():
+    # Camera 2's skeleton of A carries B's arm: its pairs with A's other views have a mean
+    # distance of 150 px (past the 100 px cutoff) but a median of 8 px over 12 shared keypoints.
+    rows, true, identity, count = _two_people_three_views()
+    mixed = true & ((rows[:, 1] == 2) | (rows[:, 3] == 2)) & (rows[:, 2] == 0)
+    mean = np.where(true, np.where(mixed, 150.0, 6.0), 300.0)
+    median = np.where(true, np.where(mixed, 8.0, 6.0), 280.0)
+    gat = np.where(true, 0.9, 0.05)
+    cfg = CombinedConfig()
+    p, _ = propose_combined(
+        rows, gat, mean, median, count, config=cfg, shared_keypoints=np.full(len(rows), 12)
+    )
+    assert matching_scores(identity, p.identity, count)["ari"] == pytest.approx(1.0)
+    # The mean alone (or too few shared keypoints to trust the median) leaves A's third view out.
+    for shared in (None, np.full(len(rows), 5)):
+        p, _ = propose_combined(rows, gat, mean, median, count, config=cfg, shared_keypoints=shared)
+        assert p.identity[0, 2, 0] == -1 and p.identity[0, 2, 1] >= 0
+        assert (p.identity[0, :2, 0] >= 0).all()
 
 
 def test_combined_changes_nothing_where_gat_and_geometry_agree():
