@@ -69,6 +69,14 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert main([*argv, "--tables-from", str(out / "runs_partial.json")]) == 0
     first = (out / "tables.md").read_text().split("\n", 3)[3]
     assert (again / "tables.md").read_text().split("\n", 3)[3] == first
+    # experiments.combined_matching prints the same tables from the same runs.
+    from experiments import combined_matching
+
+    capsys.readouterr()
+    assert combined_matching.main(["--tables-from", str(out / "runs_partial.json")]) == 0
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert "Δ ARI" in "\n".join(printed)
+    assert all(line in first for line in printed if line.startswith("|"))
     with pytest.raises(SystemExit):
         main(["--experiment", "domain-shift", "--smoke", "--shifts", "floor+0.7"])
     assert "no shift named ['floor+0.7']" in capsys.readouterr().err
