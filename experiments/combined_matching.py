@@ -107,9 +107,9 @@ def main(argv=None) -> int:
             }
             print(f"{path} {name}: {json.dumps(run['shifts'][name])}", flush=True)
         runs.append(run)
-    print("\n".join(shift_tables(runs)))
-    if args.out is not None:
+    if args.out is not None:  # before the tables, so that a table's failure loses no numbers
         atomic_write_text(args.out, json.dumps(runs, indent=1) + "\n")
+    print("\n".join(shift_tables(runs)))
     return 0
 
 
