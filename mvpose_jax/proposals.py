@@ -352,10 +352,11 @@ class CombinedConfig:
         (`combined_pair_distances`); a very large value keeps the mean alone.
       repair_splits: merge a person split over two groups by a duplicate or fragment skeleton
         (`propose_people`'s ``repair_splits``), in both groupings. Off: on the domain-shift
-        experiment's validation scenes (seed-0 quick models) it halves the split people of the
-        part-mixing shift (41 -> 21 of 900 person-frames; ARI 0.9655 -> 0.9726; robust
-        triangulation behind it 0.28 PCP nearer the true groups) and changes no other shift, but
-        the default pipeline (combined + blend) does not gain (91.49 -> 91.46 PCP).
+        experiment's validation scenes (seed-0 quick models, with ``median_min_shared`` 6) it
+        lifts part-mixing's ARI (0.9784 -> 0.9885) and brings robust triangulation behind it
+        nearer the true groups (-0.56 -> -0.19 PCP), but the default pipeline (combined + blend)
+        gains 0.03 PCP there and loses 0.27 on ``floor-0.3`` (97.46 -> 97.19: it merges two
+        people).
 
     The defaults of ``gat_weight`` and ``half_score_px`` were chosen on the validation scenes of
     ``python -m experiments.run --experiment domain-shift`` (seed-0 quick models, every shift):
