@@ -223,6 +223,34 @@ def test_a_person_split_by_a_duplicate_is_merged_keeping_the_better_skeleton():
     assert len(merged.people[0]) == 1
 
 
+def test_a_split_person_is_not_merged_across_a_ruled_out_pair():
+    # The duplicate test's frame, but camera 1's skeleton and camera 3's now score 0.01 (under
+    # a tenth of the threshold): every other condition of the merge still holds, yet the merged
+    # person would hold a pair the scores rule out, so the two groups stay apart.
+    count = np.array([[2, 1, 1, 1]])
+    pairs = {
+        (0, 1, 1, 0): 0.95,
+        (0, 0, 2, 0): 0.9,
+        (0, 0, 3, 0): 0.9,
+        (2, 0, 3, 0): 0.9,
+        (1, 0, 2, 0): 0.85,
+        (1, 0, 3, 0): 0.01,
+        (0, 0, 1, 0): 0.8,
+        (0, 1, 2, 0): 0.6,
+        (0, 1, 3, 0): 0.6,
+    }
+    rows = np.array([[0, *key] for key in pairs])
+    scores = np.array(list(pairs.values()))
+    split = propose_people(rows, scores, count).identity[0]
+    for repair in (False, True):
+        ident = propose_people(rows, scores, count, repair_splits=repair).identity[0]
+        np.testing.assert_array_equal(ident, split)
+    assert split[0, 1] == split[1, 0] != split[0, 0] == split[2, 0] == split[3, 0]
+    scores[list(pairs).index((1, 0, 3, 0))] = 0.06  # above the veto: merged
+    ident = propose_people(rows, scores, count, repair_splits=True).identity[0]
+    assert ident[0, 0] == ident[1, 0] == ident[2, 0] == ident[3, 0] == 0 and ident[0, 1] == -1
+
+
 def test_two_people_sharing_a_camera_with_one_link_stay_apart():
     # X = camera 0 skeleton 0 + camera 1; Y = camera 0 skeleton 1 + camera 2; one pair across.
     count = np.array([[2, 1, 1]])
@@ -408,9 +436,9 @@ def test_choose_combined_threshold_and_the_record(tmp_path):
     assert read_combined_config(tmp_path) == cfg
     assert read_combined_config(None) == CombinedConfig()
     assert read_combined_config(tmp_path / "elsewhere") == CombinedConfig()
-    on = dataclasses.replace(cfg, repair_splits=True)
-    write_proposal_threshold(tmp_path, 0.3, {0.3: 0.9}, 6, combined=on, combined_ari=ari)
-    assert read_combined_config(tmp_path) == on
+    off = dataclasses.replace(cfg, repair_splits=False)  # a record keeps its own switch
+    write_proposal_threshold(tmp_path, 0.3, {0.3: 0.9}, 6, combined=off, combined_ari=ari)
+    assert read_combined_config(tmp_path) == off
     (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text('{"threshold": 0.3, "combined": 3}')
     with pytest.raises(InputError, match="combined"):
         read_combined_config(tmp_path)
