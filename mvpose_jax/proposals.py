@@ -171,6 +171,7 @@ def _merge_split_people(
     score_of = {}
     for (x, y), s in zip(pair_items[known].tolist(), pair_scores[known].tolist(), strict=True):
         score_of[(x, y)] = score_of[(y, x)] = s
+    veto = SPLIT_VETO_FRACTION * threshold
     touched: set[int] = set()
     for *_, ra, rb, c in sorted(candidates, reverse=True):  # most links first
         if ra in touched or rb in touched:
@@ -191,13 +192,13 @@ def _merge_split_people(
         drop = min(twins, key=lambda x: (of_twin[x], -x))
         kept = [x for x in group if x != drop]
         # Nor may any pair of the merged person be ruled out (two people whose groups are
-        # linked by enough near pairs can still hold one far pair between them).
-        veto = SPLIT_VETO_FRACTION * threshold
+        # linked by enough near pairs can still hold one far pair between them). Pairs of one
+        # camera are never scored, so only cross-view pairs can veto.
         if any(
             score_of.get((x, y), np.inf) < veto
             for x in members[ra]
             for y in members[rb]
-            if x != drop and y != drop and camera(x) != camera(y)
+            if drop not in (x, y)
         ):
             continue
         touched |= {ra, rb}

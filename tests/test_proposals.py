@@ -197,9 +197,10 @@ def _check_exclusive(p):
                 assert (sk < 0) or ident[c, sk] == g
 
 
-def test_a_person_split_by_a_duplicate_is_merged_keeping_the_better_skeleton():
-    # One person in cameras 0-3 (skeleton 0 each) and a duplicate in camera 0 (skeleton 1) that
-    # grabs camera 1 first: the greedy pass makes two groups sharing camera 0.
+def _duplicate_split_frame():
+    """One person in cameras 0-3 (skeleton 0 each) and a duplicate in camera 0 (skeleton 1) that
+    grabs camera 1 first: the greedy pass makes two groups sharing camera 0. Returns count,
+    rows and scores, and the row index of each (camera_a, skeleton_a, camera_b, skeleton_b)."""
     count = np.array([[2, 1, 1, 1]])
     pairs = {
         (0, 1, 1, 0): 0.95,  # duplicate - camera 1
@@ -213,7 +214,11 @@ def test_a_person_split_by_a_duplicate_is_merged_keeping_the_better_skeleton():
         (0, 1, 3, 0): 0.6,
     }
     rows = np.array([[0, *key] for key in pairs])
-    scores = np.array(list(pairs.values()))
+    return count, rows, np.array(list(pairs.values())), {k: i for i, k in enumerate(pairs)}
+
+
+def test_a_person_split_by_a_duplicate_is_merged_keeping_the_better_skeleton():
+    count, rows, scores, _ = _duplicate_split_frame()
     split = propose_people(rows, scores, count).identity[0]
     assert split[0, 1] == split[1, 0] != split[0, 0] == split[2, 0] == split[3, 0]
     merged = propose_people(rows, scores, count, repair_splits=True)
@@ -224,29 +229,17 @@ def test_a_person_split_by_a_duplicate_is_merged_keeping_the_better_skeleton():
 
 
 def test_a_split_person_is_not_merged_across_a_ruled_out_pair():
-    # The duplicate test's frame, but camera 1's skeleton and camera 3's now score 0.01 (under
-    # a tenth of the threshold): every other condition of the merge still holds, yet the merged
-    # person would hold a pair the scores rule out, so the two groups stay apart.
-    count = np.array([[2, 1, 1, 1]])
-    pairs = {
-        (0, 1, 1, 0): 0.95,
-        (0, 0, 2, 0): 0.9,
-        (0, 0, 3, 0): 0.9,
-        (2, 0, 3, 0): 0.9,
-        (1, 0, 2, 0): 0.85,
-        (1, 0, 3, 0): 0.01,
-        (0, 0, 1, 0): 0.8,
-        (0, 1, 2, 0): 0.6,
-        (0, 1, 3, 0): 0.6,
-    }
-    rows = np.array([[0, *key] for key in pairs])
-    scores = np.array(list(pairs.values()))
+    # The duplicate frame, but camera 1's skeleton and camera 3's now score 0.01 (under a tenth
+    # of the threshold): every other condition of the merge still holds, yet the merged person
+    # would hold a pair the scores rule out, so the two groups stay apart.
+    count, rows, scores, index = _duplicate_split_frame()
+    scores[index[(1, 0, 3, 0)]] = 0.01
     split = propose_people(rows, scores, count).identity[0]
     for repair in (False, True):
         ident = propose_people(rows, scores, count, repair_splits=repair).identity[0]
         np.testing.assert_array_equal(ident, split)
     assert split[0, 1] == split[1, 0] != split[0, 0] == split[2, 0] == split[3, 0]
-    scores[list(pairs).index((1, 0, 3, 0))] = 0.06  # above the veto: merged
+    scores[index[(1, 0, 3, 0)]] = 0.06  # above the veto: merged
     ident = propose_people(rows, scores, count, repair_splits=True).identity[0]
     assert ident[0, 0] == ident[1, 0] == ident[2, 0] == ident[3, 0] == 0 and ident[0, 1] == -1
 
