@@ -6,11 +6,12 @@ Loads quick-scale 5-view matchers and estimators, one pickle per training seed (
 `experiments.filter_cutoffs` writes them, trained as ``experiments.run`` trains them; the first
 is trained here with seed 0 when its file is missing), runs `experiments.run.shift_rows` (every
 matcher's per-frame ARI, every grouping with every 3D method) on each chosen shift and split of
-the scenes of seed 0, and prints the domain-shift summary tables of each split (with several
-pickles, their mean ± sd). The combined matcher's settings are the ones recorded with each
-matcher (``fit["combined"]``), else the library's defaults at the matcher's epipolar cutoff
-(`experiments.run.combined_config`). One shift and split takes about a minute on 2 busy CPU
-cores per pickle.
+the scenes of seed 0 (``--scenes-seed``), and prints the domain-shift summary tables of each
+split (with several pickles, their mean ± sd). The combined matcher's settings are the ones
+recorded with each matcher (``fit["combined"]``), else the library's defaults at the matcher's
+epipolar cutoff (`experiments.run.combined_config`; ``--library-switches``: its on/off switches
+at the library's defaults). One shift and split takes about a minute on 2 busy CPU cores per
+pickle.
 """
 
 from __future__ import annotations
@@ -32,7 +33,12 @@ from experiments.run import (
 )
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text
+from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.synthetic import SHIFTS
+
+# The combined matcher's on/off settings, chosen on validation scenes for the library (not per
+# matcher, unlike its threshold and cutoff, which are chosen on each matcher's dev frames).
+SWITCHES = ("repair_splits", "drop_duplicates")
 
 
 def _load(path: Path) -> dict:
@@ -63,6 +69,19 @@ def main(argv=None) -> int:
         "--out", type=Path, help="write every number as JSON (a list, a run per pickle)"
     )
     ap.add_argument(
+        "--scenes-seed",
+        type=int,
+        default=0,
+        help="the validation and test scenes' seed (default 0, as experiments.run's tables); "
+        "other seeds give more validation scenes to choose on",
+    )
+    ap.add_argument(
+        "--library-switches",
+        action="store_true",
+        help="the combined matcher's switches (repair_splits, drop_duplicates) at the library's "
+        "defaults, not as each matcher's record has them (its threshold and cutoff are kept)",
+    )
+    ap.add_argument(
         "--adapt", action="store_true", help="also the rows after adapt (quick scale's settings)"
     )
     ap.add_argument(
@@ -80,16 +99,23 @@ def main(argv=None) -> int:
     rig = load_rig("panoptic5")
     splits = args.splits.split(",")
     scenes = {
-        name: Data(rig, [], [], make_shifted_scenes(rig, SCALES["quick"], 0, SHIFTS[name]))
+        name: Data(
+            rig, [], [], make_shifted_scenes(rig, SCALES["quick"], args.scenes_seed, SHIFTS[name])
+        )
         for name in args.shifts.split(",")
     }
     runs = []
     for i, path in enumerate(args.models):
         m = models(rig, path) if i == 0 else _load(path)
+        if args.library_switches:
+            default = CombinedConfig()
+            m["fit"]["combined"] = dataclasses.asdict(combined_config(m["fit"])) | {
+                k: getattr(default, k) for k in SWITCHES
+            }
         run = {
             "seed": int(m.get("seed", i)),
             "models": None if path is None else str(path),
-            "scenes_seed": 0,
+            "scenes_seed": args.scenes_seed,
             "combined": dataclasses.asdict(combined_config(m["fit"])),
             "shifts": {},
         }

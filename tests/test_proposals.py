@@ -181,7 +181,11 @@ def test_proposals_never_give_a_person_two_skeletons_of_one_camera(F, cams, P, s
     count, rows = _random_frames(rng, F, cams, P)
     scores = rng.random(len(rows))
     for repair in (False, True):
-        _check_exclusive(propose_people(rows, scores, count, num_skeletons=P, repair_splits=repair))
+        for drop in (False, True):
+            got = propose_people(
+                rows, scores, count, num_skeletons=P, repair_splits=repair, drop_duplicates=drop
+            )
+            _check_exclusive(got)
 
 
 def _check_exclusive(p):
@@ -252,6 +256,56 @@ def test_two_people_sharing_a_camera_with_one_link_stay_apart():
     for repair in (False, True):
         ident = propose_people(rows, scores, count, repair_splits=repair).identity[0]
         assert ident[0, 0] == ident[1, 0] != ident[0, 1] == ident[2, 0]
+
+
+def _ghost_frame():
+    """One person in cameras 0-3 (skeleton 0 each) and duplicates of it in cameras 0 and 1
+    (skeleton 1) that score high with each other: the greedy pass makes them a second person.
+    Returns count, rows, scores and the row index of each (camera_a, skel_a, camera_b, skel_b)."""
+    count = np.array([[2, 2, 1, 1]])
+    pairs = {(a, 0, b, 0): 0.9 for a, b in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))}
+    pairs |= {
+        (0, 1, 1, 1): 0.85,  # the duplicates' own pair
+        (0, 1, 1, 0): 0.7,
+        (0, 0, 1, 1): 0.7,
+        (0, 1, 2, 0): 0.6,
+        (1, 1, 2, 0): 0.1,
+        (0, 1, 3, 0): 0.1,
+        (1, 1, 3, 0): 0.1,
+    }
+    rows = np.array([[0, *key] for key in pairs])
+    return count, rows, np.array(list(pairs.values())), {k: i for i, k in enumerate(pairs)}
+
+
+def test_a_person_made_of_another_persons_duplicates_is_left_out():
+    count, rows, scores, index = _ghost_frame()
+    ghost = propose_people(rows, scores, count, threshold=0.5).identity[0]
+    assert ghost[0, 0] == ghost[1, 0] == ghost[2, 0] == ghost[3, 0] == 0
+    assert ghost[0, 1] == ghost[1, 1] == 1
+    # 3 of the 6 pairs across cameras are above the threshold (half): the ghost is left out.
+    ident = propose_people(rows, scores, count, threshold=0.5, drop_duplicates=True).identity[0]
+    assert ident[:, 0].tolist() == [0, 0, 0, 0] and ident[:, 1].tolist() == [-1, -1, -1, -1]
+    # 2 of 6: two people (the duplicates' pair agrees, the rest of the geometry does not).
+    scores[index[(0, 1, 2, 0)]] = 0.4
+    got = propose_people(rows, scores, count, threshold=0.5, drop_duplicates=True).identity[0]
+    np.testing.assert_array_equal(got, ghost)
+    # 3 of 6 again, but one pair across is ruled out (under a tenth of the threshold): kept.
+    scores[index[(0, 1, 2, 0)]] = 0.6
+    scores[index[(1, 1, 3, 0)]] = 0.04
+    got = propose_people(rows, scores, count, threshold=0.5, drop_duplicates=True).identity[0]
+    np.testing.assert_array_equal(got, ghost)
+
+
+def test_of_two_duplicate_people_on_the_same_cameras_the_weaker_is_left_out():
+    # Two 2-view groups on cameras 0 and 1 that agree across: one person seen twice in both.
+    count = np.array([[2, 2]])
+    rows = np.array([[0, 0, 0, 1, 0], [0, 0, 1, 1, 1], [0, 0, 0, 1, 1], [0, 0, 1, 1, 0]])
+    for own, kept in (((0.9, 0.8), 0), ((0.8, 0.9), 1)):
+        scores = np.array([*own, 0.7, 0.7])
+        ident = propose_people(rows, scores, count, drop_duplicates=True).identity[0]
+        assert ident[:, kept].tolist() == [0, 0] and ident[:, 1 - kept].tolist() == [-1, -1]
+        both = propose_people(rows, scores, count).identity[0]
+        assert both[0, 0] == both[1, 0] != both[0, 1] == both[1, 1]
 
 
 def test_union_find_exclusive_plain():
@@ -414,9 +468,13 @@ def test_choose_combined_threshold_and_the_record(tmp_path):
             rows, gat, d, d, count, config=dataclasses.replace(cfg, threshold=th)
         )
         assert matching_scores(identity, p.identity, count)["ari"] == value
-        # At 0.02 the blend also joins B-X, at 0.4 nobody: either way the frame falls back to
-        # the epipolar grouping (A-A alone), which agrees better with the geometry.
-        assert used.tolist() == [th in (0.02,) or th >= 0.4]
+        # At 0.4 the blend joins nobody: the frame falls back to the epipolar grouping (A-A
+        # alone), which agrees better with the geometry. At 0.02 it also joins B-X, whose pairs
+        # across to A-A are above 0.02 as well: a duplicate of A-A, left out (A-A alone again).
+        assert used.tolist() == [th >= 0.4]
+        if th == 0.02:
+            off = dataclasses.replace(cfg, threshold=th, drop_duplicates=False)
+            assert propose_combined(rows, gat, d, d, count, config=off)[1].tolist() == [True]
     assert all(v == pytest.approx(1.0) for v in ari.values()) and best == 0.2  # ties: nearest
     assert (
         choose_combined_threshold(
@@ -429,7 +487,7 @@ def test_choose_combined_threshold_and_the_record(tmp_path):
     assert read_combined_config(tmp_path) == cfg
     assert read_combined_config(None) == CombinedConfig()
     assert read_combined_config(tmp_path / "elsewhere") == CombinedConfig()
-    off = dataclasses.replace(cfg, repair_splits=False)  # a record keeps its own switch
+    off = dataclasses.replace(cfg, repair_splits=False, drop_duplicates=False)  # its own switches
     write_proposal_threshold(tmp_path, 0.3, {0.3: 0.9}, 6, combined=off, combined_ari=ari)
     assert read_combined_config(tmp_path) == off
     (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text('{"threshold": 0.3, "combined": 3}')
