@@ -85,6 +85,12 @@ def main(argv=None) -> int:
         "--adapt", action="store_true", help="also the rows after adapt (quick scale's settings)"
     )
     ap.add_argument(
+        "--adapt-matcher",
+        action="store_true",
+        help="also the ARI after the matcher is adapted to each split's own detections "
+        "(adapt.adapt_matcher, the combined proposals as pseudo-labels)",
+    )
+    ap.add_argument(
         "--tables-from",
         type=Path,
         nargs="+",
@@ -128,6 +134,7 @@ def main(argv=None) -> int:
                     m["estimator"],
                     m["fit"],
                     adapt=SCALES["quick"].adapt if args.adapt else None,
+                    matcher_adapt=SCALES["quick"].matcher_adapt if args.adapt_matcher else None,
                 )
                 for split in splits
             }

@@ -724,6 +724,10 @@ def _train_estimator(args: argparse.Namespace) -> int:
 #   mvpose-jax adapt --rig calib.toml --detections rec.npz --estimator est/ --out est_rec/
 
 
+# `adapt.MatcherAdaptConfig`'s default, without importing jax to build the parser.
+MATCHER_ADAPT_STEPS = 400
+
+
 def _adapt_arguments(p: argparse.ArgumentParser) -> None:
     _detection_arguments(p)
     p.add_argument(
@@ -744,6 +748,19 @@ def _adapt_arguments(p: argparse.ArgumentParser) -> None:
     )
     _proposal_arguments(p)
     p.add_argument("--out", required=True, help="the adapted model's folder (new or empty)")
+    p.add_argument(
+        "--matcher-out",
+        help="also adapt the matcher (--matcher) to the recording first, on the combined "
+        "proposals' groups as labels (no truth), and write it to this folder (new or empty; "
+        "`infer --matcher` loads it); the estimator then adapts behind its proposals",
+    )
+    p.add_argument(
+        "--matcher-max-steps",
+        type=int,
+        default=MATCHER_ADAPT_STEPS,
+        help="--matcher-out: most steps of the matcher's adaptation (held-out frames stop it "
+        "earlier; its wall-clock budget is --max-seconds' default rule, 2 min per 1,000 frames)",
+    )
     p.add_argument("--seed", type=int, default=0, help="batch order and augmentation")
     add_adapt_arguments(p)
 
@@ -764,6 +781,16 @@ def _adapt(args: argparse.Namespace) -> int:
     out = check_writable(args.out, folder=True)
     if out.exists() and any(out.iterdir()):
         raise InputError("exists and is not empty; choose a new folder", file=out, field="--out")
+    if args.matcher_out is not None:
+        if not args.matcher:
+            raise InputError("adapts a matcher: give --matcher", field="--matcher-out")
+        matcher_out = check_writable(args.matcher_out, folder=True)
+        if matcher_out.exists() and any(matcher_out.iterdir()):
+            raise InputError(
+                "exists and is not empty; choose a new folder",
+                file=matcher_out,
+                field="--matcher-out",
+            )
     config = adapt_config(args)
     config.check()
     rig_all = load_rig(
@@ -773,6 +800,27 @@ def _adapt(args: argparse.Namespace) -> int:
     matcher = load_matcher(args.matcher, rig) if args.matcher else None
     # The grouping infer makes with the same options (by default: the combined matcher).
     proposals, threshold, combined = _proposal_settings(args, matcher)
+    if args.matcher_out is not None:
+        from mvpose_jax.adapt import MatcherAdaptConfig, adapt_matcher, save_adapted_matcher
+        from mvpose_jax.proposals import read_combined_config
+
+        matcher, matcher_report = adapt_matcher(
+            rig,
+            rec.detections,
+            matcher,
+            combined=read_combined_config(args.matcher),
+            config=MatcherAdaptConfig(max_steps=args.matcher_max_steps, seed=args.seed),
+        )
+        matcher_report.settings["matcher"] = str(Path(args.matcher).resolve())
+        save_adapted_matcher(args.matcher_out, matcher, matcher_report, settings_from=args.matcher)
+        r = matcher_report
+        print(
+            f"adapted the matcher on {r.frames_adapt} frames ({r.pairs_adapt} pairs labelled by "
+            f"the combined proposals): held-out pseudo-label loss {r.heldout_loss_before:.4f} -> "
+            f"{r.heldout_loss_after:.4f} (agreement {r.heldout_accuracy_before:.3f} -> "
+            f"{r.heldout_accuracy_after:.3f}), step {r.best_step} of {r.steps} ({r.stopped}), "
+            f"{r.seconds:.0f} s; wrote {args.matcher_out}"
+        )
     estimator = load_estimator(args.estimator, rig)
     adapted, report = adapt_estimator(
         rig,

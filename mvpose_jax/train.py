@@ -910,7 +910,7 @@ def train_matcher(
     mesh = _mesh(tcfg)
     if mesh is None:
         step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
-        eval_batch = jax.jit(functools.partial(_matcher_eval, graphdef, rest))
+        eval_batch = jax.jit(functools.partial(matcher_eval_sums, graphdef, rest))
     else:
         step = make_train_step(graphdef, rest, tx, stacked_loss_fn(matcher_loss_fn), mesh=mesh)
         eval_batch = jax.jit(functools.partial(_stacked_matcher_eval, graphdef, rest))
@@ -954,7 +954,9 @@ def train_matcher(
     return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
 
 
-def _matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:
+def matcher_eval_sums(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:
+    """The matcher's squared errors, correct decisions (at 0.5) and count over a batch's real
+    match nodes (sums, so that batches add up)."""
     scores = nnx.merge(graphdef, params, rest)(batch)
     mask = (batch.is_match & batch.node_mask).astype(jnp.float32)
     correct = ((scores > 0.5) == (batch.label > 0.5)).astype(jnp.float32)
@@ -966,5 +968,5 @@ def _matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Ar
 
 
 def _stacked_matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:
-    sums = jax.vmap(lambda b: _matcher_eval(graphdef, rest, params, b))(batch)  # (S,) each
+    sums = jax.vmap(lambda b: matcher_eval_sums(graphdef, rest, params, b))(batch)  # (S,) each
     return {k: jnp.sum(v) for k, v in sums.items()}

@@ -34,6 +34,7 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "Δ ARI" in text and "floor+0.6" in text and "calibration" in text
     assert "combined + blend PCP" in text and "Δ true robust" in text
+    assert "Matcher adapted to each shift's own test detections" in text
     (res,) = json.loads((out / "metrics.json").read_text())["runs"]
     # The combined matcher's settings, chosen on composed dev frames, are recorded with the GAT's.
     combined = res["training"]["matcher-5"]["combined"]
@@ -44,7 +45,15 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     for splits in res["shifts"].values():
         assert set(splits) == {"validation", "test"}
         for row in splits.values():
-            assert set(row["matching"]) == {"combined", "gat", "epipolar"}
+            # The matcher adapted to the split (pseudo-labels: the combined proposals).
+            assert set(row["matching"]) == {
+                "combined",
+                "gat",
+                "epipolar",
+                "combined_adapted",
+                "gat_adapted",
+            }
+            assert row["matcher_adapt"]["steps"] == SCALES["smoke"].matcher_adapt.max_steps
             assert set(row["pose"]) == set(SHIFT_PIPELINES) | set(ADAPT_PIPELINES)
             for metrics in row["pose"].values():
                 assert 0 <= metrics["pcp"] <= 100 and 0 <= metrics["completeness"] <= 100
