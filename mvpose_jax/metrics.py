@@ -146,6 +146,39 @@ def pose_metrics(
     return out
 
 
+def mpjpe_on_reference_keypoints(
+    poses: Poses3D, reference: Poses3D, gt: Poses3D, *, layout: str = "coco18"
+) -> float:
+    """MPJPE (mm) of ``poses`` on the ground-truth keypoints that ``reference`` also produces.
+
+    Each is matched to the ground truth on its own (`match_people`, as `pose_metrics` matches),
+    so the two need not hold the same people in the same order (two groupings): like with like
+    between a method and another that reconstructs fewer keypoints. A person the reference
+    missed adds nothing. NaN when nothing is left.
+    """
+    kps = evaluation_keypoints(layout)
+    poses = _finite_only(Poses3D(*(np.asarray(a) for a in poses)))
+    reference = _finite_only(Poses3D(*(np.asarray(a) for a in reference)))
+    gt = Poses3D(*(np.asarray(a) for a in gt))
+    errors = []
+    for f, ((pa, ga), (pb, gb)) in enumerate(
+        zip(match_people(poses, gt, kps), match_people(reference, gt, kps), strict=True)
+    ):
+        of_gt = dict(zip(gb.tolist(), pb.tolist(), strict=True))
+        for p, g in zip(pa.tolist(), ga.tolist(), strict=True):
+            if g not in of_gt:
+                continue  # the reference missed this person: none of its keypoints count
+            both = (
+                poses.keypoint_valid[f, p, kps]
+                & gt.keypoint_valid[f, g, kps]
+                & reference.keypoint_valid[f, of_gt[g], kps]
+            )
+            d = np.linalg.norm(poses.xyz[f, p, kps] - gt.xyz[f, g, kps], axis=-1)
+            errors.append(d[both])
+    err = np.concatenate(errors) if errors else np.zeros(0)
+    return float(err.mean() * 1000) if err.size else float("nan")
+
+
 def _finite_only(poses: Poses3D) -> Poses3D:
     """A non-finite keypoint is one the method failed to produce (so it is scored as missing)."""
     finite = np.isfinite(poses.xyz).all(-1)

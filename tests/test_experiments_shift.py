@@ -57,6 +57,8 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
             assert set(row["pose"]) == set(SHIFT_PIPELINES) | set(ADAPT_PIPELINES)
             for metrics in row["pose"].values():
                 assert 0 <= metrics["pcp"] <= 100 and 0 <= metrics["completeness"] <= 100
+            for key in ("combined_mlp", "combined_blend", "combined_blend_adapted"):
+                assert "mpjpe_on_epipolar_robust_keypoints_mm" in row["pose"][key]
             # On robust triangulation's keypoints the blend IS robust triangulation.
             for g in ("combined", "gat", "epipolar", "true"):
                 blend, robust = row["pose"][f"{g}_blend"], row["pose"][f"{g}_robust"]

@@ -39,6 +39,31 @@ def test_mpjpe_uses_the_minimum_total_error_assignment():
     assert m["map"] == pytest.approx(100.0) and m["mean_recall"] == pytest.approx(100.0)
 
 
+def test_mpjpe_on_reference_keypoints_is_like_with_like_across_groupings():
+    gt = _gt(F=1)
+    kps = metrics.evaluation_keypoints("coco18")
+    # The method: every person, 10 mm off for person 0 and 30 mm off for person 1 and 2.
+    pred = gt.xyz.copy()
+    pred[0, 0, :, 0] += 0.010
+    pred[0, 1:, :, 0] += 0.030
+    # The reference (another grouping): person 2 and person 0 in that order, person 0 with only
+    # half of the evaluation keypoints, person 1 missed.
+    ref_kv = np.ones((1, 2, 18), bool)
+    ref_kv[0, 1, kps[::2]] = False
+    ref = _poses(gt.xyz[:, [2, 0]], kv=ref_kv)
+    got = metrics.mpjpe_on_reference_keypoints(_poses(pred), ref, gt)
+    n0, n2 = len(kps) - len(kps[::2]), len(kps)
+    assert got == pytest.approx((10.0 * n0 + 30.0 * n2) / (n0 + n2), abs=1e-3)
+    # On all of its own keypoints the method's MPJPE differs: the reference's set is the point.
+    assert metrics.pose_metrics(_poses(pred), gt)["mpjpe_mm"] == pytest.approx(70 / 3, abs=1e-3)
+    # A keypoint the method did not produce (NaN) counts for nothing; nothing left: NaN.
+    pred[0, 2] = np.nan
+    got = metrics.mpjpe_on_reference_keypoints(_poses(pred), ref, gt)
+    assert got == pytest.approx(10.0, abs=1e-3)
+    nobody = _poses(gt.xyz[:, :1], valid=np.zeros((1, 1), bool))
+    assert np.isnan(metrics.mpjpe_on_reference_keypoints(_poses(pred), nobody, gt))
+
+
 def test_ap_thresholds_and_recall():
     gt = _gt(F=1, G=2)
     pred = gt.xyz.copy()
