@@ -312,6 +312,26 @@ def markdown(run: dict) -> str:
             f"| {ad['seconds_per_1000_frames']:.1f} "
             f"| {1000 * ad['cpu_seconds'] / ad['frames']:.1f} | {ad['status']} |",
         ]
+    am = run.get("adapt_matcher")
+    if am:
+        lines += [
+            "",
+            f"## Adapting the matcher to a recording (target <= "
+            f"{am['limit_seconds_per_1000_frames']:.0f} s per 1,000 frames)",
+            "",
+            "`adapt.adapt_matcher`, the paper's GAT (the quick scale's), 5 views, 4 people, given "
+            "pair labels, every "
+            "default step run (no early stop): the whole call, compilation included.",
+            "",
+            "| frames | frames adapt / held out | pairs | steps | s | ms per step "
+            "| s per 1,000 frames | CPU s per 1,000 frames | target |",
+            "|---|---|---|---|---|---|---|---|---|",
+            f"| {am['frames']} | {am['frames_adapt']} / {am['frames_heldout']} "
+            f"| {am['pairs_adapt']} | {am['steps']} | {am['seconds']:.1f} "
+            f"| {am['ms_per_step_incl_compile_and_checks']:.0f} "
+            f"| {am['seconds_per_1000_frames']:.1f} "
+            f"| {1000 * am['cpu_seconds'] / am['frames']:.1f} | {am['status']} |",
+        ]
     if mem:
         lines += [
             "",

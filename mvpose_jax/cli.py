@@ -759,7 +759,8 @@ def _adapt_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=MATCHER_ADAPT_STEPS,
         help="--matcher-out: most steps of the matcher's adaptation (held-out frames stop it "
-        "earlier; its wall-clock budget is --max-seconds' default rule, 2 min per 1,000 frames)",
+        "earlier); the command keeps one wall-clock budget (--max-seconds), of which the "
+        "matcher takes at most half",
     )
     p.add_argument("--seed", type=int, default=0, help="batch order and augmentation")
     add_adapt_arguments(p)
@@ -801,16 +802,24 @@ def _adapt(args: argparse.Namespace) -> int:
     # The grouping infer makes with the same options (by default: the combined matcher).
     proposals, threshold, combined = _proposal_settings(args, matcher)
     if args.matcher_out is not None:
+        import dataclasses
+
         from mvpose_jax.adapt import MatcherAdaptConfig, adapt_matcher, save_adapted_matcher
         from mvpose_jax.proposals import read_combined_config
 
+        # One budget for the whole command (the estimator's, --max-seconds or its default
+        # rule): the matcher gets at most half of it, the estimator what is left.
+        total = config.budget_seconds(len(rec.detections.count))
         matcher, matcher_report = adapt_matcher(
             rig,
             rec.detections,
             matcher,
             combined=read_combined_config(args.matcher),
-            config=MatcherAdaptConfig(max_steps=args.matcher_max_steps, seed=args.seed),
+            config=MatcherAdaptConfig(
+                max_steps=args.matcher_max_steps, max_seconds=total / 2, seed=args.seed
+            ),
         )
+        config = dataclasses.replace(config, max_seconds=max(1.0, total - matcher_report.seconds))
         matcher_report.settings["matcher"] = str(Path(args.matcher).resolve())
         save_adapted_matcher(args.matcher_out, matcher, matcher_report, settings_from=args.matcher)
         r = matcher_report

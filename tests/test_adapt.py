@@ -421,6 +421,10 @@ def test_adapt_command_adapts_the_matcher_too(rig, shifted_scene, tmp_path, caps
     assert "adapted the matcher on" in out and "wrote" in out
     saved = json.loads((tmp_path / "m2" / "adapt_report.json").read_text())
     assert saved["steps"] == 5 and saved["settings"]["grouping"] == "combined"
+    # One budget for the command (60 frames: the 30 s floor): half of it for the matcher.
+    assert saved["settings"]["budget_seconds"] == pytest.approx(15.0)
+    est_budget = json.loads((tmp_path / "e2" / "adapt_report.json").read_text())["settings"]
+    assert est_budget["budget_seconds"] == pytest.approx(30.0 - saved["seconds"], abs=1e-6)
     assert read_proposal_threshold(tmp_path / "m2") == 0.4  # the matcher's settings travel
     assert load_matcher(tmp_path / "m2", rig).rig.names == rig.names
     # The estimator adapted behind the adapted matcher's proposals.

@@ -54,6 +54,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "training",
         "infer_memory",
         "adapt",
+        "adapt_matcher",
         "memory",
         "targets",
         "profile",
@@ -100,6 +101,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "tracking",
         "infer_memory",
         "adapt",
+        "adapt_matcher",
     }
     assert all(r["maxrss_mb"] > 0 for r in run["memory"].values())
 
@@ -111,6 +113,9 @@ def test_smoke_run_has_every_section(smoke_run):
     ad = run["adapt"]
     assert ad["frames"] == 50 and ad["steps"] == 2 and ad["people_heldout"] > 0
     assert 0 < ad["grouping_seconds"] < ad["seconds"] and ad["status"] in ("pass", "miss")
+    am = run["adapt_matcher"]
+    assert am["frames"] == 50 and am["steps"] == 2 and am["frames_heldout"] == 10
+    assert am["seconds"] > 0 and am["status"] in ("pass", "miss")
 
     assert len(run["targets"]) == 5
     assert all(t["status"] in ("pass", "miss", "n/a") for t in run["targets"])
@@ -121,6 +126,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "## Training throughput",
         "## Peak memory",
         "## Peak memory of infer against the recording's length",
+        "## Adapting the matcher to a recording",
         "## Breakdown",
         "## Tracking",
         "## Adapting the estimator",
