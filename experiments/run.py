@@ -1773,7 +1773,9 @@ def shift_tables(runs: list[dict]) -> list[str]:
 def _matcher_adapt_table(runs: list[dict], names: list[str], split: str) -> list[str]:
     """Per-frame ARI before and after the matcher is adapted to the split (`shift_rows`'
     ``matcher_adapt``), where every run has it."""
-    if not all("gat_adapted" in r["shifts"][n][split]["matching"] for r in runs for n in names):
+    if not all(
+        _has(r, ("shifts", n, split, "matching", "gat_adapted")) for r in runs for n in names
+    ):
         return []
     lines = [
         "",

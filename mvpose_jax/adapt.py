@@ -65,6 +65,59 @@ SECONDS_PER_1000_FRAMES = 120.0
 ADAPT_REPORT_FILE = "adapt_report.json"
 
 
+def _budget_seconds(max_seconds: float | None, num_frames: int) -> float:
+    """``max_seconds``, else `SECONDS_PER_1000_FRAMES` per 1,000 frames (at least 30 s)."""
+    if max_seconds is not None:
+        return float(max_seconds)
+    return max(30.0, SECONDS_PER_1000_FRAMES * num_frames / 1000.0)
+
+
+def _fit_within_budget(
+    state: TrainState,
+    train_step,
+    check_batches,
+    evaluate,
+    tcfg: TrainConfig,
+    *,
+    check_every: int,
+    desc: str,
+    progress: bool,
+    start: float,
+    budget: float,
+) -> tuple[TrainState, int, list, dict, dict, str]:
+    """`train.fit` from the given parameters, which count as the best so far, within what is
+    left of ``budget`` seconds since ``start``; ``tcfg.max_steps`` 0 runs nothing.
+
+    Returns:
+      (the best state, steps run, history, held-out metrics before and after, why it stopped:
+      "max_steps", "max_seconds" or "patience").
+    """
+    before = evaluate(state)
+    if tcfg.max_steps == 0:
+        return state, 0, [], before, before, "max_steps"
+    result = fit(
+        state,
+        train_step,
+        check_batches,
+        evaluate,
+        tcfg,
+        steps_per_epoch=check_every,
+        desc=desc,
+        progress=progress,
+        best_val_loss=before["val_loss"],
+        best_state=state,
+        max_seconds=max(0.0, budget - (time.perf_counter() - start)),
+    )
+    after = evaluate(result.state)
+    if result.steps >= tcfg.max_steps:
+        stopped = "max_steps"
+    elif time.perf_counter() - start >= budget:
+        stopped = "max_seconds"
+    else:
+        stopped = "patience"
+    return result.state, result.steps, result.history, before, after, stopped
+
+
 @dataclasses.dataclass(frozen=True)
 class AdaptConfig:
     """How an estimator is adapted to a recording.
@@ -108,9 +161,7 @@ class AdaptConfig:
 
     def budget_seconds(self, num_frames: int) -> float:
         """The wall-clock budget for a recording of ``num_frames`` frames."""
-        if self.max_seconds is not None:
-            return float(self.max_seconds)
-        return max(30.0, SECONDS_PER_1000_FRAMES * num_frames / 1000.0)
+        return _budget_seconds(self.max_seconds, num_frames)
 
     def check(self) -> None:
         """Raises `InputError` naming the first setting out of range."""
@@ -342,34 +393,19 @@ def adapt_estimator(
             idx = rng.choice(n_adapt, batch, replace=False)
             yield jax.tree.map(lambda a: a[idx], adapt_data)
 
-    before = evaluate(state)
-    if max_steps == 0:
-        result_state, steps, history, best_step = state, 0, [], 0
-        after = before
-        stopped = "max_steps"
-    else:
-        result = fit(
-            state,
-            train_step,
-            check_batches,
-            evaluate,
-            tcfg,
-            steps_per_epoch=config.check_every,
-            desc="adapt",
-            progress=progress,
-            best_val_loss=before["val_loss"],
-            best_state=state,
-            max_seconds=max(0.0, budget - (time.perf_counter() - start)),
-        )
-        result_state, steps, history = result.state, result.steps, result.history
-        best_step = int(result_state.step)
-        after = evaluate(result_state)
-        if steps >= max_steps:
-            stopped = "max_steps"
-        elif time.perf_counter() - start >= budget:
-            stopped = "max_seconds"
-        else:
-            stopped = "patience"
+    result_state, steps, history, before, after, stopped = _fit_within_budget(
+        state,
+        train_step,
+        check_batches,
+        evaluate,
+        tcfg,
+        check_every=config.check_every,
+        desc="adapt",
+        progress=progress,
+        start=start,
+        budget=budget,
+    )
+    best_step = int(result_state.step)
     adapted = estimator._replace(params=jax.device_get(result_state.params))
     quality = compare_with_triangulation(
         graphdef,
@@ -508,9 +544,8 @@ class MatcherAdaptConfig:
     seed: int = 0
 
     def budget_seconds(self, num_frames: int) -> float:
-        if self.max_seconds is not None:
-            return float(self.max_seconds)
-        return max(30.0, SECONDS_PER_1000_FRAMES * num_frames / 1000.0)
+        """The wall-clock budget for a recording of ``num_frames`` frames."""
+        return _budget_seconds(self.max_seconds, num_frames)
 
     def check(self) -> None:
         """Raises `InputError` naming the first setting out of range."""
@@ -690,31 +725,18 @@ def adapt_matcher(
         for _ in range(config.check_every):
             yield graphs_of(rng.choice(adapt_f, B, replace=False))
 
-    before = evaluate(state)
-    if config.max_steps == 0:
-        result_state, steps, history, after, stopped = state, 0, [], before, "max_steps"
-    else:
-        result = fit(
-            state,
-            train_step,
-            check_batches,
-            evaluate,
-            tcfg,
-            steps_per_epoch=config.check_every,
-            desc="adapt matcher",
-            progress=progress,
-            best_val_loss=before["val_loss"],
-            best_state=state,
-            max_seconds=max(0.0, budget_s - (time.perf_counter() - start)),
-        )
-        result_state, steps, history = result.state, result.steps, result.history
-        after = evaluate(result_state)
-        if steps >= config.max_steps:
-            stopped = "max_steps"
-        elif time.perf_counter() - start >= budget_s:
-            stopped = "max_seconds"
-        else:
-            stopped = "patience"
+    result_state, steps, history, before, after, stopped = _fit_within_budget(
+        state,
+        train_step,
+        check_batches,
+        evaluate,
+        tcfg,
+        check_every=config.check_every,
+        desc="adapt matcher",
+        progress=progress,
+        start=start,
+        budget=budget_s,
+    )
     labelled = identity[adapt_f]
     positive = sum(
         int(

@@ -126,7 +126,7 @@ def propose_people(
             )
         if drop_duplicates:
             parent = _drop_duplicate_people(
-                parent, a, b, pair_items, scores, threshold, C, P, min_views
+                parent, a, b, scores[joins], pair_items, scores, threshold, C, P, min_views
             )
     return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
 
@@ -138,6 +138,36 @@ def propose_people(
 # the same part-mixing figures; 0.3 vetoes true merges too (robust triangulation 0.05 PCP
 # farther from the true groups).
 SPLIT_VETO_FRACTION = 0.1
+
+
+def _linked_groups(
+    root: np.ndarray, a: list[int], b: list[int], strength: np.ndarray
+) -> tuple[dict[tuple[int, int], list[float]], dict[int, list[int]]]:
+    """The pairs of distinct groups that pairs above the threshold (a, b, with their scores
+    ``strength``) join: {(root_a, root_b): those pairs' scores}, and {root: its items} of every
+    group among them."""
+    links: dict[tuple[int, int], list[float]] = {}
+    for x, y, s in zip(a, b, np.asarray(strength).tolist(), strict=True):
+        rx, ry = int(root[x]), int(root[y])
+        if rx != ry:
+            links.setdefault((min(rx, ry), max(rx, ry)), []).append(s)
+    members: dict[int, list[int]] = {}
+    if links:
+        involved = np.array(sorted({r for key in links for r in key}))
+        for item in np.nonzero(np.isin(root, involved))[0].tolist():
+            members.setdefault(int(root[item]), []).append(item)
+    return links, members
+
+
+def _scores_among(
+    pair_items: np.ndarray, pair_scores: np.ndarray, items: set[int]
+) -> dict[tuple[int, int], float]:
+    """{(x, y) and (y, x): score} of every scored pair whose two items are both in ``items``."""
+    known = np.isin(pair_items, list(items)).all(-1)
+    score_of = {}
+    for (x, y), s in zip(pair_items[known].tolist(), pair_scores[known].tolist(), strict=True):
+        score_of[(x, y)] = score_of[(y, x)] = s
+    return score_of
 
 
 def _merge_split_people(
@@ -156,18 +186,7 @@ def _merge_split_people(
     pair_scores (M,) every scored pair. Returns the new roots (a dropped skeleton: its own)."""
     root = root.copy()
     camera = lambda item: item // P % C  # noqa: E731
-    links: dict[tuple[int, int], list[float]] = {}
-    for x, y, s in zip(a, b, strength.tolist(), strict=True):
-        rx, ry = int(root[x]), int(root[y])
-        if rx != ry:
-            links.setdefault((min(rx, ry), max(rx, ry)), []).append(s)
-    if not links:
-        return root
-    involved = np.array(sorted({r for key in links for r in key}))
-    in_groups = np.isin(root, involved)
-    members: dict[int, list[int]] = {}
-    for item in np.nonzero(in_groups)[0].tolist():
-        members.setdefault(int(root[item]), []).append(item)
+    links, members = _linked_groups(root, a, b, strength)
     candidates = []
     for (ra, rb), scores in links.items():
         cams_a = {camera(x) for x in members[ra]}
@@ -180,10 +199,7 @@ def _merge_split_people(
         return root
     # Every scored pair of the candidates' skeletons, to choose the one kept in the shared camera.
     items = {x for *_, ra, rb, _ in candidates for x in members[ra] + members[rb]}
-    known = np.isin(pair_items, list(items)).all(-1)
-    score_of = {}
-    for (x, y), s in zip(pair_items[known].tolist(), pair_scores[known].tolist(), strict=True):
-        score_of[(x, y)] = score_of[(y, x)] = s
+    score_of = _scores_among(pair_items, pair_scores, items)
     veto = SPLIT_VETO_FRACTION * threshold
     touched: set[int] = set()
     for *_, ra, rb, c in sorted(candidates, reverse=True):  # most links first
@@ -224,6 +240,7 @@ def _drop_duplicate_people(
     root: np.ndarray,
     a: list[int],
     b: list[int],
+    strength: np.ndarray,
     pair_items: np.ndarray,
     pair_scores: np.ndarray,
     threshold: float,
@@ -232,27 +249,14 @@ def _drop_duplicate_people(
     min_views: int,
 ) -> np.ndarray:
     """`propose_people`'s ``drop_duplicates`` on a grouping: root (n,) each item's group; a, b the
-    pairs above the threshold; pair_items (M, 2) and pair_scores (M,) every scored pair.
-    Returns the new roots (a ghost's skeletons: their own)."""
+    pairs above the threshold and their scores ``strength``; pair_items (M, 2) and pair_scores
+    (M,) every scored pair. Returns the new roots (a ghost's skeletons: their own)."""
     root = root.copy()
     camera = lambda item: item // P % C  # noqa: E731
-    links: dict[tuple[int, int], int] = {}
-    for x, y in zip(a, b, strict=True):
-        rx, ry = int(root[x]), int(root[y])
-        if rx != ry:
-            key = (min(rx, ry), max(rx, ry))
-            links[key] = links.get(key, 0) + 1
+    links, members = _linked_groups(root, a, b, strength)
     if not links:
         return root
-    involved = np.array(sorted({r for key in links for r in key}))
-    members: dict[int, list[int]] = {}
-    for item in np.nonzero(np.isin(root, involved))[0].tolist():
-        members.setdefault(int(root[item]), []).append(item)
-    items = set().union(*(members[r] for r in involved.tolist()))
-    known = np.isin(pair_items, list(items)).all(-1)
-    score_of = {}
-    for (x, y), s in zip(pair_items[known].tolist(), pair_scores[known].tolist(), strict=True):
-        score_of[(x, y)] = score_of[(y, x)] = s
+    score_of = _scores_among(pair_items, pair_scores, set().union(*members.values()))
 
     def own_score(r: int) -> float:
         got = [
@@ -264,7 +268,8 @@ def _drop_duplicate_people(
 
     veto = SPLIT_VETO_FRACTION * threshold
     candidates = []
-    for (ra, rb), n_links in links.items():
+    for (ra, rb), joining in links.items():
+        n_links = len(joining)
         if min(len(members[ra]), len(members[rb])) < min_views:
             continue  # not two people
         cams = {r: {camera(x) for x in members[r]} for r in (ra, rb)}

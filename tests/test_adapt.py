@@ -291,6 +291,14 @@ def untrained_matcher(rig, K: int = 18, seed: int = 0) -> Matcher:
 FAST = MatcherAdaptConfig(learning_rate=3e-3, max_steps=300, patience=100, min_frames=8)
 
 
+def _adapt_on_truth(rig, rec, matcher, max_steps: int = FAST.max_steps):
+    """`adapt_matcher` with the recording's true identities as labels, ``FAST`` settings."""
+    config = dataclasses.replace(FAST, max_steps=max_steps)
+    return adapt_matcher(
+        rig, rec.detections, matcher, identity=rec.identity, config=config, progress=False
+    )
+
+
 def _gat_ari(matcher, rec) -> float:
     got = propose_with_matcher(matcher, rec.detections, mode="gat", threshold=0.5)
     return matching_scores(rec.identity, got.identity, rec.detections.count)["ari"]
@@ -299,9 +307,7 @@ def _gat_ari(matcher, rec) -> float:
 def test_a_matcher_learns_a_recordings_groups_from_its_labels(rig, crowd):
     matcher = untrained_matcher(rig)
     given = jax.tree.map(np.array, matcher.params)
-    adapted, report = adapt_matcher(
-        rig, crowd.detections, matcher, identity=crowd.identity, config=FAST, progress=False
-    )
+    adapted, report = _adapt_on_truth(rig, crowd, matcher)
     # The given parameters are untouched (the train step donates its own copy).
     jax.tree.map(np.testing.assert_array_equal, given, jax.tree.map(np.array, matcher.params))
     # From scratch, 300 steps on 80 frames: far from a trained matcher, but clearly learning
@@ -327,14 +333,7 @@ def test_a_matcher_learns_a_recordings_groups_from_its_labels(rig, crowd):
 
 def test_matcher_adaptation_keeps_the_given_matcher_when_nothing_helps(rig, crowd):
     matcher = untrained_matcher(rig)
-    same, report = adapt_matcher(
-        rig,
-        crowd.detections,
-        matcher,
-        identity=crowd.identity,
-        config=dataclasses.replace(FAST, max_steps=0),
-        progress=False,
-    )
+    same, report = _adapt_on_truth(rig, crowd, matcher, max_steps=0)
     assert report.steps == 0 and report.best_step == 0 and report.stopped == "max_steps"
     jax.tree.map(np.testing.assert_array_equal, same.params, matcher.params)
     assert report.heldout_loss_after == report.heldout_loss_before
@@ -359,14 +358,7 @@ def test_matcher_adaptation_refuses_what_does_not_fit(rig, crowd):
 
 def test_an_adapted_matcher_is_saved_as_a_folder_load_matcher_reads(rig, crowd, tmp_path):
     matcher = untrained_matcher(rig)
-    adapted, report = adapt_matcher(
-        rig,
-        crowd.detections,
-        matcher,
-        identity=crowd.identity,
-        config=dataclasses.replace(FAST, max_steps=25),
-        progress=False,
-    )
+    adapted, report = _adapt_on_truth(rig, crowd, matcher, max_steps=25)
     source = tmp_path / "matcher"
     source.mkdir()
     write_proposal_threshold(source, 0.3, {0.3: 0.9}, 10, combined=CombinedConfig(threshold=0.25))
@@ -390,14 +382,7 @@ def test_adapt_command_adapts_the_matcher_too(rig, shifted_scene, tmp_path, caps
     assert MatcherAdaptConfig().max_steps == cli.MATCHER_ADAPT_STEPS
     # A matcher folder (an untrained GAT, saved as an adapted one is) and an estimator folder.
     matcher = untrained_matcher(rig)
-    _, report = adapt_matcher(
-        rig,
-        shifted_scene.detections,
-        matcher,
-        identity=shifted_scene.identity,
-        config=dataclasses.replace(FAST, max_steps=0),
-        progress=False,
-    )
+    _, report = _adapt_on_truth(rig, shifted_scene, matcher, max_steps=0)
     save_adapted_matcher(tmp_path / "m", matcher, report)
     write_proposal_threshold(tmp_path / "m", 0.4, {0.4: 0.9}, 10, combined=CombinedConfig())
     save_recording(shifted_scene, tmp_path / "rec.npz")
