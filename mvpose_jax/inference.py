@@ -52,10 +52,12 @@ from mvpose_jax.tracking import TrackingConfig, track_frames
 from mvpose_jax.tracking import initial_state as tracker_initial_state
 from mvpose_jax.trained import Estimator, Matcher
 from mvpose_jax.triangulate import (
+    MAX_SPREAD_M,
     OUTLIER_PX,
     VIEW_OUTLIER_PX,
     blend_skeletons,
     camera_pairs,
+    human_sized,
     triangulate_pairwise_centroid,
     triangulate_points,
     triangulate_skeletons_robust,
@@ -116,7 +118,7 @@ def _blend_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score, thresh
     model = to_world(nnx.merge(graphdef, params, rest)(feats), centre, radius)
     return blend_skeletons(
         rig, px, w, model_xyz=model, tri_xyz=tri, tri_valid=ok, kept=kept, legs=legs, up=up
-    )[0]
+    )
 
 
 def predict_people(
@@ -145,6 +147,31 @@ def predict_people(
     Returns:
       (N, K, 3) metres: every keypoint, seen or not.
     """
+    return _estimate_people(
+        estimator,
+        xy,
+        score,
+        method=method,
+        outlier_px=outlier_px,
+        view_outlier_px=view_outlier_px,
+        layout=layout,
+        mesh=mesh,
+    )[0]
+
+
+def _estimate_people(
+    estimator: Estimator,
+    xy: np.ndarray,
+    score: np.ndarray,
+    *,
+    method: str,
+    outlier_px: float,
+    view_outlier_px: float,
+    layout: str,
+    mesh: jax.sharding.Mesh | None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """`predict_people`, with (method "blend") which keypoints robust triangulation gave (N, K)
+    bool; None for "mlp"."""
     if method not in ESTIMATOR_METHODS:
         raise ValueError(f"method must be one of {ESTIMATOR_METHODS}, not {method!r}")
     fn = _predict_fn if method == "mlp" else _blend_fn
@@ -172,7 +199,7 @@ def predict_people(
             score_p,
             *extra,
         )
-        return np.asarray(out)[: len(xy)]
+        return _unpadded(out, np.asarray, len(xy))
     # Local imports: this function is the only place inference needs the mesh helpers.
     from mvpose_jax.parallel import mesh_size, pad_leading, replicate, shard_batch, to_host
 
@@ -189,7 +216,15 @@ def predict_people(
         score_p,
         *(replicate(mesh, e) for e in extra),
     )
-    return to_host(out)[: len(xy)]
+    return _unpadded(out, to_host, len(xy))
+
+
+def _unpadded(out, to_numpy, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """A model function's output (xyz, or "blend"'s (xyz, from triangulation)) as host arrays of
+    the ``n`` real people."""
+    if isinstance(out, tuple):
+        return to_numpy(out[0])[:n], to_numpy(out[1])[:n]
+    return to_numpy(out)[:n], None
 
 
 def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -261,12 +296,19 @@ def estimate_grouped(
     score: np.ndarray,
     min_views: int = 2,
     method: str = "mlp",
-    **robust,
+    *,
+    outlier_px: float = OUTLIER_PX,
+    view_outlier_px: float = VIEW_OUTLIER_PX,
+    layout: str = "coco18",
+    max_spread_m: float = MAX_SPREAD_M,
 ) -> tuple[Poses3D, np.ndarray]:
     """Estimator poses for people grouped per frame, (F, G, C_i, K, ...) in, `Poses3D` out.
 
     A person exists when at least ``min_views`` inference views (1 with a single inference
-    camera) have a skeleton of them. ``method``, ``robust``: `predict_people`'s.
+    camera) have a skeleton of them and, with method "blend", its triangulated keypoints are no
+    larger than a body (`triangulate.human_sized` with ``max_spread_m``: a group of two people's
+    views is not a person). ``method``, ``outlier_px``, ``view_outlier_px``, ``layout``:
+    `predict_people`'s.
 
     Returns:
       (poses, confidence (F, G): the mean detection score of the person's keypoints).
@@ -275,7 +317,18 @@ def estimate_grouped(
     exists = _present(score, min_views)
     out = np.zeros((F, G, K, 3), np.float32)
     if exists.any():
-        out[exists] = predict_people(estimator, xy[exists], score[exists], method=method, **robust)
+        out[exists], from_tri = _estimate_people(
+            estimator,
+            xy[exists],
+            score[exists],
+            method=method,
+            outlier_px=outlier_px,
+            view_outlier_px=view_outlier_px,
+            layout=layout,
+            mesh=None,
+        )
+        if from_tri is not None:
+            exists[exists] = human_sized(out[exists], from_tri, max_spread_m)
     poses = poses_from_people(out, np.ones((F, G, K), bool), exists)
     return poses, _confidence(score)
 
@@ -286,10 +339,16 @@ def triangulate_grouped(
     score: np.ndarray,
     method: str = "centroid",
     min_views: int = 2,
+    *,
+    max_spread_m: float = MAX_SPREAD_M,
     **robust,
 ) -> tuple[Poses3D, np.ndarray]:
     """The triangulation baseline for grouped people (same grouping as `estimate_grouped`).
 
+    With method "robust", a person whose triangulated keypoints are larger than a body
+    (`triangulate.human_sized` with ``max_spread_m``) is not one: after its wrong views are
+    rejected, what is left is the group itself. "dlt" and "centroid" keep every group: one wrong
+    view among right ones stretches their skeleton too, and they are the plain baselines.
     ``robust``: `triangulate_people`'s thresholds for method "robust".
     """
     F, G, C, K = score.shape
@@ -301,6 +360,8 @@ def triangulate_grouped(
             rig, xy[exists], score[exists], method, **robust
         )
     exists = exists & kv.any(axis=-1)
+    if method == "robust":
+        exists &= human_sized(out, kv, max_spread_m)
     return poses_from_people(out, kv, exists), _confidence(score)
 
 
@@ -937,6 +998,7 @@ def poses_of_members(
     outlier_px: float = OUTLIER_PX,
     view_outlier_px: float = VIEW_OUTLIER_PX,
     layout: str = "coco18",
+    max_spread_m: float = MAX_SPREAD_M,
 ) -> tuple[Poses3D, np.ndarray]:
     """The 3D stage on given person groupings (proposals, or any other).
 
@@ -954,6 +1016,10 @@ def poses_of_members(
       outlier_px, view_outlier_px: the thresholds of robust triangulation (methods "robust" and
         "blend"; `triangulate_people`).
       layout: the keypoints' layout (method "blend", `predict_people`).
+      max_spread_m: methods "robust" and "blend": a person whose robustly triangulated keypoints
+        lie farther than this (median, metres) from their median point is not one
+        (`triangulate.human_sized`; a group of two people's views, often metres large); inf: no
+        such check.
     Returns:
       (`Poses3D` (F, G, ...), confidence (F, G)).
     Raises:
@@ -963,13 +1029,24 @@ def poses_of_members(
     p_xy, p_score = group_people(detections.xy, detections.score, members)
     robust = {"outlier_px": outlier_px, "view_outlier_px": view_outlier_px}
     if method in TRIANGULATION_METHODS:
-        return triangulate_grouped(rig, p_xy, p_score, method, min_views, **robust)
+        return triangulate_grouped(
+            rig, p_xy, p_score, method, min_views, max_spread_m=max_spread_m, **robust
+        )
     if tuple(rig.names) != tuple(estimator.rig_infer.names):
         idx = _camera_columns(rig.names, estimator.rig_infer.names, "the estimator's inference")
         p_xy, p_score = p_xy[:, :, idx], p_score[:, :, idx]
     if method == "mlp":
         return estimate_grouped(estimator, p_xy, p_score, min_views)
-    return estimate_grouped(estimator, p_xy, p_score, min_views, method, **robust, layout=layout)
+    return estimate_grouped(
+        estimator,
+        p_xy,
+        p_score,
+        min_views,
+        method,
+        **robust,
+        layout=layout,
+        max_spread_m=max_spread_m,
+    )
 
 
 def check_method(method: str | None, estimator: Estimator | None) -> str:
@@ -1014,6 +1091,7 @@ def stream_pipeline(
     outlier_px: float = OUTLIER_PX,
     view_outlier_px: float = VIEW_OUTLIER_PX,
     layout: str = "coco18",
+    max_spread_m: float = MAX_SPREAD_M,
     chunk_frames: int = 256,
     progress: bool = False,
     num_frames: int | None = None,
@@ -1051,6 +1129,7 @@ def stream_pipeline(
       outlier_px, view_outlier_px: the thresholds of robust triangulation, methods "robust"
         and "blend" (`triangulate_people`).
       layout: the keypoints' layout (method "blend": `predict_people`).
+      max_spread_m: people larger than a body are not people (`poses_of_members`).
       chunk_frames: frames per chunk (memory is bounded by it).
       progress: show a progress bar.
       num_frames: frames the chunks hold in all (the progress bar's length) when ``detections``
@@ -1152,6 +1231,7 @@ def stream_pipeline(
                 outlier_px=outlier_px,
                 view_outlier_px=view_outlier_px,
                 layout=layout,
+                max_spread_m=max_spread_m,
             )
             t2 = time.perf_counter()
             # A person is kept only where the 3D stage produced one; its members say so too.

@@ -40,6 +40,7 @@ from mvpose_jax.train import (
     train_matcher,
 )
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
+from mvpose_jax.triangulate import skeleton_spread
 from tests.helpers import TINY_GAT as TINY
 from tests.helpers import random_frames, untrained_estimator
 from tests.helpers import tiny_matcher_train_state as _train_state
@@ -215,6 +216,56 @@ def test_robust_triangulation_survives_a_wrong_skeleton_in_a_group(scene):
     np.testing.assert_allclose(poses.xyz, res.poses.xyz, atol=1e-6)
     with pytest.raises(ValueError, match="robust"):
         run_pipeline(rig, rec.detections, method="median")
+
+
+def _person_and_ghost(rig, rec, depth_factor):
+    """One frame: person 0 of the scene seen by cameras 0-2, and a two-view "ghost" group
+    (camera 0's view of the person, camera 3's of the person pushed ``depth_factor`` times
+    farther along camera 0's rays): a pair of views that agrees with one large, far skeleton.
+    Returns (detections, members, the far skeleton (K, 3), the person (K, 3))."""
+    from mvpose_jax.cameras import camera_centres, point_depths, project_points
+
+    X = np.asarray(rec.ground_truth.xyz[0, 0], np.float32)  # (K, 3)
+    c0 = np.asarray(camera_centres(rig))[0]
+    far = (c0 + depth_factor * (X - c0)).astype(np.float32)
+    assert (np.asarray(point_depths(rig, far))[3] > 0).all()  # in front of camera 3
+    px = np.asarray(project_points(rig, np.stack([X, far])))  # (C, 2, K, 2)
+    C, K = rig.num_cameras, X.shape[0]
+    xy = np.zeros((1, C, 2, K, 2), np.float32)
+    score = np.zeros((1, C, 2, K), np.float32)
+    xy[0, :3, 0], score[0, :3, 0] = px[:3, 0], 1.0  # the person, cameras 0-2
+    xy[0, 0, 1], score[0, 0, 1] = px[0, 0], 1.0  # camera 0's duplicate of the person ...
+    xy[0, 3, 1], score[0, 3, 1] = px[3, 1], 1.0  # ... with camera 3's view of the far skeleton
+    count = (score > 0).any(-1).sum(-1).astype(np.int32)
+    members = np.full((1, 2, C), -1, np.int32)
+    members[0, 0, :3] = 0
+    members[0, 1, [0, 3]] = 1
+    return Detections(xy, score, count), members, far, X
+
+
+@pytest.mark.parametrize("method", ["robust", "blend"])
+def test_a_group_larger_than_a_body_is_not_a_person(scene, method):
+    rig, rec = scene
+    det, members, _, X = _person_and_ghost(rig, rec, depth_factor=3.0)
+    est = untrained_estimator(rig) if method == "blend" else None
+    poses, _ = poses_of_members(rig, det, members, estimator=est, method=method)
+    assert poses.valid[0].tolist() == [True, False]  # the ghost is dropped, the person kept
+    np.testing.assert_allclose(poses.xyz[0, 0], X, atol=1e-3)
+    # Without the check the ghost is reconstructed: metres behind the person, far larger.
+    kept, _ = poses_of_members(rig, det, members, estimator=est, method=method, max_spread_m=np.inf)
+    assert kept.valid[0].tolist() == [True, True]
+    tri = kept.keypoint_valid[0, 1] if method != "blend" else np.ones(len(X), bool)
+    assert skeleton_spread(kept.xyz[0, 1], tri) > 2.0 * skeleton_spread(X, np.ones(len(X), bool))
+    assert np.linalg.norm(kept.xyz[0, 1].mean(0) - X.mean(0)) > 2.0
+    # A person only somewhat larger than the bound's body (1.4 times) is kept: the bound is
+    # on size, and a group of another person's views behind the first is far larger.
+    near, members, _, _ = _person_and_ghost(rig, rec, depth_factor=1.4)
+    assert poses_of_members(rig, near, members, estimator=est, method=method)[0].valid.all()
+    res = run_pipeline(rig, det, estimator=est, method=method)  # the pipeline drops it too
+    assert res.poses.valid.sum() == 1 and (res.members[res.poses.valid] >= 0).sum() == 3
+    # The plain triangulations keep every group (one wrong view would stretch theirs too).
+    for plain in ("dlt", "centroid"):
+        assert poses_of_members(rig, det, members, method=plain)[0].valid.all()
 
 
 @pytest.mark.slow  # the 3D stage five ways and the pipeline (compilations)

@@ -520,3 +520,25 @@ def test_leg_chains_name_the_layouts_legs_parents_first():
             ["r_knee", "r_ankle", "l_knee", "l_ankle"],
         ]
     assert leg_chains("mpii").shape == (4, 4)
+
+
+def test_skeleton_spread_is_the_median_distance_from_the_median_point():
+    xyz = np.zeros((3, 6, 3))
+    xyz[0, :5, 0] = [0.0, 1.0, 2.0, 3.0, 10.0]  # median point x = 2: distances 2, 1, 0, 1, 8
+    xyz[0, 5] = 1e6  # not valid: junk that must not count
+    valid = np.zeros((3, 6), bool)
+    valid[0, :5] = True
+    valid[1, 2] = True  # one keypoint: nothing to judge
+    xyz[2] = np.random.default_rng(3).normal(scale=0.3, size=(6, 3))
+    valid[2] = True
+    spread = triangulate.skeleton_spread(xyz, valid)
+    centre = np.median(xyz[2], axis=0)
+    np.testing.assert_allclose(
+        spread, [1.0, 0.0, np.median(np.linalg.norm(xyz[2] - centre, axis=-1))]
+    )
+    # The spread scales with the skeleton and ignores where it stands.
+    np.testing.assert_allclose(
+        triangulate.skeleton_spread(4.0 * xyz[2] + 7.0, valid[2]), 4.0 * spread[2]
+    )
+    assert triangulate.human_sized(xyz, valid, 0.99).tolist() == [False, True, True]
+    assert triangulate.human_sized(xyz, valid, np.inf).all()
