@@ -12,6 +12,7 @@ import collections
 import dataclasses
 import functools
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import NamedTuple
 
@@ -21,7 +22,7 @@ import numpy as np
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, undistort_points, up_vector
-from mvpose_jax.errors import InputError
+from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.features import (
     NUM_KEYPOINT_FEATURES,
     assemble_features,
@@ -328,7 +329,7 @@ def estimate_grouped(
             mesh=None,
         )
         if from_tri is not None:
-            exists[exists] = human_sized(out[exists], from_tri, max_spread_m)
+            exists[exists] = _body_sized(out[exists], from_tri, max_spread_m)
     poses = poses_from_people(out, np.ones((F, G, K), bool), exists)
     return poses, _confidence(score)
 
@@ -361,8 +362,24 @@ def triangulate_grouped(
         )
     exists = exists & kv.any(axis=-1)
     if method == "robust":
-        exists &= human_sized(out, kv, max_spread_m)
+        exists[exists] = _body_sized(out[exists], kv[exists], max_spread_m)
     return poses_from_people(out, kv, exists), _confidence(score)
+
+
+def _body_sized(xyz: np.ndarray, valid: np.ndarray, max_spread_m: float) -> np.ndarray:
+    """`triangulate.human_sized` of N people (N, K, 3) / (N, K), with a warning when it leaves
+    out most of them: then the calibration's units, not the groups, are the likely cause."""
+    keep = human_sized(xyz, valid, max_spread_m)
+    dropped = int((~keep).sum())
+    if dropped >= 2 and dropped > keep.size / 2:
+        warnings.warn(
+            f"most people triangulated larger than a body (keypoints a median of more than "
+            f"{max_spread_m:g} m from their middle) and were left out: check the calibration's "
+            "units (a translation in mm read as metres: --translation-scale 0.001)",
+            MvposeWarning,
+            stacklevel=2,
+        )
+    return keep
 
 
 def _present(score: np.ndarray, min_views: int) -> np.ndarray:

@@ -268,6 +268,20 @@ def test_a_group_larger_than_a_body_is_not_a_person(scene, method):
         assert poses_of_members(rig, det, members, method=plain)[0].valid.all()
 
 
+@pytest.mark.parametrize("method", ["robust", "blend"])
+def test_a_calibration_in_the_wrong_units_is_named_when_everyone_is_too_large(scene, method):
+    from mvpose_jax.errors import MvposeWarning
+
+    rig, rec = scene
+    members = members_from_identity(np.asarray(rec.identity), 3)
+    # Translations in mm read as metres: the same cameras, every distance 1000 times larger.
+    mm = make_rig(rig.K, rig.dist, rig.R, 1000 * np.asarray(rig.t), rig.size, rig.names, rig.up)
+    est = untrained_estimator(mm) if method == "blend" else None
+    with pytest.warns(MvposeWarning, match="translation-scale 0.001"):
+        poses, _ = poses_of_members(mm, rec.detections, members, estimator=est, method=method)
+    assert not poses.valid.any()
+
+
 @pytest.mark.slow  # the 3D stage five ways and the pipeline (compilations)
 def test_blend_is_robust_triangulation_where_it_reconstructs_and_the_estimator_elsewhere(scene):
     rig, rec = scene
