@@ -556,9 +556,8 @@ def hang_on_ray(
 # is that large: over the validation scenes of every domain shift (quick models, combined and
 # true groupings, robust triangulation) a person's keypoints lay at a median 0.33-0.42 m from
 # their median point, 0.74 m at most; one such ghost on the part-mixing test scenes lay at
-# 20 m. The bound is a fact about bodies (a 2 m person stretched out stays under 0.7 m), not a
-# setting chosen on scenes: about twice an adult's spread (a tall adult lying with arms stretched
-# overhead is near 0.6 m).
+# 20 m. The bound is a fact about bodies, not a setting chosen on scenes: about twice an adult's
+# spread (a tall adult lying with arms stretched overhead is near 0.6 m).
 MAX_SPREAD_M = 1.0
 
 
