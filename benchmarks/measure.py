@@ -47,16 +47,15 @@ from mvpose_jax.graphs import (
     next_power_of_two,
     sample_batches,
 )
-from mvpose_jax.inference import (
+from mvpose_jax.lifting import (
     estimate_grouped,
-    gat_match_table,
     group_people,
     members_from_identity,
     poses_of_members,
     predict_people,
-    propose_with_matcher,
     triangulate_grouped,
 )
+from mvpose_jax.matching import gat_match_table, propose_with_matcher
 from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
 from mvpose_jax.proposals import propose_people
 from mvpose_jax.skeletons import Detections

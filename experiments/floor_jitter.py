@@ -18,7 +18,7 @@ import numpy as np
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.features import single_person_samples
-from mvpose_jax.inference import members_from_identity, poses_of_members
+from mvpose_jax.lifting import members_from_identity, poses_of_members
 from mvpose_jax.metrics import pose_metrics
 from mvpose_jax.models import MLPConfig
 from mvpose_jax.synthetic import (

@@ -22,7 +22,8 @@ import numpy as np
 
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.inference import poses_of_members, run_pipeline
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import poses_of_members
 from mvpose_jax.metrics import pose_metrics
 from mvpose_jax.skeletons import Poses3D
 from mvpose_jax.synthetic import generate_recording

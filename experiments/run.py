@@ -59,17 +59,19 @@ from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import people_from_identity, single_person_samples
-from mvpose_jax.inference import (
-    composed_frames,
-    epipolar_distances_of_rows,
-    epipolar_match_distances,
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import (
     estimate_grouped,
-    gat_match_table,
     group_people,
     members_from_identity,
     poses_of_members,
-    run_pipeline,
     triangulate_grouped,
+)
+from mvpose_jax.matcher_settings import composed_frames
+from mvpose_jax.matching import (
+    epipolar_distances_of_rows,
+    epipolar_match_distances,
+    gat_match_table,
 )
 from mvpose_jax.metrics import (
     PCP_CLASSES,

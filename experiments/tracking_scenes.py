@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.inference import group_people, run_pipeline
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import group_people
 from mvpose_jax.metrics import identity_metrics
 from mvpose_jax.skeletons import Poses3D
 from mvpose_jax.synthetic import generate_recording

@@ -40,7 +40,8 @@ from mvpose_jax.cameras import Rig
 from mvpose_jax.checkpoints import Checkpoints
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.errors import InputError
-from mvpose_jax.inference import group_people, run_pipeline
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import group_people
 from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.train import (
@@ -632,7 +633,7 @@ def adapt_matcher(
       frames of cross-view pairs to hold some out.
     """
     from mvpose_jax.graphs import build_graphs, detection_features, graph_budget
-    from mvpose_jax.inference import propose_with_matcher
+    from mvpose_jax.matching import propose_with_matcher
     from mvpose_jax.train import matcher_eval_sums, matcher_loss_fn
 
     start = time.perf_counter()

@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
+from mvpose_jax import stages
 from mvpose_jax.errors import InputError, MvposeError, MvposeWarning
 
 if TYPE_CHECKING:
@@ -537,7 +538,7 @@ def _train_matcher(args: argparse.Namespace) -> int:
     import dataclasses
 
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.inference import choose_matcher_settings
+    from mvpose_jax.matcher_settings import choose_matcher_settings
     from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
     from mvpose_jax.proposals import write_proposal_threshold
     from mvpose_jax.train import train_matcher
@@ -988,7 +989,7 @@ def _proposal_arguments(p: argparse.ArgumentParser) -> None:
     """How detections are grouped into people (infer and adapt; `_proposal_settings` reads them)."""
     p.add_argument(
         "--proposals",
-        choices=("combined", "gat", "epipolar"),
+        choices=stages.names("proposals"),
         default=None,
         help="how skeletons are grouped into people: combined (the default with --matcher: the "
         "GAT's scores joined with epipolar geometry, each frame kept on the grouping that agrees "
@@ -1053,7 +1054,7 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--method",
-        choices=("mlp", "blend", "dlt", "centroid", "robust"),
+        choices=stages.names("lifting"),
         default=None,
         help="the 3D stage. With --estimator: blend (the default: robust triangulation "
         "wherever 2+ inlier views see a keypoint, the estimator elsewhere, placed by the "
@@ -1209,7 +1210,7 @@ def add_smoothing_arguments(p: argparse.ArgumentParser, *, default_filter: str) 
     """The filter and gap-filling options of ``infer`` and ``smooth``."""
     p.add_argument(
         "--filter",
-        choices=("none", "one-euro", "butterworth"),
+        choices=stages.names("filters"),
         default=default_filter,
         help="per-track filter: butterworth (zero-phase, offline, over each whole track after "
         "the stream), one-euro (causal, per frame, as a live stream runs it) or none",
@@ -1276,21 +1277,118 @@ def _smoothing(args: argparse.Namespace):
     _infer_arguments,
 )
 def _infer(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from mvpose_jax.data import open_recording
-    from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.data.chunks import ChunkStore
-    from mvpose_jax.data.poses import PoseResults, load_poses, load_poses_chunk
-    from mvpose_jax.inference import stream_pipeline
-    from mvpose_jax.smoothing import smooth_chunk_files
-    from mvpose_jax.tracking import TrackingConfig
-    from mvpose_jax.trained import load_estimator, load_matcher
+    from mvpose_jax.jobs.infer import covered, run_infer
 
     check_writable(args.out, folder=True)
-    if args.method in ("mlp", "blend") and not args.estimator:
+    config = infer_config(args)
+
+    def notify(kind: str, message: str) -> None:
+        if kind == "resuming":
+            print(message)
+        else:
+            print(f"mvpose-jax infer: {message}", file=sys.stderr)
+
+    try:
+        res = run_infer(config, notify=notify)
+    except InputError as e:
+        raise _named_by_option(e) from None
+    if res.adapted is not None:
+        print_adapt_report(res.adapted)
+    F, start, done = res.frames_total, res.start, res.written
+    if res.interrupted and done is None:
+        print(
+            "mvpose-jax infer: interrupted while writing the results; every chunk is done "
+            f"({os.path.join(args.out, 'chunks')}): the same command with --resume writes them",
+            file=sys.stderr,
+        )
+        return 130
+    if res.interrupted:
+        print(
+            f"mvpose-jax infer: interrupted: wrote partial results, {covered(done, F)}, to "
+            f"{done.json} and {done.npz}; the same command with --resume continues",
+            file=sys.stderr,
+        )
+        return 130
+    frames, people = res.frames, res.people
+    threshold = res.pipeline.matching.threshold
+    if people == 0 and frames > 0 and start == 0:
+        warnings.warn(
+            _why_nobody(res.max_views, res.cameras, args, threshold), MvposeWarning, stacklevel=1
+        )
+    resumed = f" ({start} finished before, {frames} now)" if start else ""
+    tracks = ""
+    if res.tracks is not None:
+        tracks = f", {res.tracks} tracks, {res.filled} keypoints filled ({args.filter} filter)"
+    print(
+        f"{F} frames{resumed}, {people} people{' in those run now' if start else ''} "
+        f"({people / max(frames, 1):.2f} per frame){tracks}; proposals "
+        f"{1000 * res.seconds['proposals'] / max(frames, 1):.2f} ms/frame, 3D "
+        f"{1000 * res.seconds['poses'] / max(frames, 1):.2f} ms/frame; wrote {done.json} and "
+        f"{done.npz}"
+    )
+    if res.exported:
+        print(f"exported {len(res.exported)} files: " + ", ".join(p.name for p in res.exported))
+    return 0
+
+
+# The infer job's config paths (`jobs.infer.resume_record`, its errors' fields) and the options
+# that set them, so that an error names what the user typed.
+_OPTION_OF_SETTING = {
+    "source.detections": "--detections",
+    "source.rig": "--rig",
+    "source.translation_scale": "--translation-scale",
+    "source.orthonormalise": "--orthonormalise",
+    "source.layout": "--layout",
+    "source.cameras": "--cameras",
+    "source.missing_frames": "--missing-frames",
+    "source.camera_map": "--camera-map",
+    "source.source_layout": "--source-layout",
+    "source.matcher": "--matcher",
+    "source.estimator": "--estimator",
+    "source.adapt": "--adapt",
+    "source.fps": "--fps",
+    "adapt": "--adapt",
+    "chunk_frames": "--chunk-frames",
+    "pipeline.chunk_frames": "--chunk-frames",
+    "pipeline.matching.proposals": "--proposals",
+    "pipeline.matching.threshold": "--threshold",
+    "pipeline.matching.min_views": "--min-views",
+    "pipeline.matching.half_score_px": "--half-score-px",
+    "pipeline.lifting.method": "--method",
+    "pipeline.lifting.outlier_px": "--outlier-px",
+    "pipeline.lifting.view_outlier_px": "--view-outlier-px",
+    "pipeline.tracked": "--no-track",
+    "pipeline.tracking.max_gap_s": "--max-gap-s",
+    "pipeline.filtering.name": "--filter",
+    "pipeline.filtering.cutoff_hz": "--cutoff-hz",
+    "pipeline.filtering.fill_gap_s": "--fill-gap-s",
+    "pipeline.filtering.outlier_m": "--outlier-m",
+    "pipeline.filtering.one_euro.min_cutoff_hz": "--min-cutoff",
+    "pipeline.filtering.one_euro.beta": "--beta",
+}
+
+
+def _named_by_option(e: InputError) -> InputError:
+    """``e`` with its field (a config path) replaced by the option that sets it."""
+    option = _OPTION_OF_SETTING.get(e.field or "")
+    if option is None:
+        return e
+    return InputError(e.reason, file=e.file, frame=e.frame, camera=e.camera, field=option)
+
+
+def infer_config(args: argparse.Namespace):
+    """The `jobs.infer.InferConfig` of infer's options (the combinations of options checked
+    here, so that a refusal names them)."""
+    from mvpose_jax.inference import FilterConfig, PipelineConfig
+    from mvpose_jax.jobs.infer import InferConfig, RecordingSource
+    from mvpose_jax.lifting import LiftingConfig
+    from mvpose_jax.matching import MatchingConfig
+    from mvpose_jax.tracking import TrackingConfig
+
+    needs_estimator = args.method and stages.lookup("lifting", args.method).needs_estimator
+    if needs_estimator and not args.estimator:
         raise InputError(f"--method {args.method} needs --estimator", field="--method")
-    if args.method in ("dlt", "centroid", "robust") and args.estimator:
+    if args.method and not needs_estimator and args.estimator:
         raise InputError(
             f"--method {args.method} triangulates: it would not use --estimator (mlp or blend do)",
             field="--method",
@@ -1305,190 +1403,57 @@ def _infer(args: argparse.Namespace) -> int:
             "then `infer --estimator NEW` (which --resume continues)",
             field="--adapt",
         )
-    adapt = adapt_config(args, prefix="adapt-") if args.adapt else None
-    if adapt is not None:
-        adapt.check()
-    one_euro, smooth_kwargs = _smoothing(args)
+    proposals = args.proposals or ("combined" if args.matcher else "epipolar")
+    if stages.lookup("proposals", proposals).needs_matcher and not args.matcher:
+        raise InputError(f"--proposals {proposals} needs --matcher", field="--proposals")
+    if args.threshold is not None and proposals == "combined":
+        raise InputError(
+            "sets the GAT's or the epipolar matcher's proposals, not the combined matcher's (its "
+            "settings are the --matcher folder's proposal_threshold.json); add --proposals gat "
+            "to group by the GAT alone at this threshold",
+            field="--threshold",
+        )
     if args.max_gap_s < 0:
         raise InputError("must be >= 0", field="--max-gap-s")
-    rig_all = load_rig(
-        args.rig, translation_scale=args.translation_scale, orthonormalise=args.orthonormalise
+    one_euro, _ = _smoothing(args)
+    adapt = adapt_config(args, prefix="adapt-") if args.adapt else None
+    lifting = {
+        k: v
+        for k, v in (("outlier_px", args.outlier_px), ("view_outlier_px", args.view_outlier_px))
+        if v is not None
+    }
+    pipeline = PipelineConfig(
+        matching=MatchingConfig(args.proposals, args.threshold, args.min_views, args.half_score_px),
+        lifting=LiftingConfig(args.method, **lifting),
+        tracking=None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s),
+        filtering=FilterConfig(
+            args.filter, one_euro, args.cutoff_hz, args.fill_gap_s, args.outlier_m or None
+        ),
+        chunk_frames=args.chunk_frames,
     )
-    stream = open_recording(
-        args.detections, layout=args.layout, rig=rig_all, **_reading_options(args)
+    source = RecordingSource(
+        rig=args.rig,
+        detections=args.detections,
+        translation_scale=args.translation_scale,
+        orthonormalise=args.orthonormalise,
+        layout=args.layout,
+        cameras=tuple(args.cameras) if args.cameras else None,
+        missing_frames=args.missing_frames,
+        camera_map=tuple(args.camera_map.items()) if args.camera_map else None,
+        source_layout=args.source_layout,
     )
-    with stream:
-        rig = rig_all.select(list(stream.cameras))
-        F = stream.num_frames
-        # The frame rate (the tracker's and the filters' clock, and the exports') from the first
-        # frames' timestamps: a long recording is never read whole for it.
-        head = stream.read_frames(0, min(F, 8)) if F else None
-        export = _export_after_infer(args, rig_all, head)  # None without --export; checks first
-        fps = args.fps or _recording_fps(head.timestamps if head is not None else None)
-        matcher = load_matcher(args.matcher, rig) if args.matcher else None
-        estimator = load_estimator(args.estimator, rig) if args.estimator else None
-        proposals, threshold, combined = _proposal_settings(args, matcher)
-        if adapt is not None:
-            from mvpose_jax.adapt import adapt_estimator
-
-            estimator, report = adapt_estimator(
-                rig,
-                stream.read_frames(0, F).detections,
-                estimator,
-                matcher=matcher,
-                threshold=threshold,
-                half_score_px=args.half_score_px,
-                proposals=proposals,
-                combined=combined,
-                config=adapt,
-            )
-            print_adapt_report(report)
-        tracking = None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s)
-        store = ChunkStore(
-            os.path.join(args.out, "chunks"),
-            settings=_infer_settings(args, stream, threshold, fps, proposals, combined),
-            frames_total=F,
-            chunk_frames=args.chunk_frames,
-        )
-        start = store.begin(resume=args.resume)
-        if store.discarded:
-            warnings.warn(
-                f"{store.folder} held {store.discarded} finished chunk(s) of an earlier unfinished "
-                "run: removed, starting over (--resume continues such a run)",
-                MvposeWarning,
-                stacklevel=1,
-            )
-        first_track = 0
-        if start:
-            print(f"resuming at frame {start} of {F} ({start // args.chunk_frames} chunks done)")
-            if tracking is not None:
-                # The tracker's memory is not kept with the chunks: tracks restart here, with
-                # ids after every earlier one (never reused).
-                first_track = store.next_track_id()
-        # Tracked results are smoothed (outliers, gap filling, Butterworth) chunk by chunk with
-        # their neighbours while assembling, so memory stays bounded by the chunk.
-        transform = None
-        summary = {"tracks": set(), "filled": 0}
-        if tracking is not None:
-            filt = "butterworth" if args.filter == "butterworth" else "none"
-
-            def transform(paths, folder):
-                out = smooth_chunk_files(paths, folder, fps=fps, filter=filt, **smooth_kwargs)
-                summary.update(tracks=set(), filled=0)
-                for path in out:  # the summary line's counts, one chunk in memory at a time
-                    res = load_poses_chunk(path)[1]
-                    summary["tracks"].update(res.track[res.poses.valid & (res.track >= 0)].tolist())
-                    summary["filled"] += int(res.filled.sum()) if res.filled is not None else 0
-                return out
-
-        # What a chunk's results need of its recording besides the detections, by first frame.
-        timestamps: dict[int, object] = {}
-        counts: dict[int, np.ndarray] = {}
-
-        def chunks():
-            for first, rec in stream.chunks(args.chunk_frames, start=start):
-                timestamps[first] = rec.timestamps
-                counts[first] = np.asarray(rec.detections.count)
-                yield first, rec.detections
-
-        frames = people = views = 0
-        seconds = {"proposals": 0.0, "poses": 0.0}
-        cameras = tuple(matcher.rig.names) if matcher is not None else tuple(rig.names)
-        try:
-            for first, res in stream_pipeline(
-                rig,
-                chunks(),
-                matcher=matcher,
-                estimator=estimator,
-                method=_infer_method(args),
-                proposals=proposals,
-                combined=combined,
-                threshold=threshold,
-                min_views=args.min_views,
-                half_score_px=args.half_score_px,
-                layout=stream.layout,
-                num_frames=F - start,
-                progress=True,
-                tracking=tracking,
-                one_euro=one_euro if tracking is not None and args.filter == "one-euro" else None,
-                fps=fps,
-                first_track_id=first_track,
-                **{
-                    k: v
-                    for k, v in (
-                        ("outlier_px", args.outlier_px),
-                        ("view_outlier_px", args.view_outlier_px),
-                    )
-                    if v is not None
-                },
-            ):
-                store.save(
-                    first,
-                    PoseResults(
-                        res.poses,
-                        res.confidence,
-                        res.members,
-                        res.identity,
-                        res.cameras,
-                        stream.layout,
-                        timestamps.pop(first),
-                        res.track,
-                    ),
-                )
-                idx = [stream.cameras.index(c) for c in res.cameras]
-                count = counts.pop(first)[:, idx]
-                views = max(views, int((count > 0).sum(axis=1).max(initial=0)))
-                frames += len(res.confidence)
-                people += int(np.asarray(res.poses.valid).sum())
-                for k in seconds:
-                    seconds[k] += res.seconds[k]
-        except KeyboardInterrupt:
-            done = store.assemble(args.out, transform=transform)
-            print(
-                f"mvpose-jax infer: interrupted: wrote partial results, {_covered(done, F)}, to "
-                f"{done.json} and {done.npz}; the same command with --resume continues",
-                file=sys.stderr,
-            )
-            return 130
-        except BaseException:
-            done = store.assemble(args.out, transform=transform)
-            if done.frames:
-                print(
-                    f"mvpose-jax infer: stopped by the error below: wrote partial results, "
-                    f"{_covered(done, F)}, to {done.json} and {done.npz}; once it is fixed, the "
-                    "same command with --resume continues",
-                    file=sys.stderr,
-                )
-            raise
-        try:
-            done = store.assemble(args.out, transform=transform)
-        except KeyboardInterrupt:
-            print(
-                f"mvpose-jax infer: interrupted while writing the results; every chunk is done "
-                f"({store.folder}): the same command with --resume writes them",
-                file=sys.stderr,
-            )
-            return 130
-        if not args.keep_chunks:
-            store.remove()
-    if people == 0 and frames > 0 and start == 0:
-        warnings.warn(_why_nobody(views, cameras, args, threshold), MvposeWarning, stacklevel=1)
-    resumed = f" ({start} finished before, {frames} now)" if start else ""
-    tracks = ""
-    if tracking is not None:
-        tracks = (
-            f", {len(summary['tracks'])} tracks, {summary['filled']} keypoints filled "
-            f"({args.filter} filter)"
-        )
-    print(
-        f"{F} frames{resumed}, {people} people{' in those run now' if start else ''} "
-        f"({people / max(frames, 1):.2f} per frame){tracks}; proposals "
-        f"{1000 * seconds['proposals'] / max(frames, 1):.2f} ms/frame, 3D "
-        f"{1000 * seconds['poses'] / max(frames, 1):.2f} ms/frame; wrote {done.json} and {done.npz}"
+    return InferConfig(
+        source,
+        args.out,
+        pipeline,
+        matcher=args.matcher,
+        estimator=args.estimator,
+        fps=args.fps,
+        resume=args.resume,
+        keep_chunks=args.keep_chunks,
+        export=_export_formats(args.export) if args.export else (),
+        adapt=adapt,
     )
-    if export:
-        export(load_poses(done.npz))  # exports read the whole result (memory grows with it)
-    return 0
 
 
 def _smooth_arguments(p: argparse.ArgumentParser) -> None:
@@ -1526,73 +1491,6 @@ def _smooth(args: argparse.Namespace) -> int:
         f"{json_path} and {npz_path}"
     )
     return 0
-
-
-def _covered(done, num_frames: int) -> str:
-    """The frames partial results cover, in words."""
-    if not done.frames:
-        return f"no frame of {num_frames} (no chunk had finished)"
-    return f"frames 0-{done.frames - 1} of {num_frames}"
-
-
-def _infer_method(args) -> str:
-    """infer's 3D stage: --method, by default blend with an estimator and dlt without."""
-    return args.method or ("blend" if args.estimator else "dlt")
-
-
-def _infer_settings(
-    args: argparse.Namespace, stream, threshold: float, fps: float, proposals: str, combined
-) -> dict:
-    """Every input and setting of ``infer`` that changes its results, by option name (what an
-    unfinished run must share with the command that resumes it)."""
-    import dataclasses
-    from pathlib import Path
-
-    def where(path):
-        return None if path is None else str(Path(path).resolve())
-
-    rig_file = Path(args.rig)
-    settings = {
-        "--detections": where(args.detections),
-        "--rig": where(rig_file) if rig_file.exists() else args.rig,
-        "--translation-scale": args.translation_scale,
-        "--orthonormalise": args.orthonormalise,
-        "--layout": stream.layout,
-        "--cameras": list(stream.cameras),
-        "--missing-frames": args.missing_frames,
-        "--camera-map": args.camera_map,
-        "--source-layout": args.source_layout,
-        "--matcher": where(args.matcher),
-        "--estimator": where(args.estimator),
-        "--threshold": threshold,
-        "--min-views": args.min_views,
-    }
-    if args.matcher is not None:  # without one, proposals are always epipolar
-        settings["--proposals"] = proposals
-    if combined is not None:
-        settings["combined"] = dataclasses.asdict(combined)
-    method = _infer_method(args)
-    if method != "mlp":  # runs with an estimator before --method blend existed recorded none
-        settings["--method"] = method
-    if args.adapt:
-        # (Only when given: the manifests of runs without it stay as they were.) Such a run is
-        # never resumed (`_infer` refuses), and a run without --adapt cannot resume its chunks.
-        settings["--adapt"] = True
-    if proposals == "epipolar":
-        settings["--half-score-px"] = args.half_score_px
-    if method in ("robust", "blend"):
-        settings["--outlier-px"] = args.outlier_px
-        settings["--view-outlier-px"] = args.view_outlier_px
-    # What the chunks hold also depends on the tracker and the streaming filter (Butterworth,
-    # outliers and gap filling act only while assembling: they may change on resume).
-    settings["--no-track"] = args.no_track
-    if not args.no_track:
-        settings["--max-gap-s"] = args.max_gap_s
-        settings["--fps"] = fps
-        if args.filter == "one-euro":
-            settings["--min-cutoff"] = args.min_cutoff
-            settings["--beta"] = args.beta
-    return settings
 
 
 def _why_nobody(views: int, cameras, args: argparse.Namespace, threshold: float) -> str:
@@ -1677,7 +1575,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from mvpose_jax.data.files import atomic_write_text
-    from mvpose_jax.inference import group_people
+    from mvpose_jax.lifting import group_people
     from mvpose_jax.metrics import matching_scores, pose_metrics, reprojection_errors
 
     if args.out:
@@ -2004,30 +1902,6 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _export_after_infer(args: argparse.Namespace, rig, rec):
-    """``infer --export``: checks the settings before the work; returns ``export(results)``, or
-    None without --export."""
-    if not args.export:
-        return None
-    from pathlib import Path
-
-    from mvpose_jax.cameras import up_vector
-    from mvpose_jax.data.exports import ExportConfig, export_poses, frame_times
-
-    formats = _export_formats(args.export)
-    with warnings.catch_warnings():  # uneven timestamps are warned about once, when exporting
-        warnings.simplefilter("ignore", MvposeWarning)
-        if rec is not None:
-            frame_times(rec.timestamps, rec.num_frames, args.fps)
-    config = ExportConfig(formats, fps=args.fps, up=tuple(float(v) for v in up_vector(rig)))
-
-    def export(results) -> None:
-        paths = export_poses(results, Path(args.out) / "poses", config, progress=True)
-        print(f"exported {len(paths)} files: " + ", ".join(p.name for p in paths))
-
-    return export
-
-
 def _print_dev_quality(folder: str) -> None:
     """The estimator against triangulation on the dev people (`train.compare_with_triangulation`)."""
     import json
@@ -2048,12 +1922,9 @@ def _print_dev_quality(folder: str) -> None:
 
 def _recording_fps(timestamps) -> float:
     """Frames per second from a recording's timestamps (their median step); 30 without them."""
-    import numpy as np
+    from mvpose_jax.jobs.infer import recording_fps
 
-    if timestamps is None or len(timestamps) < 2:
-        return 30.0
-    step = float(np.median(np.diff(np.asarray(timestamps, np.float64))))
-    return 1.0 / step if step > 0 else 30.0
+    return recording_fps(timestamps)
 
 
 class _DefaultsHelpFormatter(argparse.HelpFormatter):

@@ -22,7 +22,8 @@ import numpy as np
 
 from mvpose_jax.cameras import Rig, project_points, up_vector
 from mvpose_jax.errors import InputError
-from mvpose_jax.inference import group_people, run_pipeline
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import group_people
 from mvpose_jax.skeletons import Detections, Layout, get_layout
 from mvpose_jax.triangulate import triangulate_skeletons_robust
 

@@ -25,7 +25,9 @@ from mvpose_jax.cameras import rig_centre_and_radius
 from mvpose_jax.data.calibration import load_preset
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import single_person_samples
-from mvpose_jax.inference import predict_people, propose_with_matcher, run_pipeline
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import predict_people
+from mvpose_jax.matching import propose_with_matcher
 from mvpose_jax.metrics import matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
 from mvpose_jax.proposals import (

@@ -1052,7 +1052,7 @@ def test_infer_tracks_across_a_resume_without_reusing_ids(
 def test_infer_proposals_option_combined_by_default_with_a_matcher(
     files, recording, tmp_path, monkeypatch, capsys
 ):
-    import mvpose_jax.inference as inference
+    import mvpose_jax.jobs.infer as infer_job
     from mvpose_jax.inference import run_pipeline
     from mvpose_jax.models import GATConfig
     from mvpose_jax.proposals import CombinedConfig, write_proposal_threshold
@@ -1081,18 +1081,18 @@ def test_infer_proposals_option_combined_by_default_with_a_matcher(
         "epipolar": dict(proposals="epipolar", half_score_px=30.0),
     }
     seen = []
-    stream_pipeline = inference.stream_pipeline
+    stream_pipeline = infer_job.stream_pipeline
 
-    def spy(*args, **kwargs):
-        seen.append(kwargs)
-        return stream_pipeline(*args, **kwargs)
+    def spy(rig, chunks, config, **kwargs):
+        seen.append(config.matching)
+        return stream_pipeline(rig, chunks, config, **kwargs)
 
-    monkeypatch.setattr(inference, "stream_pipeline", spy)
+    monkeypatch.setattr(infer_job, "stream_pipeline", spy)
     for mode, kwargs in expected.items():
         out = tmp_path / f"poses-{mode}"
         assert main([*base, "--out", str(out)] + (["--proposals", mode] if mode else [])) == 0
-        assert seen[-1]["proposals"] == (mode or "combined")
-        assert seen[-1]["combined"] == (chosen if mode is None else None)
+        assert seen[-1].proposals == (mode or "combined")
+        assert seen[-1].combined == (chosen if mode is None else None)
         got = load_poses(out / "poses.npz")
         want = run_pipeline(rig, recording.detections, matcher=matcher, **kwargs)
         np.testing.assert_array_equal(got.identity, want.identity)

@@ -11,6 +11,7 @@ import pytest
 from flax import nnx
 
 from mvpose_jax.cameras import make_rig
+from mvpose_jax.compiled import bound_model_fn
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import single_person_samples
@@ -19,16 +20,14 @@ from mvpose_jax.graphs import (
     detection_features,
     match_table,
 )
-from mvpose_jax.inference import (
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import members_from_identity, poses_of_members
+from mvpose_jax.matching import (
     _match_scores,
     _match_scores_fn,
-    bound_model_fn,
     gat_match_table,
     geometric_match_table,
     match_scores,
-    members_from_identity,
-    poses_of_members,
-    run_pipeline,
 )
 from mvpose_jax.metrics import matching_scores, pose_metrics
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig
@@ -300,7 +299,7 @@ def test_blend_is_robust_triangulation_where_it_reconstructs_and_the_estimator_e
     # A keypoint one view sees: on that view's ray, as far from the camera as the person's
     # triangulated keypoints' mean (the untrained network's start; the blend's offset is 0).
     from mvpose_jax.cameras import camera_centres, pixel_rays
-    from mvpose_jax.inference import group_people
+    from mvpose_jax.lifting import group_people
 
     xy, score = group_people(det.xy, det.score, members)  # (F, G, C, K, ...)
     one = ((score > 0).sum(axis=2) == 1) & blend.valid[..., None]  # (F, G, K)
@@ -509,7 +508,7 @@ def test_geometric_baseline_groups_true_people(ring_rig):
 
 
 def test_single_frame_graph_cache_is_lru_and_bounded_by_bytes():
-    from mvpose_jax.inference import _frame_graphs, _GraphCache
+    from mvpose_jax.matching import _frame_graphs, _GraphCache
 
     def key(*counts):
         return (np.array([counts], np.int64).tobytes(), 1, 3, 4, 1)
@@ -528,7 +527,7 @@ def test_single_frame_graph_cache_is_lru_and_bounded_by_bytes():
 
 
 def test_composed_match_table_scores_the_composed_skeletons_with_their_identities(ring_rig):
-    from mvpose_jax.inference import composed_match_table
+    from mvpose_jax.matcher_settings import composed_match_table
     from mvpose_jax.trained import Matcher
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
@@ -561,7 +560,7 @@ def test_composed_match_table_scores_the_composed_skeletons_with_their_identitie
 
 def test_composed_frames_are_the_training_composition_as_detections(ring_rig):
     from mvpose_jax.graphs import compose_samples, detection_features, make_pool
-    from mvpose_jax.inference import composed_frames
+    from mvpose_jax.matcher_settings import composed_frames
     from mvpose_jax.synthetic import generate_single_person_recordings
 
     recs = generate_single_person_recordings(ring_rig, num_recordings=5, num_frames=4, seed=2)
@@ -586,7 +585,7 @@ def test_composed_frames_are_the_training_composition_as_detections(ring_rig):
 
 
 def test_epipolar_distances_give_the_geometric_scores(ring_rig):
-    from mvpose_jax.inference import epipolar_match_distances
+    from mvpose_jax.matching import epipolar_match_distances
     from mvpose_jax.synthetic import generate_recording
 
     rec = generate_recording(ring_rig, num_people=3, num_frames=3, seed=5)
@@ -600,7 +599,7 @@ def test_epipolar_distances_give_the_geometric_scores(ring_rig):
 def test_epipolar_distances_of_rows_mean_median_and_either_camera_order(ring_rig):
     import cv2
 
-    from mvpose_jax.inference import epipolar_distances_of_rows, epipolar_match_distances
+    from mvpose_jax.matching import epipolar_distances_of_rows, epipolar_match_distances
 
     rec = generate_recording(ring_rig, num_people=2, num_frames=2, seed=3)
     det = rec.detections
@@ -657,7 +656,7 @@ def _untrained_matcher(rig):
 def test_pipeline_proposal_modes_with_a_matcher(scene):
     """An untrained matcher (scores near-random): the default, combined proposals still group the
     people as the epipolar matcher does; "gat" is the GAT alone; "epipolar" ignores it."""
-    from mvpose_jax.inference import propose_with_matcher
+    from mvpose_jax.matching import propose_with_matcher
     from mvpose_jax.proposals import CombinedConfig
 
     rig, rec = scene

@@ -39,7 +39,8 @@ def _worker() -> None:
     from mvpose_jax.data.calibration import load_preset
     from mvpose_jax.errors import InputError
     from mvpose_jax.features import single_person_samples
-    from mvpose_jax.inference import match_scores, predict_people
+    from mvpose_jax.lifting import predict_people
+    from mvpose_jax.matching import match_scores
     from mvpose_jax.models import MLPConfig
     from mvpose_jax.parallel import make_data_mesh
     from mvpose_jax.synthetic import generate_single_person_recordings

@@ -76,7 +76,7 @@ def test_choose_geometric_cutoff_is_a_pixel_distance_with_the_same_rule():
 def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
 
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.inference import choose_matcher_threshold
+    from mvpose_jax.matcher_settings import choose_matcher_threshold
     from mvpose_jax.trained import Matcher
 
     rig = load_rig("panoptic5")
@@ -105,7 +105,7 @@ def test_matcher_threshold_is_chosen_written_and_read_back(tmp_path):
 @pytest.mark.slow  # a GAT on composed frames, the epipolar distances, 12 proposal runs
 def test_matcher_settings_come_from_one_composition():
     from mvpose_jax.data.calibration import load_rig
-    from mvpose_jax.inference import choose_matcher_settings, choose_matcher_threshold
+    from mvpose_jax.matcher_settings import choose_matcher_settings, choose_matcher_threshold
     from mvpose_jax.trained import Matcher
 
     rig = load_rig("panoptic5")

@@ -13,9 +13,7 @@ import pytest
 from flax import nnx
 
 from mvpose_jax.features import single_person_samples
-from mvpose_jax.inference import (
-    predict_people,
-)
+from mvpose_jax.lifting import predict_people
 from mvpose_jax.models import MLPConfig, PoseMLP
 from mvpose_jax.synthetic import (
     SyntheticConfig,
@@ -89,7 +87,7 @@ def test_padding_does_not_change_predictions(clean_samples):
 
 @pytest.mark.slow  # trains a model
 def test_residual_output_starts_at_the_triangulation(clean_samples):
-    from mvpose_jax.inference import triangulate_people
+    from mvpose_jax.lifting import triangulate_people
 
     rig, xy, score = clean_samples
     model_cfg = MLPConfig(widths=(16,), output="residual")

@@ -3,13 +3,13 @@
 Layout of the folder (``OUT/chunks/``)::
 
     manifest.json        {"format": "mvpose-jax.infer-chunks", "version": 1, "frames_total": N,
-                          "chunk_frames": n, "settings": {"--detections": ..., ...}}
+                          "chunk_frames": n, "settings": {"source.detections": ..., ...}}
     chunk_000000.npz     results of frames 0 .. n-1 (`data.poses.save_poses_chunk`)
     chunk_000001.npz     frames n .. 2n-1
     ...
 
-``settings`` holds every input and setting that changes the results (the command line's option
-names as keys, so a refusal names the option). Chunk ``i`` starts at frame ``i * n``; each is
+``settings`` holds every input and setting that changes the results, flat, keyed by their path
+in the job's config (``"pipeline.matching.threshold"``), so a refusal names the setting. Chunk ``i`` starts at frame ``i * n``; each is
 written atomically once its frames are done, so the finished chunks are always whole files, and
 the results of the first ``k`` chunks are the first ``k * n`` frames of the full results.
 `ChunkStore.assemble` writes ``poses.npz`` and ``poses.json`` from them (partial when they do not
@@ -47,8 +47,8 @@ class ChunkStore:
 
     Args:
       folder: the folder (created by `begin`).
-      settings: every input and setting that changes the results, JSON-able, keyed by the
-        option that sets it.
+      settings: every input and setting that changes the results, JSON-able, keyed by its
+        path in the job's config.
       frames_total: frames in the recording.
       chunk_frames: frames per chunk.
     """
@@ -165,8 +165,8 @@ class ChunkStore:
             )
         hint = "; run with the same settings, or without --resume to start over"
         saved: dict[str, Any] = dict(doc.get("settings") or {})
-        saved.setdefault("--chunk-frames", doc.get("chunk_frames"))
-        current = {**self.settings, "--chunk-frames": self.chunk_frames}
+        saved.setdefault("chunk_frames", doc.get("chunk_frames"))
+        current = {**self.settings, "chunk_frames": self.chunk_frames}
         for key in sorted(set(saved) | set(current)):
             if saved.get(key) != current.get(key):
                 raise InputError(
@@ -178,7 +178,7 @@ class ChunkStore:
             raise InputError(
                 f"the detections have {self.frames_total} frames, the unfinished run's had "
                 f"{doc.get('frames_total')}{hint}",
-                field="--detections",
+                field="source.detections",
             )
 
 
