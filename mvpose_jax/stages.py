@@ -163,3 +163,19 @@ for _stage in (
 ):
     register("filters", _stage)
 del _stage
+
+
+def markdown_table() -> str:
+    """Every registered stage as a Markdown table (docs/architecture.md holds it; a test checks
+    that it is current)."""
+    needs = {"proposals": "needs_matcher", "lifting": "needs_estimator"}
+    rows = ["| stage | name | needs | what it does |", "|---|---|---|---|"]
+    for kind, registry in _REGISTRIES.items():
+        for s in registry.values():
+            need = ""
+            if kind in needs and getattr(s, needs[kind]):
+                need = "a matcher" if kind == "proposals" else "an estimator"
+            elif kind == "filters":
+                need = "tracks (in the stream)" if s.streaming else "tracks (while assembling)"
+            rows.append(f"| {kind} | `{s.name}` | {need} | {s.summary} |")
+    return "\n".join(rows) + "\n"

@@ -114,3 +114,13 @@ def test_pipeline_config_round_trips_through_its_dict():
         lifting=LiftingConfig("robust"),
         chunk_frames=64,
     )
+
+
+def test_the_architecture_page_lists_every_stage():
+    from pathlib import Path
+
+    page = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
+    assert stages.markdown_table() in page.read_text(), (
+        "docs/architecture.md's stage table is out of date: paste "
+        "`python -c 'from mvpose_jax import stages; print(stages.markdown_table())'`"
+    )
