@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -333,38 +334,41 @@ def reprojection_of_truth(data: MvorData) -> dict:
 # =========================================================================== the protocol
 
 
-def evaluate(pred: Poses3D, data: MvorData, *, gate_mm: float = GATE_MM) -> dict:
-    """The MVOR protocol on predictions in MVOR's joints (`poses_to_joints`).
+class TruthMatches(NamedTuple):
+    """Each true person's match (`match_truth`); H true person slots, J joints, L limbs."""
+
+    matched: np.ndarray  # (F, H) bool, a prediction was matched to the person
+    joint_error: np.ndarray  # (F, H, J) metres; NaN: no match, joint not produced or not annotated
+    limb_correct: np.ndarray  # (F, H, L) bool, upper-body PCP's verdict per limb
+
+
+def match_truth(pred: Poses3D, gt: Poses3D, *, gate_mm: float = GATE_MM) -> TruthMatches:
+    """Per frame, predicted people matched to true people (the protocol's matching).
+
+    The Hungarian method on the mean distance over the joints both have (prediction produced,
+    truth annotated); a pair sharing no joint or farther apart than ``gate_mm`` is never matched.
 
     Args:
-      pred: xyz (F, P, J, 3) metres, valid (F, P), keypoint_valid (F, P, J), the frames of
-        ``data``.
-      gate_mm: a predicted and a true person farther apart than this (mean over shared joints)
-        are never matched.
-    Returns:
-      {"overall": scores, "day<d>": scores}; scores: people, missed, mpjpe_mm, pck3d_<t> (%),
-      pcp_upper (%), pcp_by_limb {limb: %}, produced (% of annotated joints of all true people
-      the matched predictions produced), joint_mm {joint: MPJPE}, joint_pck3d_150 {joint: %}.
+      pred: xyz (F, P, J, 3) metres, valid (F, P), keypoint_valid (F, P, J) in MVOR's joints.
+      gt: xyz (F, H, J, 3), valid (F, H), keypoint_valid (F, H, J) (annotated joints).
     Raises:
-      ValueError: the predictions do not cover the data's frames.
+      ValueError: the predictions and the truth cover different numbers of frames.
     """
     from scipy.optimize import linear_sum_assignment
 
-    gt = data.gt
     F, H = np.shape(gt.valid)
     if np.shape(pred.valid)[0] != F:
-        raise ValueError(f"predictions cover {np.shape(pred.valid)[0]} frames, the data {F}")
+        raise ValueError(f"predictions cover {np.shape(pred.valid)[0]} frames, the truth {F}")
     p_xyz = np.asarray(pred.xyz, np.float64)
     p_ok = np.asarray(pred.keypoint_valid, bool) & np.asarray(pred.valid, bool)[..., None]
     p_ok &= np.isfinite(p_xyz).all(-1)
     g_xyz = np.asarray(gt.xyz, np.float64)
-    g_ok = np.asarray(gt.keypoint_valid, bool)
-    # Per true person slot: the matched prediction's joint errors (NaN: not produced or no match).
+    g_ok = np.asarray(gt.keypoint_valid, bool) & np.asarray(gt.valid, bool)[..., None]
     err = np.full((F, H, len(JOINTS)), np.nan)
     matched = np.zeros((F, H), bool)
-    limb_hit = np.zeros((F, H, len(UPPER_BODY_LIMBS)), bool)
+    limb_correct = np.zeros((F, H, len(UPPER_BODY_LIMBS)), bool)
     for f in range(F):
-        gi = np.flatnonzero(gt.valid[f] & g_ok[f].any(-1))
+        gi = np.flatnonzero(g_ok[f].any(-1))
         pi = np.flatnonzero(p_ok[f].any(-1))
         if len(gi) == 0 or len(pi) == 0:
             continue
@@ -380,17 +384,53 @@ def evaluate(pred: Poses3D, data: MvorData, *, gate_mm: float = GATE_MM) -> dict
             g, p = gi[c], pi[r]
             matched[f, g] = True
             err[f, g] = np.where(both[r, c], d[r, c], np.nan)
-            limb_hit[f, g] = _limbs_correct(p_xyz[f, p], p_ok[f, p], g_xyz[f, g], g_ok[f, g])
-    counted_limbs = _limbs_counted(g_ok) & gt.valid[..., None]
-    has_joints = np.asarray(gt.valid, bool) & g_ok.any(-1)
+            limb_correct[f, g] = _limbs_correct(p_xyz[f, p], p_ok[f, p], g_xyz[f, g], g_ok[f, g])
+    return TruthMatches(matched, err, limb_correct)
+
+
+def evaluate(
+    pred: Poses3D,
+    data: MvorData,
+    *,
+    gate_mm: float = GATE_MM,
+    unreachable: np.ndarray | None = None,
+) -> dict:
+    """The MVOR protocol on predictions in MVOR's joints (`poses_to_joints`).
+
+    Args:
+      pred: xyz (F, P, J, 3) metres, valid (F, P), keypoint_valid (F, P, J), the frames of
+        ``data``.
+      gate_mm: a predicted and a true person farther apart than this (mean over shared joints)
+        are never matched.
+      unreachable: optional (F, H) bool, true people the detections cannot place (e.g. seen in
+        fewer than two views): a match of one of them counts in ``matched_unreachable`` (it was
+        built from someone else's skeletons).
+    Returns:
+      {"overall": scores, "day<d>": scores}; scores: people, missed, mpjpe_mm,
+      mpjpe_mm_without_hips, pck3d_<t> (%), pcp_upper (%), pcp_by_limb {limb: %}, produced (% of
+      annotated joints of all true people the matched predictions produced), joints (annotated),
+      joint_mm {joint: MPJPE}, joint_pck3d_150 {joint: %}, and with ``unreachable``
+      matched_unreachable.
+    Raises:
+      ValueError: the predictions do not cover the data's frames.
+    """
+    gt = data.gt
+    F = np.shape(gt.valid)[0]
+    m = match_truth(pred, gt, gate_mm=gate_mm)
+    g_ok = np.asarray(gt.keypoint_valid, bool) & np.asarray(gt.valid, bool)[..., None]
+    counted_limbs = _limbs_counted(g_ok)
+    has_joints = g_ok.any(-1)
     out = {}
     for name, sel in [("overall", np.ones(F, bool))] + [
         (f"day{int(d)}", data.day == d) for d in np.unique(data.day)
     ]:
         out[name] = _scores(
-            err[sel], g_ok[sel] & has_joints[sel][..., None], matched[sel], has_joints[sel],
-            limb_hit[sel] & counted_limbs[sel], counted_limbs[sel],
+            m.joint_error[sel], g_ok[sel], m.matched[sel], has_joints[sel],
+            m.limb_correct[sel] & counted_limbs[sel], counted_limbs[sel],
         )  # fmt: skip
+        if unreachable is not None:
+            hit = m.matched[sel] & np.asarray(unreachable, bool)[sel]
+            out[name]["matched_unreachable"] = int(hit.sum())
     return out
 
 
@@ -403,6 +443,7 @@ def _scores(err, annotated, matched, person, limb_hit, limb_counted) -> dict:
         "people": int(person.sum()),
         "missed": int((person & ~matched).sum()),
         "mpjpe_mm": float(e.mean()) if e.size else float("nan"),
+        "mpjpe_mm_without_hips": _mean_mm(err[..., _NOT_HIPS][produced[..., _NOT_HIPS]]),
         **{f"pck3d_{int(t)}": pct((e <= t).sum(), annotated.sum()) for t in PCK_MM},
         "pcp_upper": pct(limb_hit.sum(), limb_counted.sum()),
         "pcp_by_limb": {
@@ -419,6 +460,14 @@ def _scores(err, annotated, matched, person, limb_hit, limb_counted) -> dict:
         scores["joint_mm"][joint] = float(ej.mean()) if ej.size else float("nan")
         scores["joint_pck3d_150"][joint] = pct((ej <= 150).sum(), annotated[..., j].sum())
     return scores
+
+
+def _mean_mm(err_m: np.ndarray) -> float:
+    return float(err_m.mean() * 1000) if err_m.size else float("nan")
+
+
+# MVOR's hips are not COCO's (130-140 mm higher, README): MPJPE without them is reported too.
+_NOT_HIPS = np.array([j not in ("l_hip", "r_hip") for j in JOINTS])
 
 
 def _limb_ends(xyz: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

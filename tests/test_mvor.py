@@ -242,8 +242,11 @@ def test_protocol_on_known_errors(tiny):
     assert perfect["missed"] == 0 and perfect["people"] == 3
     assert perfect["mpjpe_mm"] == pytest.approx(0.0, abs=1e-9)
     assert perfect["pck3d_100"] == perfect["pck3d_150"] == perfect["pcp_upper"] == 100.0
-    off = evaluate(_shifted(data, 0.12), data)
+    off = evaluate(_shifted(data, 0.12), data, unreachable=np.eye(2, dtype=bool))
     assert off["overall"]["mpjpe_mm"] == pytest.approx(120.0)
+    assert off["overall"]["mpjpe_mm_without_hips"] == pytest.approx(120.0)
+    # Slots (0, 0) and (1, 1) are marked unreachable; only (0, 0) is a person, and matched.
+    assert off["overall"]["matched_unreachable"] == 1
     assert off["overall"]["pck3d_100"] == 0.0 and off["overall"]["pck3d_150"] == 100.0
     # The shortest limb (head to neck, 0.3 m) tolerates 0.15 m of mean error: all correct.
     assert off["overall"]["pcp_upper"] == 100.0
