@@ -28,6 +28,7 @@ overall.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -163,8 +164,10 @@ def load_mvor(
     dets = load_json(det_file)
     if not isinstance(doc, dict):
         raise InputError("expected a JSON object", file=ann_file)
-    rig = _rig(_key(doc, "cameras_info", ann_file), ann_file, distortion)
-    frame_ids, image_frame = _frames(_key(doc, "multiview_images", ann_file), ann_file)
+    rig, room_from_cam1 = _rig(
+        _key(doc, "cameras_info", ann_file, "cameras_info"), ann_file, distortion
+    )
+    frame_ids, image_frame = _frames(_list(doc, "multiview_images", ann_file), ann_file)
     image_day = {}
     for i, im in enumerate(_list(doc, "images", ann_file)):
         field = f"images[{i}]"
@@ -180,7 +183,7 @@ def load_mvor(
                 field="images",
             )
         day[f] = image_day[image]
-    people = _people(doc, ann_file, frame_ids, image_frame)
+    people = _people(doc, ann_file, frame_ids, image_frame, room_from_cam1)
     det, clipped = _detections(dets, det_file, frame_ids, image_frame, layout)
     return MvorData(
         rig, frame_ids, day, det, layout, num_detections=len(dets), clipped_scores=clipped, **people
@@ -425,17 +428,22 @@ def evaluate(
         (f"day{int(d)}", data.day == d) for d in np.unique(data.day)
     ]:
         out[name] = _scores(
-            m.joint_error[sel], g_ok[sel], m.matched[sel], has_joints[sel],
-            m.limb_correct[sel] & counted_limbs[sel], counted_limbs[sel],
-        )  # fmt: skip
+            err=m.joint_error[sel],
+            annotated=g_ok[sel],
+            matched=m.matched[sel],
+            person=has_joints[sel],
+            limb_hit=m.limb_correct[sel] & counted_limbs[sel],
+            limb_counted=counted_limbs[sel],
+        )
         if unreachable is not None:
             hit = m.matched[sel] & np.asarray(unreachable, bool)[sel]
             out[name]["matched_unreachable"] = int(hit.sum())
     return out
 
 
-def _scores(err, annotated, matched, person, limb_hit, limb_counted) -> dict:
-    """Pooled scores of a set of frames (arrays as in `evaluate`, restricted to those frames)."""
+def _scores(*, err, annotated, matched, person, limb_hit, limb_counted) -> dict:
+    """Pooled scores of a set of frames: err (n, H, J) metres (NaN: none), annotated (n, H, J),
+    matched and person (n, H), limb_hit and limb_counted (n, H, L)."""
     produced = annotated & np.isfinite(err)
     e = err[produced] * 1000
     pct = lambda a, b: 100.0 * float(a) / max(float(b), 1.0)  # noqa: E731
@@ -506,63 +514,73 @@ def _limbs_correct(p_xyz, p_ok, g_xyz, g_ok) -> np.ndarray:
 # =========================================================================== reading
 
 
-def _key(doc: dict, key: str, file: Path, field: str | None = None):
-    if not isinstance(doc, dict) or key not in doc:
-        raise InputError(f"missing key {key!r}", file=file, field=field or key)
-    return doc[key]
+def _key(record, key: str, file: Path, field: str, **loc):
+    """``record[key]``, else InputError naming ``field``."""
+    if not isinstance(record, dict) or key not in record:
+        raise InputError(f"missing key {key!r}", file=file, field=field, **loc)
+    return record[key]
 
 
 def _list(doc: dict, key: str, file: Path) -> list:
-    value = _key(doc, key, file)
+    value = _key(doc, key, file, key)
     if not isinstance(value, list):
         raise InputError("expected a list", file=file, field=key)
     return value
 
 
-def _int(record: dict, key: str, file: Path, where: str, **loc) -> int:
-    value = _key(record, key, file, f"{where}.{key}")
-    if isinstance(value, bool) or not isinstance(value, (int, str)):
-        raise InputError(
-            f"expected an integer, got {value!r}", file=file, field=f"{where}.{key}", **loc
-        )
-    try:
-        return int(value)
-    except ValueError:
-        raise InputError(
-            f"expected an integer, got {value!r}", file=file, field=f"{where}.{key}", **loc
-        ) from None
+def _int(record, key: str, file: Path, where: str, **loc) -> int:
+    """An integer (or a string of one: MVOR writes some ids as strings) at ``where.key``."""
+    field = f"{where}.{key}"
+    value = _key(record, key, file, field, **loc)
+    if isinstance(value, (int, str)) and not isinstance(value, bool):
+        try:
+            return int(value)
+        except ValueError:
+            pass
+    raise InputError(f"expected an integer, got {value!r}", file=file, field=field, **loc)
 
 
 def _numbers(value, count: int, file: Path, field: str, **loc) -> np.ndarray:
-    """A flat list of ``count`` finite numbers, else InputError at ``field``."""
+    """``value`` as ``count`` finite numbers (a flat list), else InputError at the first bad
+    entry."""
     if not isinstance(value, list) or len(value) != count:
-        got = len(value) if isinstance(value, list) else type(value).__name__
+        got = f"{len(value)} entries" if isinstance(value, list) else type(value).__name__
         raise InputError(
             f"expected a list of {count} numbers, got {got}", file=file, field=field, **loc
         )
-    try:
-        arr = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        bad = next(i for i, v in enumerate(value) if isinstance(v, bool) or not _is_number(v))
+    for i, v in enumerate(value):
+        if not (_is_number(v) and math.isfinite(v)):
+            raise InputError(
+                f"{v!r} is not a finite number", file=file, field=f"{field}[{i}]", **loc
+            )
+    return np.asarray(value, np.float64)
+
+
+def _numbers_at(record, key: str, count: int, file: Path, where: str, **loc) -> np.ndarray:
+    """``record[key]`` as ``count`` finite numbers (`_numbers`); ``where`` names the record."""
+    field = f"{where}.{key}"
+    return _numbers(_key(record, key, file, field, **loc), count, file, field, **loc)
+
+
+def _flags(values: np.ndarray, file: Path, field: str, *, stride: int, **loc) -> np.ndarray:
+    """MVOR's flags (0, 1 or 2) as integers: the last of every ``stride`` numbers of the flat list
+    ``field``. values: (J,) -> (J,) int64."""
+    bad = ~np.isin(values, (0, 1, 2))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
         raise InputError(
-            f"{value[bad]!r} is not a number", file=file, field=f"{field}[{bad}]", **loc
-        ) from None
-    if not np.isfinite(arr).all():
-        bad = int(np.flatnonzero(~np.isfinite(arr))[0])
-        raise InputError(
-            f"{value[bad]} is not a finite number", file=file, field=f"{field}[{bad}]", **loc
+            f"flag {values[i]:g} is not 0, 1 or 2",
+            file=file,
+            field=f"{field}[{stride * i + stride - 1}]",
+            **loc,
         )
-    return arr
+    return values.astype(np.int64)
 
 
-def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _rig(info: dict, file: Path, distortion: bool) -> Rig:
-    """The three cameras, world = the room frame (metres)."""
-    params = _key(info, "camParams", file, "cameras_info.camParams")
+def _rig(info, file: Path, distortion: bool) -> tuple[Rig, np.ndarray]:
+    """The three cameras, world = the room frame (metres), and room_from_cam1 (4, 4) mm."""
     where = "cameras_info.camParams"
+    params = _key(info, "camParams", file, where)
     intrinsics = _key(params, "intrinsics", file, f"{where}.intrinsics")
     extrinsics = _key(params, "extrinsics", file, f"{where}.extrinsics")
     for name, value in (("intrinsics", intrinsics), ("extrinsics", extrinsics)):
@@ -572,89 +590,65 @@ def _rig(info: dict, file: Path, distortion: bool) -> Rig:
                 file=file,
                 field=f"{where}.{name}",
             )
-    room_from_cam1 = _numbers(
-        _key(params, "firstCamToRoomRef", file, f"{where}.firstCamToRoomRef"),
-        16,
-        file,
-        f"{where}.firstCamToRoomRef",
-    ).reshape(4, 4)
+    room_from_cam1 = _numbers_at(params, "firstCamToRoomRef", 16, file, where).reshape(4, 4)
     K, dist, R, t, size = [], [], [], [], []
     for c, cam in enumerate(CAMERAS):
-        field = f"{where}.intrinsics[{c}]"
-        intr = intrinsics[c]
-        fx, fy = _numbers(
-            _key(intr, "focallength", file, f"{field}.focallength"),
-            2,
-            file,
-            f"{field}.focallength",
-            camera=cam,
-        )
-        cx, cy = _numbers(
-            _key(intr, "principalpoint", file, f"{field}.principalpoint"),
-            2,
-            file,
-            f"{field}.principalpoint",
-            camera=cam,
-        )
-        size.append(
-            _numbers(
-                _key(intr, "imagesize", file, f"{field}.imagesize"),
-                2,
-                file,
-                f"{field}.imagesize",
-                camera=cam,
-            )
-        )
-        k1, k2, k3, p1, p2 = _numbers(
-            _key(intr, "distortion", file, f"{field}.distortion"),
-            5,
-            file,
-            f"{field}.distortion",
-            camera=cam,
-        )
+        at = f"{where}.intrinsics[{c}]"
+        fx, fy = _numbers_at(intrinsics[c], "focallength", 2, file, at, camera=cam)
+        cx, cy = _numbers_at(intrinsics[c], "principalpoint", 2, file, at, camera=cam)
+        size.append(_numbers_at(intrinsics[c], "imagesize", 2, file, at, camera=cam))
+        k1, k2, k3, p1, p2 = _numbers_at(intrinsics[c], "distortion", 5, file, at, camera=cam)
         dist.append([k1, k2, p1, p2, k3] if distortion else [0.0] * 5)
         K.append([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        cam1_from_cam = _numbers(
-            extrinsics[c], 16, file, f"{where}.extrinsics[{c}]", camera=cam
-        ).reshape(4, 4)
-        # Room from camera c, millimetres; its inverse is cam_from_world.
+        field = f"{where}.extrinsics[{c}]"
+        cam1_from_cam = _numbers(extrinsics[c], 16, file, field, camera=cam).reshape(4, 4)
+        # Room from camera c (millimetres); its inverse is cam_from_world.
         cam_from_room = np.linalg.inv(room_from_cam1 @ cam1_from_cam)
         R.append(cam_from_room[:3, :3])
         t.append(cam_from_room[:3, 3] / 1000.0)
-    return make_rig(
-        np.array(K), np.array(dist), np.array(R), np.array(t), np.array(size), CAMERAS,
-        up=(0.0, 0.0, 1.0), file=file,
-    )  # fmt: skip
+    rig = make_rig(
+        np.array(K),
+        np.array(dist),
+        np.array(R),
+        np.array(t),
+        np.array(size),
+        CAMERAS,
+        up=(0.0, 0.0, 1.0),
+        file=file,
+    )
+    return rig, room_from_cam1
 
 
 def _frames(records: list, file: Path) -> tuple[tuple[str, ...], dict[int, tuple[int, int]]]:
     """The multi-view frames' ids and each image's (frame, camera)."""
-    if not isinstance(records, list):
-        raise InputError("expected a list", file=file, field="multiview_images")
     ids, image_frame = [], {}
     for f, rec in enumerate(records):
         where = f"multiview_images[{f}]"
         mv_id = str(_key(rec, "id", file, f"{where}.id"))
-        images = _key(rec, "images", file, f"{where}.images")
+        images = _key(rec, "images", file, f"{where}.images", frame=mv_id)
         if not isinstance(images, list):
             raise InputError(
                 "expected a list of image records", file=file, frame=mv_id, field=f"{where}.images"
             )
         cams = {}
         for i, im in enumerate(images):
-            cam_id = _int(im, "cam_id", file, f"{where}.images[{i}]", frame=mv_id)
+            at = f"{where}.images[{i}]"
+            cam_id = _int(im, "cam_id", file, at, frame=mv_id)
             if not 1 <= cam_id <= len(CAMERAS) or cam_id in cams:
+                reason = "repeated" if cam_id in cams else f"not 1-{len(CAMERAS)}"
                 raise InputError(
-                    f"cam_id {cam_id} is {'repeated' if cam_id in cams else 'not 1-3'}",
-                    file=file, frame=mv_id, field=f"{where}.images[{i}].cam_id",
-                )  # fmt: skip
-            cams[cam_id] = _int(im, "id", file, f"{where}.images[{i}]", frame=mv_id)
+                    f"cam_id {cam_id} is {reason}", file=file, frame=mv_id, field=f"{at}.cam_id"
+                )
+            cams[cam_id] = _int(im, "id", file, at, frame=mv_id)
         for c, cam in enumerate(CAMERAS):
             if c + 1 not in cams:
                 raise InputError(
-                    f"the multi-view record has no image of {cam} (it has {sorted(cams)})",
-                    file=file, frame=mv_id, camera=cam, field=f"{where}.images",
-                )  # fmt: skip
+                    f"the multi-view record has no image of {cam} (it has cam_id {sorted(cams)})",
+                    file=file,
+                    frame=mv_id,
+                    camera=cam,
+                    field=f"{where}.images",
+                )
             image_frame[cams[c + 1]] = (f, c)
         ids.append(mv_id)
     if len(set(ids)) != len(ids):
@@ -662,41 +656,33 @@ def _frames(records: list, file: Path) -> tuple[tuple[str, ...], dict[int, tuple
     return tuple(ids), image_frame
 
 
-def _people(doc: dict, file: Path, frame_ids, image_frame) -> dict:
+def _people(doc: dict, file: Path, frame_ids, image_frame, room_from_cam1: np.ndarray) -> dict:
     """The annotated people of every frame: 3D ground truth and 2D annotations per camera."""
     F, C, J = len(frame_ids), len(CAMERAS), len(JOINTS)
     frame_of = {mv: f for f, mv in enumerate(frame_ids)}
-    # person slot per (frame, person_id): 3D records first, in file order.
+    # Each frame's person slots by person_id: people with 3D ground truth first, in file order.
     slots: list[dict[int, int]] = [{} for _ in range(F)]
     gt3d: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
     records_3d = _list(doc, "annotations3D", file)
-    room_from_cam1 = None
     for i, rec in enumerate(records_3d):
         where = f"annotations3D[{i}]"
         mv = str(_key(rec, "image_ids", file, f"{where}.image_ids"))
         if mv not in frame_of:
             raise InputError(
-                f"unknown multi-view id {mv!r}", file=file, frame=mv, field=f"{where}.image_ids"
+                "not a multi-view id of `multiview_images`",
+                file=file,
+                frame=mv,
+                field=f"{where}.image_ids",
             )
         f = frame_of[mv]
         pid = _int(rec, "person_id", file, where, frame=mv)
-        values = _numbers(
-            _key(rec, "keypoints3D", file, f"{where}.keypoints3D"),
-            48,
-            file,
-            f"{where}.keypoints3D",
-            frame=mv,
-        ).reshape(12, 4)
-        if room_from_cam1 is None:
-            room_from_cam1 = _room_from_cam1(doc, file)
-        # In camera 1's frame whatever ref_camera says (README), millimetres -> the room, metres.
+        values = _numbers_at(rec, "keypoints3D", 48, file, where, frame=mv).reshape(12, 4)
+        flag = _flags(values[:J, 3], file, f"{where}.keypoints3D", stride=4, frame=mv)
+        # In camera 1's frame whatever ref_camera says (README); millimetres -> the room, metres.
         xyz = (values[:J, :3] @ room_from_cam1[:3, :3].T + room_from_cam1[:3, 3]) / 1000.0
-        flag = values[:J, 3].astype(np.int64)
         if (f, pid) in gt3d:
-            same = np.array_equal(gt3d[(f, pid)][0], xyz) and np.array_equal(
-                gt3d[(f, pid)][1], flag
-            )
-            if same:
+            old_xyz, old_flag = gt3d[(f, pid)]
+            if np.array_equal(old_xyz, xyz) and np.array_equal(old_flag, flag):
                 continue  # MVOR's ids 718 and 719: one person stored twice
             raise InputError(
                 f"person {pid} has two different 3D records", file=file, frame=mv, field=where
@@ -712,27 +698,22 @@ def _people(doc: dict, file: Path, frame_ids, image_frame) -> dict:
                 f"image {image} is in no multi-view record", file=file, field=f"{where}.image_id"
             )
         f, c = image_frame[image]
-        if _key(rec, "only_bbox", file, f"{where}.only_bbox"):
-            continue
-        pid = _int(rec, "person_id", file, where, frame=frame_ids[f], camera=CAMERAS[c])
         loc = dict(frame=frame_ids[f], camera=CAMERAS[c])
-        kp = _numbers(
-            _key(rec, "keypoints", file, f"{where}.keypoints"),
-            3 * J,
-            file,
-            f"{where}.keypoints",
-            **loc,
-        ).reshape(J, 3)
-        box = _numbers(_key(rec, "bbox", file, f"{where}.bbox"), 4, file, f"{where}.bbox", **loc)
+        if _key(rec, "only_bbox", file, f"{where}.only_bbox", **loc):
+            continue  # a box without keypoints (and without a person id)
+        pid = _int(rec, "person_id", file, where, **loc)
+        kp = _numbers_at(rec, "keypoints", 3 * J, file, where, **loc).reshape(J, 3)
+        flag = _flags(kp[:, 2], file, f"{where}.keypoints", stride=3, **loc)
+        box = _numbers_at(rec, "bbox", 4, file, where, **loc)
         slots[f].setdefault(pid, len(slots[f]))
-        anns.append((f, c, pid, kp, box, where))
+        anns.append((f, c, pid, kp[:, :2], flag, box, where))
     H = max([1] + [len(s) for s in slots])
     xyz = np.zeros((F, H, J, 3))
     gt_flag = np.zeros((F, H, J), np.int64)
     valid = np.zeros((F, H), bool)
     person_id = np.full((F, H), -1, np.int64)
-    for f, s in enumerate(slots):
-        for pid, h in s.items():
+    for f, frame_slots in enumerate(slots):
+        for pid, h in frame_slots.items():
             person_id[f, h] = pid
     for (f, pid), (x, flag) in gt3d.items():
         h = slots[f][pid]
@@ -740,17 +721,19 @@ def _people(doc: dict, file: Path, frame_ids, image_frame) -> dict:
     ann_xy = np.zeros((F, C, H, J, 2))
     ann_flag = np.zeros((F, C, H, J), np.int64)
     ann_box = np.zeros((F, C, H, 4))
-    for f, c, pid, kp, box, where in anns:
+    seen = set()
+    for f, c, pid, xy, flag, box, where in anns:
         h = slots[f][pid]
-        if ann_flag[f, c, h].any():
+        if (f, c, h) in seen:
             raise InputError(
-                f"person {pid} is annotated twice",
+                f"person {pid} is annotated twice in this image",
                 file=file,
                 frame=frame_ids[f],
                 camera=CAMERAS[c],
                 field=where,
             )
-        ann_xy[f, c, h], ann_flag[f, c, h], ann_box[f, c, h] = kp[:, :2], kp[:, 2], box
+        seen.add((f, c, h))
+        ann_xy[f, c, h], ann_flag[f, c, h], ann_box[f, c, h] = xy, flag, box
     return dict(
         gt=Poses3D(xyz, valid, valid[..., None] & (gt_flag == ANNOTATED)),
         gt_flag=gt_flag,
@@ -762,18 +745,13 @@ def _people(doc: dict, file: Path, frame_ids, image_frame) -> dict:
     )
 
 
-def _room_from_cam1(doc: dict, file: Path) -> np.ndarray:
-    params = doc["cameras_info"]["camParams"]  # validated by `_rig` already
-    return np.asarray(params["firstCamToRoomRef"], np.float64).reshape(4, 4)
-
-
 def _detections(dets, file: Path, frame_ids, image_frame, layout: str) -> tuple[Detections, int]:
-    """OpenPose's skeletons per frame and camera, converted from COCO-17 to ``layout``."""
+    """OpenPose's skeletons per frame and camera, converted from COCO-17 to ``layout``; also the
+    number of scores clipped to 1."""
     if not isinstance(dets, list):
         raise InputError("expected a list of detections", file=file)
-    F, C = len(frame_ids), len(CAMERAS)
-    rows: list[list[list[tuple[np.ndarray, int]]]] = [[[] for _ in range(C)] for _ in range(F)]
-    coords, scores, where = [], [], []
+    F, C, K = len(frame_ids), len(CAMERAS), 17
+    keypoints, where = [], []
     for i, rec in enumerate(dets):
         image = _int(rec, "image_id", file, f"[{i}]")
         if image not in image_frame:
@@ -782,35 +760,47 @@ def _detections(dets, file: Path, frame_ids, image_frame, layout: str) -> tuple[
             )
         f, c = image_frame[image]
         kp = _key(rec, "coco_keypoints", file, f"[{i}].coco_keypoints")
-        if not isinstance(kp, list) or len(kp) != 51 or not all(_is_number(v) for v in kp):
+        if not isinstance(kp, list) or len(kp) != 3 * K or not all(_is_number(v) for v in kp):
             raise InputError(
-                "expected 17 x (x, y, score) numbers", file=file, frame=frame_ids[f], camera=CAMERAS[c],
+                f"expected {K} x (x, y, score) numbers",
+                file=file,
+                frame=frame_ids[f],
+                camera=CAMERAS[c],
                 field=f"[{i}].coco_keypoints",
-            )  # fmt: skip
-        kp = np.asarray(kp, np.float64).reshape(17, 3)
-        coords.append(kp[:, :2])
-        scores.append(kp[:, 2])
+            )
+        keypoints.append(np.asarray(kp, np.float64).reshape(K, 3))
         where.append((i, f, c))
+    stacked = np.stack(keypoints) if keypoints else np.zeros((0, K, 3))
     clipped = ClippedScores()
-    if coords:
-        xy, score = check_keypoints(
-            np.stack(coords), np.stack(scores), num_keypoints=17,
-            locate=lambda n: (frame_ids[where[n][1]], CAMERAS[where[n][2]], where[n][0]),
-            file=file, field="[{p}].coco_keypoints[{k}]", score_field="[{p}].coco_keypoints[{k}].score",
-            count_field="[{p}].coco_keypoints", reading=True, clipped=clipped,
-        )  # fmt: skip
-        for n, (_, f, c) in enumerate(where):
-            rows[f][c].append(n)
-    P = max([1] + [len(r) for fr in rows for r in fr])
-    out_xy = np.zeros((F, C, P, 17, 2), np.float32)
-    out_score = np.zeros((F, C, P, 17), np.float32)
+    # THE package's keypoint check: finite coordinates (NaN with score 0 = missing), scores in
+    # [0, 1.5], those above 1 clipped (OpenPose's heatmap peaks), errors located.
+    xy, score = check_keypoints(
+        stacked[..., :2],
+        stacked[..., 2],
+        num_keypoints=K,
+        locate=lambda n: (frame_ids[where[n][1]], CAMERAS[where[n][2]], where[n][0]),
+        file=file,
+        field="[{p}].coco_keypoints[{k}]",
+        score_field="[{p}].coco_keypoints[{k}].score",
+        count_field="[{p}].coco_keypoints",
+        reading=True,
+        clipped=clipped,
+    )
     count = np.zeros((F, C), np.int32)
-    for f in range(F):
-        for c in range(C):
-            for p, n in enumerate(rows[f][c]):
-                out_xy[f, c, p], out_score[f, c, p] = xy[n], score[n]
-            count[f, c] = len(rows[f][c])
+    for _, f, c in where:
+        count[f, c] += 1
+    P = max(1, int(count.max()) if count.size else 1)
+    out_xy = np.zeros((F, C, P, K, 2), np.float32)
+    out_score = np.zeros((F, C, P, K), np.float32)
+    row = np.zeros((F, C), np.int32)
+    for n, (_, f, c) in enumerate(where):
+        out_xy[f, c, row[f, c]], out_score[f, c, row[f, c]] = xy[n], score[n]
+        row[f, c] += 1
     # A missing keypoint's coordinates are 0 (the `Detections` convention).
     out_xy = np.where(out_score[..., None] > 0, out_xy, 0.0).astype(np.float32)
     conv_xy, conv_score = convert_keypoints(out_xy, out_score, "coco17", layout)
     return Detections(conv_xy, conv_score, count), clipped.count
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)

@@ -346,6 +346,42 @@ def test_nan_and_malformed_annotations_are_located(tiny):
         load_mvor(tiny.parent / "nowhere")
 
 
+def test_duplicate_records_unknown_ids_and_bad_flags(tiny):
+    # A 3D record stored twice (MVOR's ids 718 and 719) is kept once; two different ones fail.
+    _edit(tiny, mvor.ANNOTATIONS, lambda d: d["annotations3D"].append(d["annotations3D"][0]))
+    data = load_mvor(tiny)
+    assert data.num_records_3d == 4 and int(data.gt.valid.sum()) == 3
+
+    def differ(d):
+        d["annotations3D"][-1] = json.loads(json.dumps(d["annotations3D"][0]))
+        d["annotations3D"][-1]["keypoints3D"][0] += 1.0
+
+    _edit(tiny, mvor.ANNOTATIONS, differ)
+    with pytest.raises(InputError, match="two different 3D records") as e:
+        load_mvor(tiny)
+    assert e.value.field == "annotations3D[3]"
+
+    for name, change, field in (
+        (mvor.DETECTIONS, lambda d: d[2].__setitem__("image_id", 5), "[2].image_id"),
+        (
+            mvor.ANNOTATIONS,
+            lambda d: d["annotations"][1]["keypoints"].__setitem__(2, 3),
+            "annotations[1].keypoints[2]",
+        ),
+        (
+            mvor.ANNOTATIONS,
+            lambda d: d["annotations3D"][0].__setitem__("image_ids", "1_2_3"),
+            "annotations3D[0].image_ids",
+        ),
+    ):
+        root = tiny.parent / f"copy{len(field)}"
+        write_tiny_mvor(root)
+        _edit(root, name, change)
+        with pytest.raises(InputError) as e:
+            load_mvor(root)
+        assert e.value.field == field and e.value.file.endswith(str(name.name))
+
+
 def test_select_frames_keeps_every_array_aligned(tiny):
     data = load_mvor(tiny)
     one = select_frames(data, [1])
