@@ -147,8 +147,9 @@ def markdown(report: dict) -> str:
         f"annotated joints (flag 2) that were produced; PCK3D over every annotated joint of every "
         f"true person (missed people and joints not produced are wrong); upper-body PCP on 6 "
         f"limbs ({', '.join(p['pcp_limbs'])}), ratio {p['pcp_ratio']}. People need skeletons in "
-        f"{p['min_views']} views. True groups: detections assigned to annotated people "
-        f"(gate {p['true_grouping_gate']} of the person's box diagonal).",
+        f"{p['min_views']} views. True groups: detections assigned to people by their 2D "
+        f"annotation, or their projected 3D truth where a view has none (gate "
+        f"{p['true_grouping_gate']} of the diagonal of the reference joints' box).",
         "",
         "People OpenPose sees in 2+ views (true groups), the most geometry can place: "
         + ", ".join(f"{k} {v}" for k, v in report["data"]["people_detected_in_2_views"].items())
