@@ -166,7 +166,7 @@ class LineProgress:
         parts[0] += f" {self.unit}"
         if self.total:
             parts[0] += f" ({100.0 * self.n / self.total:.0f}%)"
-        parts.append(f"{rate:.3g} {self.unit}/s" if rate is not None else f"? {self.unit}/s")
+        parts.append(f"{_rate(rate)} {self.unit}/s")
         parts.append(f"{_clock_time(elapsed)} elapsed")
         if self.total and rate:
             parts.append(f"{_clock_time(max(self.total - self.n, 0) / rate)} left")
@@ -194,6 +194,13 @@ def _number(x: float | None) -> str:
     if x is None:
         return "?"
     return str(int(x)) if float(x).is_integer() else f"{x:.4g}"
+
+
+def _rate(rate: float | None) -> str:
+    """Three significant digits, never in exponent form (1520, 35.2, 0.0417)."""
+    if rate is None:
+        return "?"
+    return f"{rate:.0f}" if rate >= 100 else f"{rate:.3g}"
 
 
 def _clock_time(seconds: float) -> str:

@@ -114,4 +114,15 @@ def test_a_smoke_sized_job_stays_a_few_lines():
         for _ in range(20_000):
             clock.now += 1 / 128
             bar.update()
-    assert len(stream.getvalue().splitlines()) == 16
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 16
+    assert lines[-1] == "20000/20000 frame (100%), 128 frame/s, 2:36 elapsed, 0:00 left"
+
+
+def test_fast_rates_are_plain_numbers():
+    stream, clock = io.StringIO(), FakeClock()
+    bar = progress_bar(total=3040, unit="frame", file=stream, clock=clock)
+    clock.now += 2
+    bar.update(3040)
+    bar.close()
+    assert "1520 frame/s" in stream.getvalue()
