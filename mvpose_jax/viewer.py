@@ -43,6 +43,7 @@ import numpy as np
 from mvpose_jax.cameras import Rig, camera_centres, point_depths, project_points, up_vector
 from mvpose_jax.data.recording import Recording, convert_layout
 from mvpose_jax.errors import InputError
+from mvpose_jax.progress import progress_bar
 from mvpose_jax.skeletons import get_layout
 
 if TYPE_CHECKING:
@@ -85,6 +86,7 @@ def write_rerun(
     fps: float | None = None,
     recording_name: str | None = None,
     spawn: bool = False,
+    progress: bool = False,
 ) -> Path:
     """Writes pose results (and optionally their detections) as a rerun recording, atomically.
 
@@ -100,6 +102,7 @@ def write_rerun(
       fps: frame rate for the ``time`` timeline when neither poses nor detections have timestamps.
       recording_name: the name shown by the viewer (default: the file's stem).
       spawn: then open the file in rerun's viewer (needs a display).
+      progress: report the frames written (`progress.progress_bar`).
     Returns:
       the path written.
     Raises:
@@ -125,13 +128,19 @@ def write_rerun(
     os.close(fd)
     try:
         rec = rr.RecordingStream("mvpose-jax")
-        rec.save(tmp)
+        rec.save(
+            tmp,
+            default_blueprint=_layout_of_views(rig, timeline="frame" if times is None else "time"),
+        )
         # Only the data's own timelines: the wall clock of writing means nothing to a viewer.
         rec.set_log_time_enabled(False)
         rec.set_log_tick_enabled(False)
         rec.send_recording_name(recording_name or path.stem)
         _log_static(rr, rec, poses, rig, class_ids, layout, floor_height)
-        _log_frames(rr, rec, poses, rig, detections, who, times)
+        with progress_bar(
+            total=num_frames, desc="viewer", unit="frame", disable=not progress
+        ) as bar:
+            _log_frames(rr, rec, poses, rig, detections, who, times, bar)
         rec.flush()
         rec.disconnect()
         os.replace(tmp, path)
@@ -218,7 +227,7 @@ def _log_static(rr, rec, poses, rig: Rig, class_ids, layout, floor_height) -> No
         )
 
 
-def _log_frames(rr, rec, poses, rig: Rig, detections, who, times) -> None:
+def _log_frames(rr, rec, poses, rig: Rig, detections, who, times, bar) -> None:
     xyz = np.asarray(poses.poses.xyz, np.float32)
     valid = np.asarray(poses.poses.valid, bool)
     kp_valid = np.asarray(poses.poses.keypoint_valid, bool) & valid[..., None]
@@ -275,9 +284,26 @@ def _log_frames(rr, rec, poses, rig: Rig, detections, who, times) -> None:
             for entity, archetype in now.items():
                 rec.log(entity, archetype)
             present = set(now)
+            bar.update(1)
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def _layout_of_views(rig: Rig, *, timeline: str):
+    """The viewer's opening layout: the 3D scene beside a grid of the cameras' images."""
+    import rerun.blueprint as rrb
+
+    cameras = [rrb.Spatial2DView(origin=f"{_camera_path(n)}/image", name=n) for n in rig.names]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="3D"),
+            rrb.Grid(*cameras),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline=timeline),
+        collapse_panels=True,
+    )
 
 
 def _import_rerun():

@@ -99,6 +99,7 @@ def written(result, tmp_path_factory):
     path = tmp_path_factory.mktemp("viewer") / "out" / "scene.rrd"
     assert write_rerun(path, results, rig, detections=recording) == path
     assert not [p for p in path.parent.iterdir() if p.name != "scene.rrd"]  # no temp file left
+    assert len(RrdReader(path).blueprints()) == 1  # the opening layout of the views
     return read_rrd(path)
 
 
