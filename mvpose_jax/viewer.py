@@ -8,7 +8,7 @@ Its entities (``<cam>`` is the camera's name, ``<who>`` is ``track_<id>`` for tr
   are the layout's names and whose connections are its bones; the viewer draws the skeletons from
   it. Class ids are the track ids (person slots when untracked); detections that no person
   used get class `UNMATCHED_CLASS_ID` (grey).
-* ``world``: static ``ViewCoordinates`` when the rig's up is a world axis (within 5 degrees).
+* ``world``: static ``ViewCoordinates`` when the rig's up is near a world axis (15 degrees).
 * ``world/floor``: static ``LineStrips3D``, a 1 m grid on the floor (``x . up = floor_height``).
 * ``world/cameras/<cam>``: static ``Transform3D``, world from camera (x_world = R^T x_cam + c);
   ``world/cameras/<cam>/image``: static ``Pinhole`` (K, the image size, OpenCV's RDF axes).
@@ -122,21 +122,32 @@ def write_rerun(
         detections = _checked_detections(detections, rig, num_frames, poses.layout)
     who, class_ids = _people_keys(poses)
     times = _frame_times(poses, detections, fps, num_frames)
+    up = up_vector(rig)
+    if floor_height is None:
+        floor_height = floor_from_people(poses, up)
+    views = _layout_of_views(
+        rig,
+        up=up,
+        target=_people_centre(poses, rig),
+        timeline="frame" if times is None else "time",
+        floor=floor_height is not None,
+    )
 
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
+    # mkstemp makes the file private (0600); give it the permissions open() would have.
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     try:
         rec = rr.RecordingStream("mvpose-jax")
-        rec.save(
-            tmp,
-            default_blueprint=_layout_of_views(rig, timeline="frame" if times is None else "time"),
-        )
+        rec.save(tmp, default_blueprint=views)
         # Only the data's own timelines: the wall clock of writing means nothing to a viewer.
         rec.set_log_time_enabled(False)
         rec.set_log_tick_enabled(False)
         rec.send_recording_name(recording_name or path.stem)
-        _log_static(rr, rec, poses, rig, class_ids, layout, floor_height)
+        _log_static(rr, rec, rig, class_ids, layout, up, floor_height)
         with progress_bar(
             total=num_frames, desc="viewer", unit="frame", disable=not progress
         ) as bar:
@@ -172,7 +183,7 @@ def floor_from_people(poses: PoseResults, up: np.ndarray) -> float | None:
 # --------------------------------------------------------------------------- what is logged
 
 
-def _log_static(rr, rec, poses, rig: Rig, class_ids, layout, floor_height) -> None:
+def _log_static(rr, rec, rig: Rig, class_ids, layout, up, floor_height) -> None:
     classes = [
         rr.ClassDescription(
             info=rr.AnnotationInfo(id=int(i), label=label, color=_colour(i)),
@@ -185,12 +196,9 @@ def _log_static(rr, rec, poses, rig: Rig, class_ids, layout, floor_height) -> No
     ]
     rec.log("/", rr.AnnotationContext(classes), static=True)
 
-    up = up_vector(rig)
     axes = _axis_aligned_view(rr, up)
     if axes is not None:
         rec.log("world", axes, static=True)
-    if floor_height is None:
-        floor_height = floor_from_people(poses, up)
     if floor_height is not None:
         rec.log(
             "world/floor",
@@ -225,6 +233,12 @@ def _log_static(rr, rec, poses, rig: Rig, class_ids, layout, floor_height) -> No
             ),
             static=True,
         )
+        # The image's border, so that the 2D view shows where the picture ends.
+        rec.log(
+            f"{cam}/image/border",
+            rr.Boxes2D(mins=[0.0, 0.0], sizes=size[c], colors=[(90, 90, 90)]),
+            static=True,
+        )
 
 
 def _log_frames(rr, rec, poses, rig: Rig, detections, who, times, bar) -> None:
@@ -248,7 +262,11 @@ def _log_frames(rr, rec, poses, rig: Rig, detections, who, times, bar) -> None:
                     continue
                 cls, key = who[f][g]
                 now[f"world/people/{key}"] = rr.Points3D(
-                    xyz[f, g, k], class_ids=cls, keypoint_ids=k, radii=POINT_RADIUS_M
+                    xyz[f, g, k],
+                    class_ids=cls,
+                    keypoint_ids=k,
+                    radii=POINT_RADIUS_M,
+                    show_labels=False,
                 )
                 for c, cam in enumerate(cams):
                     kc = k[in_front[c, i, g, k]]
@@ -258,6 +276,7 @@ def _log_frames(rr, rec, poses, rig: Rig, detections, who, times, bar) -> None:
                             class_ids=cls,
                             keypoint_ids=kc,
                             radii=rr.Radius.ui_points(REPROJECTION_RADIUS_UI),
+                            show_labels=False,
                         )
             if detections is not None:
                 det = detections.detections
@@ -277,6 +296,7 @@ def _log_frames(rr, rec, poses, rig: Rig, detections, who, times, bar) -> None:
                             class_ids=cls,
                             keypoint_ids=k,
                             radii=rr.Radius.ui_points(DETECTION_RADIUS_UI),
+                            show_labels=False,
                         )
             # Whoever left since the last frame is cleared, or the viewer would keep showing them.
             for gone in sorted(present - now.keys()):
@@ -290,14 +310,32 @@ def _log_frames(rr, rec, poses, rig: Rig, detections, who, times, bar) -> None:
 # --------------------------------------------------------------------------- helpers
 
 
-def _layout_of_views(rig: Rig, *, timeline: str):
-    """The viewer's opening layout: the 3D scene beside a grid of the cameras' images."""
+def _layout_of_views(rig: Rig, *, up: np.ndarray, target: np.ndarray, timeline: str, floor: bool):
+    """The viewer's opening layout: the 3D scene beside a grid of the cameras' images.
+
+    The 3D eye looks down at ``target`` from beyond the first two cameras; with a floor of ours,
+    rerun's own grid (at the world's origin, not on the floor) is hidden.
+    """
     import rerun.blueprint as rrb
 
+    centres = np.asarray(camera_centres(rig), np.float64)
+    spread = max(float(np.linalg.norm(centres - target, axis=-1).max()), 1.0)
+    # Between the first two cameras (around the people on a ring of cameras), not behind one.
+    away = centres[: min(2, len(centres))].mean(axis=0) - target
+    away -= (away @ up) * up
+    away /= max(float(np.linalg.norm(away)), 1e-9)
+    eye = rrb.EyeControls3D(
+        position=target + spread * (1.2 * away + 1.0 * up), look_target=target, eye_up=up
+    )
     cameras = [rrb.Spatial2DView(origin=f"{_camera_path(n)}/image", name=n) for n in rig.names]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="3D"),
+            rrb.Spatial3DView(
+                origin="world",
+                name="3D",
+                eye_controls=eye,
+                line_grid=rrb.LineGrid3D(visible=not floor),
+            ),
             rrb.Grid(*cameras),
             column_shares=[3, 2],
         ),
@@ -384,6 +422,17 @@ def _projections(rig: Rig, xyz: np.ndarray) -> Iterator[tuple[int, np.ndarray, n
         yield first, np.asarray(px)[:, : len(batch)], np.asarray(in_front)[:, : len(batch)]
 
 
+def _people_centre(poses: PoseResults, rig: Rig) -> np.ndarray:
+    """The median of every reconstructed keypoint (the cameras' mean centre without any): (3,)."""
+    ok = (
+        np.asarray(poses.poses.keypoint_valid, bool)
+        & np.asarray(poses.poses.valid, bool)[..., None]
+    )
+    if not ok.any():
+        return np.asarray(camera_centres(rig), np.float64).mean(axis=0)
+    return np.median(np.asarray(poses.poses.xyz, np.float64)[ok], axis=0)
+
+
 def _camera_path(name: str) -> str:
     import rerun as rr
 
@@ -397,9 +446,13 @@ def _colour(class_id: int) -> tuple[int, int, int]:
 
 
 def _axis_aligned_view(rr, up: np.ndarray):
-    """rerun's world axes when ``up`` is within 5 degrees of a world axis, else None."""
+    """rerun's world axes when ``up`` is within 15 degrees of a world axis, else None.
+
+    Only the viewer's opening camera turns with them (not the data): an up inferred from the
+    cameras (`cameras.up_vector`) is often some degrees off the axis the calibration meant.
+    """
     axis = int(np.argmax(np.abs(up)))
-    if abs(up[axis]) < np.cos(np.deg2rad(5.0)):
+    if abs(up[axis]) < np.cos(np.deg2rad(15.0)):
         return None
     name = f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if up[axis] > 0 else 'DOWN'}"
     return getattr(rr.ViewCoordinates, name)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import collections
+import os
+import sys
 
 import numpy as np
 import pytest
@@ -100,6 +102,9 @@ def written(result, tmp_path_factory):
     assert write_rerun(path, results, rig, detections=recording) == path
     assert not [p for p in path.parent.iterdir() if p.name != "scene.rrd"]  # no temp file left
     assert len(RrdReader(path).blueprints()) == 1  # the opening layout of the views
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # as open() makes files, not private
     return read_rrd(path)
 
 
@@ -107,6 +112,7 @@ def test_the_file_holds_cameras_people_floor_and_detections(result, written):
     rig, results, _ = result
     cams = [f"/world/cameras/{n}" for n in rig.names]
     expected = {"/", "/world", "/world/floor"} | set(cams) | {f"{c}/image" for c in cams}
+    expected |= {f"{c}/image/border" for c in cams}
     expected |= {f"/world/people/track_{t}" for t in TRACKS}
     expected |= {f"{c}/image/reprojections/track_{t}" for c in cams for t in TRACKS}
     expected |= {f"{c}/image/detections/{p}" for c in cams for p in range(G)}
@@ -119,6 +125,8 @@ def test_the_file_holds_cameras_people_floor_and_detections(result, written):
         ((frame, _, pinhole),) = written[f"{cam}/image"]
         assert frame is None
         assert pinhole["Pinhole:resolution"][0] == pytest.approx(np.asarray(rig.size[c]))
+        ((_, _, border),) = written[f"{cam}/image/border"]
+        assert border["Boxes2D:half_sizes"][0] == pytest.approx(np.asarray(rig.size[c]) / 2)
     # The floor is a grid perpendicular to up, at the feet.
     ((_, _, floor),) = written["/world/floor"]
     strips = np.asarray(floor["LineStrips3D:strips"], np.float64)  # (lines, 2, 3)
@@ -241,3 +249,10 @@ def test_bad_inputs_name_the_field(result, tmp_path):
     with pytest.raises(InputError, match="detections have 2 frames"):
         write_rerun(tmp_path / "x.rrd", results, rig, detections=short)
     assert not list(tmp_path.iterdir())
+
+
+def test_without_rerun_the_error_says_what_to_install(result, tmp_path, monkeypatch):
+    rig, results, _ = result
+    monkeypatch.setitem(sys.modules, "rerun", None)  # `import rerun` now raises ImportError
+    with pytest.raises(ImportError, match=r'pip install "mvpose-jax\[viewer\]"'):
+        write_rerun(tmp_path / "x.rrd", results, rig)
