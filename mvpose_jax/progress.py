@@ -51,6 +51,8 @@ def progress_bar(
       a ``tqdm.auto.tqdm`` or a `LineProgress`.
     """
     stream = sys.stderr if file is None else file
+    if stream is None:  # no stderr at all (pythonw, some daemons): nowhere to report
+        disable = True
     if _is_terminal(stream):
         from tqdm.auto import tqdm
 
@@ -96,8 +98,8 @@ class LineProgress:
         self.total = total
         self.desc = desc
         self.unit = unit
-        self.disable = disable
         self.file = sys.stderr if file is None else file
+        self.disable = disable or self.file is None
         self.interval_s = interval_s
         self.n = initial
         self.postfix = ""

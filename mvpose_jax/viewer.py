@@ -7,7 +7,8 @@ Its entities (``<cam>`` is the camera's name, ``<who>`` is ``track_<id>`` for tr
 * ``/``: static, an ``AnnotationContext``: one class per track (or person slot), whose keypoints
   are the layout's names and whose connections are its bones; the viewer draws the skeletons from
   it. Class ids are the track ids (person slots when untracked); detections that no person
-  used get class `UNMATCHED_CLASS_ID` (grey).
+  used get class `UNMATCHED_CLASS_ID`, people of tracked results that no track took (entity
+  ``untracked_<g>``) `UNTRACKED_CLASS_ID` (both grey).
 * ``world``: static ``ViewCoordinates`` when the rig's up is near a world axis (15 degrees).
 * ``world/floor``: static ``LineStrips3D``, a 1 m grid on the floor (``x . up = floor_height``).
 * ``world/cameras/<cam>``: static ``Transform3D``, world from camera (x_world = R^T x_cam + c);
@@ -49,8 +50,10 @@ from mvpose_jax.skeletons import get_layout
 if TYPE_CHECKING:
     from mvpose_jax.data.poses import PoseResults
 
-# rerun's class ids are 16-bit; the largest marks detections that no person used.
+# rerun's class ids are 16-bit; the largest two mark detections that no person used, and people
+# of tracked results that no track took (track -1).
 UNMATCHED_CLASS_ID = 65535
+UNTRACKED_CLASS_ID = 65534
 # Colours of classes (by id, cycling): a qualitative palette (Tableau 10), readable on rerun's
 # dark background.
 PALETTE = (
@@ -379,15 +382,18 @@ def _people_keys(poses: PoseResults) -> tuple[list[dict[int, tuple[int, str]]], 
     for f in range(valid.shape[0]):
         keys = {}
         for g in np.nonzero(valid[f])[0]:
-            if track is not None and track[f, g] >= 0:
+            if track is not None and track[f, g] < 0:
+                keys[int(g)] = (UNTRACKED_CLASS_ID, f"untracked_{int(g)}")
+                labels[UNTRACKED_CLASS_ID] = "untracked"
+            elif track is not None:
                 t = int(track[f, g])
-                if t >= UNMATCHED_CLASS_ID:
+                if t >= UNTRACKED_CLASS_ID:
                     raise InputError(
                         f"track id {t} is beyond rerun's 16-bit class ids", frame=f, field="track"
                     )
                 keys[int(g)] = (t, f"track_{t}")
                 labels[t] = f"track {t}"
-            else:  # untracked results, or a person no track took: the slot
+            else:  # untracked results: the slot
                 keys[int(g)] = (int(g), f"person_{int(g)}")
                 labels.setdefault(int(g), f"person {int(g)}")
         who.append(keys)
@@ -440,7 +446,7 @@ def _camera_path(name: str) -> str:
 
 
 def _colour(class_id: int) -> tuple[int, int, int]:
-    if class_id == UNMATCHED_CLASS_ID:
+    if class_id in (UNMATCHED_CLASS_ID, UNTRACKED_CLASS_ID):
         return UNMATCHED_COLOUR
     return PALETTE[class_id % len(PALETTE)]
 

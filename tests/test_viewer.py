@@ -18,7 +18,7 @@ from mvpose_jax.data.poses import PoseResults  # noqa: E402
 from mvpose_jax.data.recording import Recording  # noqa: E402
 from mvpose_jax.errors import InputError  # noqa: E402
 from mvpose_jax.skeletons import Detections, Poses3D, get_layout  # noqa: E402
-from mvpose_jax.viewer import UNMATCHED_CLASS_ID, write_rerun  # noqa: E402
+from mvpose_jax.viewer import UNMATCHED_CLASS_ID, UNTRACKED_CLASS_ID, write_rerun  # noqa: E402
 from tests.helpers import random_rig, scene_points  # noqa: E402
 
 F, G, C = 4, 2, 3
@@ -200,6 +200,25 @@ def test_detections_and_reprojections_lie_on_each_other(result, written):
         for _, _, v in fp
         if v.get("Points2D:keypoint_ids")
     )
+
+
+def test_a_person_no_track_took_is_grey_and_named_by_slot(result, tmp_path):
+    rig, results, _ = result
+    track = np.asarray(results.track).copy()
+    track[0, 1] = -1  # the second person, frame 0: valid but untracked
+    rows = read_rrd(
+        write_rerun(tmp_path / "u.rrd", PoseResults(**{**results.__dict__, "track": track}), rig)
+    )
+    ((frame, _, v), (cleared, _, clear)) = rows["/world/people/untracked_1"]
+    assert frame == 0 and set(v["Points3D:class_ids"]) == {UNTRACKED_CLASS_ID}
+    assert cleared == 1 and "Clear:is_recursive" in clear  # frame 1: tracked again
+    assert {f for f, _, _ in rows["/world/people/track_7"]} == {1, 2, 3}  # from 1, cleared at 2
+    ((_, _, context),) = rows["/"]
+    labels = {
+        c["class_id"]: c["class_description"]["info"]["label"]
+        for c in context["AnnotationContext:context"][0]
+    }
+    assert labels[UNTRACKED_CLASS_ID] == "untracked"
 
 
 def test_camera_transform_and_pinhole_project_as_the_rig_does(tmp_path):
