@@ -99,9 +99,11 @@ def write_rerun(
         the rig.
       rig: the calibration; every camera is drawn and every person reprojected into it.
       detections: optional 2D detections of at least F frames, cameras of the rig (converted to
-        the results' layout when it differs).
+        the results' layout when it differs): those the results were made from, as
+        ``poses.identity`` names each skeleton's person by its index in them.
       floor_height: the floor along the rig's up (`cameras.up_vector`), metres; None: the median
-        over people and frames of the lowest keypoint's height (no floor without people).
+        over people and frames of the lowest keypoint's height (no floor without people, nor
+        when the rig's up cannot be inferred).
       fps: frame rate for the ``time`` timeline when neither poses nor detections have timestamps.
       recording_name: the name shown by the viewer (default: the file's stem).
       spawn: then open the file in rerun's viewer (needs a display).
@@ -125,9 +127,13 @@ def write_rerun(
         detections = _checked_detections(detections, rig, num_frames, poses.layout)
     who, class_ids = _people_keys(poses)
     times = _frame_times(poses, detections, fps, num_frames)
-    up = up_vector(rig)
-    if floor_height is None:
-        floor_height = floor_from_people(poses, up)
+    try:
+        up = up_vector(rig)
+    except InputError:  # cameras that disagree on up: no floor and no world axes, still a file
+        up, floor_height = None, None
+    else:
+        if floor_height is None:
+            floor_height = floor_from_people(poses, up)
     views = _layout_of_views(
         rig,
         up=up,
@@ -171,7 +177,7 @@ def floor_from_people(poses: PoseResults, up: np.ndarray) -> float | None:
     """The median over people and frames of the lowest keypoint's height along ``up`` (metres).
 
     A rough floor for display (the feet's keypoints sit a few cm above the real floor); None when
-    no person has a keypoint. `floor.estimate_floor` measures the floor properly from detections.
+    no person has a keypoint. `floor.estimate_floor_from_detections` measures the floor properly from detections.
     """
     xyz = np.asarray(poses.poses.xyz, np.float64)
     ok = (
@@ -199,7 +205,7 @@ def _log_static(rr, rec, rig: Rig, class_ids, layout, up, floor_height) -> None:
     ]
     rec.log("/", rr.AnnotationContext(classes), static=True)
 
-    axes = _axis_aligned_view(rr, up)
+    axes = None if up is None else _axis_aligned_view(rr, up)
     if axes is not None:
         rec.log("world", axes, static=True)
     if floor_height is not None:
@@ -313,7 +319,9 @@ def _log_frames(rr, rec, poses, rig: Rig, detections, who, times, bar) -> None:
 # --------------------------------------------------------------------------- helpers
 
 
-def _layout_of_views(rig: Rig, *, up: np.ndarray, target: np.ndarray, timeline: str, floor: bool):
+def _layout_of_views(
+    rig: Rig, *, up: np.ndarray | None, target: np.ndarray, timeline: str, floor: bool
+):
     """The viewer's opening layout: the 3D scene beside a grid of the cameras' images.
 
     The 3D eye looks down at ``target`` from beyond the first two cameras; with a floor of ours,
@@ -325,10 +333,12 @@ def _layout_of_views(rig: Rig, *, up: np.ndarray, target: np.ndarray, timeline: 
     spread = max(float(np.linalg.norm(centres - target, axis=-1).max()), 1.0)
     # Between the first two cameras (around the people on a ring of cameras), not behind one.
     away = centres[: min(2, len(centres))].mean(axis=0) - target
-    away -= (away @ up) * up
+    if up is not None:
+        away -= (away @ up) * up
     away /= max(float(np.linalg.norm(away)), 1e-9)
+    lift = np.zeros(3) if up is None else up
     eye = rrb.EyeControls3D(
-        position=target + spread * (1.2 * away + 1.0 * up), look_target=target, eye_up=up
+        position=target + spread * (1.2 * away + 1.0 * lift), look_target=target, eye_up=up
     )
     cameras = [rrb.Spatial2DView(origin=f"{_camera_path(n)}/image", name=n) for n in rig.names]
     return rrb.Blueprint(

@@ -27,7 +27,8 @@ FPS = 25.0
 
 
 def read_rrd(path) -> dict:
-    """Every logged row: {entity: [(frame or None, time in ns or None, {component: batch})]}.
+    """Every logged row: {entity: [(frame or None, time in ns or None, {component: batch})]},
+    each entity's rows by frame.
 
     A component's value is its batch (a list, one element for one-value components).
     """
@@ -42,6 +43,9 @@ def read_rrd(path) -> dict:
             frame = batch["frame"][r] if "frame" in batch else None
             time = batch["time"][r] if "time" in batch else None
             rows[chunk.entity_path].append((frame, time, values))
+    # Chunks come in no promised order: rows in time order, static ones first.
+    for entity_rows in rows.values():
+        entity_rows.sort(key=lambda row: -1 if row[0] is None else row[0])
     return rows
 
 
