@@ -63,6 +63,7 @@ import numpy as np
 
 from mvpose_jax.data.files import atomic_open
 from mvpose_jax.errors import InputError, MvposeWarning
+from mvpose_jax.progress import progress_bar
 from mvpose_jax.skeletons import get_layout
 
 if TYPE_CHECKING:
@@ -336,9 +337,7 @@ def export_poses(
     for fmt in config.formats:
         jobs += [(fmt, None)] if fmt == "csv" else [(fmt, s) for s in series]
     paths = export_paths(stem, config, tracks.ids)
-    from tqdm.auto import tqdm
-
-    for path, (fmt, s) in tqdm(
+    for path, (fmt, s) in progress_bar(
         list(zip(paths, jobs, strict=True)), desc="export", unit="file", disable=not progress
     ):
         if fmt == "trc":

@@ -20,6 +20,7 @@ import numpy as np
 from mvpose_jax.cameras import Rig
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.errors import InputError
+from mvpose_jax.progress import progress_bar
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.synthetic import body as bm
 from mvpose_jax.synthetic.config import SyntheticConfig
@@ -189,9 +190,9 @@ def simulate(
         ]
     bar = None
     if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=num_scenes * num_frames, unit="frame", desc="generating", leave=False)
+        bar = progress_bar(
+            total=num_scenes * num_frames, unit="frame", desc="generating", leave=False
+        )
     out: list[SyntheticScene | None] = [None] * num_scenes
     for geo, scenes in jobs:
         for s in range(0, len(scenes), per_batch):
