@@ -29,6 +29,7 @@ from mvpose_jax.lifting import (
     poses_of_members,
 )
 from mvpose_jax.matching import MatchingConfig
+from mvpose_jax.progress import progress_bar
 from mvpose_jax.proposals import CombinedConfig, Proposals
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
@@ -212,8 +213,6 @@ def stream_pipeline(
         (checked before the first chunk of a whole recording, on each chunk of an iterable).
       ValueError: a stage name that is not registered, or a stage without the model it needs.
     """
-    from tqdm.auto import tqdm
-
     mode = config.matching.mode(matcher is not None)
     stage = stages.lookup("proposals", mode)
     if stage.needs_matcher and matcher is None:
@@ -258,7 +257,7 @@ def stream_pipeline(
     else:
         chunks = iter(detections)
     tracker, smoother = None, None  # made at the first chunk, which tells K
-    bar = tqdm(
+    bar = progress_bar(
         total=num_frames, desc="pipeline", unit="frame", disable=not progress, dynamic_ncols=True
     )
     try:

@@ -112,6 +112,8 @@ class InferConfig:
       export: also write the results as these formats (`data.exports.EXPORT_FORMATS`).
       adapt: first fine-tune the estimator on this recording (`adapt.adapt_estimator`), in
         memory.
+      view: also write ``OUT/poses.rrd``, the results with the cameras and the detections as
+        a rerun recording (`viewer.write_rerun`; reads the whole recording).
       progress: show a progress bar (a line every few seconds when not on a terminal).
     """
 
@@ -125,6 +127,7 @@ class InferConfig:
     keep_chunks: bool = False
     export: tuple[str, ...] = ()
     adapt: AdaptConfig | None = None
+    view: bool = False
     progress: bool = True
 
 
@@ -139,7 +142,7 @@ class InferResult(NamedTuple):
     interrupted: stopped by Ctrl-C (``written`` holds the partial results, or is None when the
     interruption came while writing the results of finished chunks); pipeline: the
     effective config; fps: the clock used; adapted: the adaptation's report; exported: the
-    export files.
+    export files; view: the rerun recording.
     """
 
     frames_total: int
@@ -157,6 +160,7 @@ class InferResult(NamedTuple):
     fps: float
     adapted: AdaptReport | None = None
     exported: tuple[Path, ...] = ()
+    view: Path | None = None
 
 
 def recording_fps(timestamps) -> float:
@@ -421,6 +425,7 @@ def run_infer(
             store.remove()
         _write_run_record(config, inputs, pipeline, F)
     exported = tuple(export(load_poses(done.npz))) if export else ()
+    view = _write_view(config, rig_all, done, fps) if config.view else None
     tracked = pipeline.tracking is not None
     return InferResult(
         F,
@@ -438,7 +443,22 @@ def run_infer(
         fps,
         adapted,
         exported,
+        view,
     )
+
+
+def _write_view(config: InferConfig, rig_all, done: Assembled, fps: float) -> Path:
+    """``OUT/poses.rrd``: the results, their cameras and detections (`viewer.write_rerun`)."""
+    from mvpose_jax.data import load_recording
+    from mvpose_jax.viewer import write_rerun
+
+    poses = load_poses(done.npz)
+    src = config.source
+    options = {**src.reading_options(), "cameras": list(poses.cameras)}
+    detections = load_recording(src.detections, layout=poses.layout, rig=rig_all, **options)
+    rig = rig_all.select(list(poses.cameras))
+    out = Path(config.out) / "poses.rrd"
+    return write_rerun(out, poses, rig, detections=detections, fps=fps, progress=config.progress)
 
 
 RUN_RECORD = "infer.json"
