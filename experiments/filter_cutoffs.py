@@ -5,7 +5,7 @@ Trains the seed-0 quick-scale 5-view matcher and estimator as ``experiments.run`
 them from ``--models``, a pickle this script wrote), runs both pipelines with tracking on each
 tracking scene (``[0, 4, n]`` validation, ``[0, 6, n]`` test; 1-8 people, 300 frames), and prints
 for each cut-off the jitter (times the ground truth's), MPJPE and PCP, with the unfiltered row
-and the identity metrics. The README's table of cut-offs comes from the validation split.
+and the identity metrics. docs/tracking.md's table of cut-offs comes from the validation split.
 """
 
 from __future__ import annotations

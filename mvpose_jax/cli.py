@@ -1801,7 +1801,7 @@ def _export_arguments(p: argparse.ArgumentParser) -> None:
         choices=("opensim", "world"),
         default="opensim",
         help="opensim: rotate so that Y is up (X the world axis most orthogonal to up, in the "
-        "floor plane; see README); world: the calibration's axes as they are",
+        "floor plane; see docs/exports.md); world: the calibration's axes as they are",
     )
     p.add_argument("--units", choices=("mm", "m"), default="mm", help="units of the coordinates")
     p.add_argument(

@@ -455,7 +455,7 @@ def smooth_poses(
       fps: frames per second of the recording.
       filter: "none", "one-euro" (causal, as the stream runs it) or "butterworth" (zero-phase).
       cutoff_hz, order: the Butterworth low-pass (2 Hz: chosen on the validation tracking scenes
-        for both the learned and the geometric pipeline, see README "Tracks over time"; the
+        for both the learned and the geometric pipeline, see docs/tracking.md; the
         biomechanics default, Pose2Sim's, is 6 Hz, which leaves about 4x the true jitter here).
       outlier_m: first drop samples this far (metres) from their local median
         (`reject_outliers`); None: keep all.
