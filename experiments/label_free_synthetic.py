@@ -35,7 +35,7 @@ from mvpose_jax.label_free import (
     reference_reprojection,
     write_label_free_report,
 )
-from mvpose_jax.metrics import pose_metrics
+from mvpose_jax.metrics import match_people, pose_metrics
 from mvpose_jax.skeletons import get_layout
 from mvpose_jax.smoothing import OneEuroConfig
 from mvpose_jax.synthetic import SHIFTS, SyntheticConfig, generate_recording
@@ -68,12 +68,14 @@ CORRUPTED = {
     "robust, wrists dropped": ("robust", "wrists"),
     "robust, 20% keypoints dropped": ("robust", "drop"),
 }
+PCK_MM = (50, 100)  # PCK3D radii, mm (every true keypoint counted: a missed one is wrong)
+ALL_SKELETONS = "share of all skeletons' keypoints within 20 px"
 # The label-free numbers correlated, each as (label, path in the report dict, sign: + higher
 # is better, - lower is better).
 LABEL_FREE = (
     ("share within 20 px (misses count)", ("result", "overall", "share_within_px", "20"), 1),
     ("share within 10 px (misses count)", ("result", "overall", "share_within_px", "10"), 1),
-    ("share of all skeletons' keypoints within 20 px", ("share_of_all_within_px", "20"), 1),
+    (ALL_SKELETONS, ("share_of_all_within_px", "20"), 1),
     ("share within 20 px of produced only (misses skipped)", ("produced_share_20",), 1),
     ("median px (produced)", ("result", "overall", "median_px"), -1),
     ("coverage", ("result", "overall", "coverage"), 1),
@@ -147,6 +149,7 @@ def main(argv=None) -> int:
                 ov["share_within_px"]["20"] / ov["coverage"] if ov["coverage"] else None
             )
             row = {"scene": shift, "pcp": m["pcp"], "mpjpe_mm": m["mpjpe_mm"]}
+            row.update({f"pck3d_{mm}": _pck3d(result.poses, gt, mm) for mm in PCK_MM})
             row.update({label: _get(d, path) for label, path, _ in LABEL_FREE})
             if d["jitter_m_s2"] is not None:
                 row["jitter_m_s2"] = d["jitter_m_s2"]
@@ -169,6 +172,10 @@ def main(argv=None) -> int:
         correlations[label] = {
             "pcp": _spearman(lf, [means[n]["pcp"] for n in names]),
             "mpjpe": _spearman(lf, [-means[n]["mpjpe_mm"] for n in names]),
+            **{
+                f"pck3d_{mm}": _spearman(lf, [means[n][f"pck3d_{mm}"] for n in names])
+                for mm in PCK_MM
+            },
             "pcp_per_scene_mean": float(
                 np.nanmean(
                     [
@@ -209,6 +216,21 @@ def _seen_truth(rec):
     return rec.ground_truth._replace(valid=np.asarray(rec.ground_truth.valid) & seen)
 
 
+def _pck3d(pred, gt, radius_mm: float) -> float:
+    """Percent of the true keypoints (of the people some camera saw) that the prediction matched
+    to their person (`metrics.match_people`) puts within ``radius_mm``; a person or keypoint not
+    produced counts as wrong (the MVOR protocol's PCK3D)."""
+    K = np.shape(gt.keypoint_valid)[-1]
+    matches = match_people(pred, gt, np.arange(K))
+    kv = np.asarray(gt.keypoint_valid) & np.asarray(gt.valid)[..., None]
+    hit = 0
+    for f, (pi, gi) in enumerate(matches):
+        d = np.linalg.norm(np.asarray(pred.xyz)[f, pi] - np.asarray(gt.xyz)[f, gi], axis=-1)
+        ok = np.asarray(pred.keypoint_valid)[f, pi] & kv[f, gi] & (d * 1000 <= radius_mm)
+        hit += int(ok.sum())
+    return 100.0 * hit / max(int(kv.sum()), 1)
+
+
 def _corrupted(result: PoseResults, how: str, rng: np.random.Generator) -> PoseResults:
     """A result made worse on purpose: "move" 10 % of its keypoints 5 cm in a random direction,
     "wrists" left out, "drop" a random fifth of its keypoints left out."""
@@ -245,7 +267,7 @@ def _get(d: dict, path: tuple[str, ...]):
 def _spearman(a, b) -> float:
     a, b = np.asarray(a, float), np.asarray(b, float)
     ok = np.isfinite(a) & np.isfinite(b)
-    if ok.sum() < 3:
+    if ok.sum() < 3 or np.ptp(a[ok]) == 0 or np.ptp(b[ok]) == 0:  # a constant has no rank
         return float("nan")
     return float(spearmanr(a[ok], b[ok]).statistic)
 
@@ -266,13 +288,15 @@ def _markdown(args, floors, means, correlations, seconds) -> list[str]:
             for f in floors
         ),
         "",
-        "| variant | PCP % | MPJPE mm | share ≤20 px % | share ≤10 px % | median px | "
-        "coverage % | LOO median px |",
-        "|---|---|---|---|---|---|---|---|",
+        "| variant | PCP % | PCK3D@50 % | PCK3D@100 % | MPJPE mm | all skeletons ≤20 px % "
+        "| share ≤20 px % | share ≤10 px % | median px | coverage % | LOO median px |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in sorted(means.items(), key=lambda kv: -kv[1]["pcp"]):
         lines.append(
-            f"| {name} | {m['pcp']:.2f} | {m['mpjpe_mm']:.1f} "
+            f"| {name} | {m['pcp']:.2f} | {m['pck3d_50']:.2f} | {m['pck3d_100']:.2f} "
+            f"| {m['mpjpe_mm']:.1f} "
+            f"| {100 * m[ALL_SKELETONS]:.2f} "
             f"| {100 * m['share within 20 px (misses count)']:.2f} "
             f"| {100 * m['share within 10 px (misses count)']:.2f} "
             f"| {m['median px (produced)']:.2f} | {100 * m['coverage']:.2f} "
@@ -283,12 +307,14 @@ def _markdown(args, floors, means, correlations, seconds) -> list[str]:
         "Spearman correlation over the variants (each label-free number oriented higher = "
         "better; MPJPE negated):",
         "",
-        "| label-free number | vs PCP | vs PCP, per scene (mean) | vs MPJPE | same winner as PCP |",
-        "|---|---|---|---|---|",
+        "| label-free number | vs PCP | vs PCP, per scene (mean) | vs PCK3D@50 | vs PCK3D@100 "
+        "| vs MPJPE | same winner as PCP |",
+        "|---|---|---|---|---|---|---|",
     ]
     for label, c in correlations.items():
         lines.append(
-            f"| {label} | {c['pcp']:.3f} | {c['pcp_per_scene_mean']:.3f} | {c['mpjpe']:.3f} | "
+            f"| {label} | {c['pcp']:.3f} | {c['pcp_per_scene_mean']:.3f} | {c['pck3d_50']:.3f} "
+            f"| {c['pck3d_100']:.3f} | {c['mpjpe']:.3f} | "
             f"{'yes' if c['same_winner_as_pcp'] else 'no'} |"
         )
     lines += [

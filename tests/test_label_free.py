@@ -256,3 +256,20 @@ def test_bad_detections_are_named(rig, two_people):
     assert e.value.frame == f and e.value.camera == exact.cameras[c] and e.value.field == "xy"
     with pytest.raises(InputError, match="method"):
         label_free_score(result, rig, det, layout=LAYOUT, config=LabelFreeConfig(method="mlp"))
+
+
+def test_a_person_left_out_lowers_only_the_share_of_all_skeletons(rig, two_people):
+    """Matched-people shares cannot see a person the result leaves out; the share over every
+    skeleton's keypoints (one denominator for every result) can."""
+    rec, exact = two_people
+    result = _truth_result(exact)
+    valid = np.asarray(result.poses.valid).copy()
+    valid[:, 0] = False
+    without = dataclasses.replace(result, poses=result.poses._replace(valid=valid))
+    report = label_free_score(without, rig, exact.detections, layout=LAYOUT)
+    assert report.result.overall.share_within_px["20"] == 1.0
+    shown = np.asarray(exact.detections.score) > 0
+    ident = np.asarray(exact.identity)
+    kept = int(shown[ident >= 1].sum())  # the other person's skeletons' keypoints
+    assert report.share_of_all_within_px["20"] == pytest.approx(kept / shown.sum())
+    assert sum(report.unmatched_skeletons.values()) == int((shown.any(-1) & (ident != 1)).sum())
