@@ -15,6 +15,12 @@ score compares c's own skeletons with two things (issue 36):
   grouping, ``members``), projected into c. This is a reference: it scores the grouping and the
   detectors' agreement, the same for every 3D method on one grouping.
 
+Read ``share_of_all_within_px["20"]`` first: the share of every keypoint of every skeleton of every
+camera that the result's projection puts within 20 px. Its denominator is the same for every
+result on the same detections, so leaving out a keypoint or a whole person never helps; the
+matched-people shares cannot see a person the result leaves out (on synthetic scenes,
+``experiments/label_free_synthetic.py``, it was the number that ranked variants most as PCP does).
+
 Keypoints seen by fewer than two other views have no held-out re-triangulation (they are
 `Agreement.blind`); see `BLIND_SPOTS`. `reference_reprojection` projects a reference (the ground
 truth where one exists) the same way: the detections' own spread around it, the noise floor below
