@@ -200,7 +200,10 @@ def main(argv=None) -> int:
         "spearman": correlations,
         "seconds": seconds,
     }
-    atomic_write_text(out / "label_free_synthetic.json", json.dumps(record, indent=1) + "\n")
+    atomic_write_text(
+        out / "label_free_synthetic.json",
+        json.dumps(_nan_as_null(record), indent=1, allow_nan=False) + "\n",
+    )
     text = "\n".join(_markdown(args, floors, means, correlations, seconds)) + "\n"
     atomic_write_text(out / "label_free_synthetic.md", text)
     print(text)
@@ -256,6 +259,16 @@ def _agreement_dict(a) -> dict:
         "share_within_10_px": a.share_within_px["10"],
         "share_within_20_px": a.share_within_px["20"],
     }
+
+
+def _nan_as_null(value):
+    if isinstance(value, dict):
+        return {k: _nan_as_null(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nan_as_null(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def _get(d: dict, path: tuple[str, ...]):

@@ -273,3 +273,21 @@ def test_a_person_left_out_lowers_only_the_share_of_all_skeletons(rig, two_peopl
     kept = int(shown[ident >= 1].sum())  # the other person's skeletons' keypoints
     assert report.share_of_all_within_px["20"] == pytest.approx(kept / shown.sum())
     assert sum(report.unmatched_skeletons.values()) == int((shown.any(-1) & (ident != 1)).sum())
+
+
+@pytest.mark.slow  # 13 variants on 4 small scenes (~30 s)
+def test_the_synthetic_validation_writes_its_table_and_correlations(tmp_path):
+    from experiments import label_free_synthetic
+
+    assert label_free_synthetic.main(["--out", str(tmp_path), "--frames", "6"]) == 0
+    record = json.loads((tmp_path / "label_free_synthetic.json").read_text())
+    assert len(record["variants"]) >= 8
+    for c in record["spearman"].values():
+        assert set(c) >= {"pcp", "mpjpe", "pck3d_50", "pck3d_100", "same_winner_as_pcp"}
+    # A fifth of the keypoints dropped is worse than the result it was made from, both ways.
+    v = record["variants"]
+    key = "share of all skeletons' keypoints within 20 px"
+    assert v["robust, 20% keypoints dropped"][key] < v["robust"][key]
+    assert v["robust, 20% keypoints dropped"]["pcp"] < v["robust"]["pcp"]
+    assert "Spearman" in (tmp_path / "label_free_synthetic.md").read_text()
+    assert (tmp_path / "report" / "label_free.png").exists()
