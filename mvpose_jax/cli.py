@@ -1922,7 +1922,7 @@ def _print_dev_quality(folder: str) -> None:
 
 def _recording_fps(timestamps) -> float:
     """Frames per second from a recording's timestamps (their median step); 30 without them."""
-    from mvpose_jax.jobs.infer import recording_fps
+    from mvpose_jax.data.recording import recording_fps
 
     return recording_fps(timestamps)
 

@@ -151,3 +151,11 @@ def slice_frames(rec: Recording, start: int, stop: int) -> Recording:
         image_names=cut(rec.image_names),
         projected=cut(rec.projected),
     )
+
+
+def recording_fps(timestamps) -> float:
+    """Frames per second from a recording's timestamps (their median step); 30 without them."""
+    if timestamps is None or len(timestamps) < 2:
+        return 30.0
+    step = float(np.median(np.diff(np.asarray(timestamps, np.float64))))
+    return 1.0 / step if step > 0 else 30.0

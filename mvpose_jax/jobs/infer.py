@@ -29,6 +29,7 @@ from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.chunks import Assembled, ChunkStore
 from mvpose_jax.data.files import atomic_write_text, read_json, to_jsonable
 from mvpose_jax.data.poses import PoseResults, load_poses, load_poses_chunk
+from mvpose_jax.data.recording import recording_fps
 from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.inference import FilterConfig, PipelineConfig, stream_pipeline
 from mvpose_jax.lifting import LiftingConfig
@@ -161,14 +162,6 @@ class InferResult(NamedTuple):
     adapted: AdaptReport | None = None
     exported: tuple[Path, ...] = ()
     view: Path | None = None
-
-
-def recording_fps(timestamps) -> float:
-    """Frames per second from a recording's timestamps (their median step); 30 without them."""
-    if timestamps is None or len(timestamps) < 2:
-        return 30.0
-    step = float(np.median(np.diff(np.asarray(timestamps, np.float64))))
-    return 1.0 / step if step > 0 else 30.0
 
 
 def resolve_pipeline(config: PipelineConfig, matcher_folder: str | None, *, estimator: bool):
