@@ -37,7 +37,7 @@ the folder given, in sorted order, and reads, as Pose2Sim does:
     keypoint layout, `POSE_MODELS`).
 
 Pose2Sim names its 3D results ``pose-3d/<trial>_<first>-<stop>.trc`` (``_P<n>`` after the trial
-for person n of a multi-person trial): `trc_name`.
+for person n of a multi-person trial): `trc_name`. `open_trial` opens a trial's detections.
 """
 
 from __future__ import annotations
@@ -50,8 +50,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from mvpose_jax.data.calibration import rig_from_toml
+from mvpose_jax.data.calibration import load_rig, rig_from_toml
 from mvpose_jax.data.files import read_toml
+from mvpose_jax.data.openpose import OpenPoseStream
 from mvpose_jax.errors import InputError
 
 CONFIG_NAME = "Config.toml"
@@ -116,6 +117,12 @@ class Pose2SimTrial:
     pose_model: str | None
     notes: tuple[str, ...] = ()
 
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """The calibration cameras of the detection folders, in the pairing's order (pass as
+        ``cameras=`` so that other subfolders of the detection folder are not read)."""
+        return tuple(self.camera_map.values())
+
     def pairing_lines(self) -> list[str]:
         """The camera pairing in words, one line per camera: ``cam01_json -> cam_01``."""
         return [f"{folder} -> {camera}" for folder, camera in self.camera_map.items()]
@@ -167,6 +174,38 @@ class Pose2SimSession:
     root: Path
     trials: tuple[Pose2SimTrial, ...]
     excluded: tuple[Path, ...] = ()
+
+
+def open_trial(
+    trial: Pose2SimTrial,
+    *,
+    layout: str = "coco18",
+    rig: Any = None,
+    missing_frames: str = "empty",
+) -> OpenPoseStream:
+    """Opens a trial's detections to be read a range of frames at a time, as Pose2Sim reads them:
+    the paired camera folders only (named by their calibration cameras, in the calibration's
+    order), the config's keypoint layout converted to ``layout``, a frame a camera has no file
+    for read as nobody seen (``missing_frames="empty"``, counted in the stream's `report`, as are
+    entries without keypoints).
+
+    Args:
+      trial: from `find_trials`.
+      layout: keypoint layout of the ranges read.
+      rig: the trial's rig if already loaded (default: its calibration is loaded).
+      missing_frames: ``"empty"`` (default) or ``"error"`` (`mvpose_jax.data.openpose`).
+    Returns:
+      An `OpenPoseStream` (close it, or use it in a ``with`` block).
+    """
+    return OpenPoseStream(
+        trial.detections,
+        layout=layout,
+        source_layout=trial.source_layout,
+        cameras=trial.cameras,
+        rig=load_rig(trial.calibration) if rig is None else rig,
+        missing_frames=missing_frames,
+        camera_map=trial.camera_map,
+    )
 
 
 def trc_name(trial: str, first: int, stop: int, person: int | None = None) -> str:
