@@ -193,6 +193,21 @@ def test_camera_folders_pair_with_the_calibration_by_sorted_position(project):
     assert "vid_b_json -> east" in text and "30 fps" in text and "body25b" in text
 
 
+def test_folders_named_after_other_cameras_are_paired_by_position_with_a_note(project):
+    """Pose2Sim's rule is position, even when the names say otherwise: the pairing follows the
+    rule and a note says which names disagree."""
+    pose = project / "P1" / "T1" / "pose"
+    for folder, camera in zip(FOLDERS, ("east_json", "north_json", "south_json"), strict=True):
+        (pose / folder).rename(pose / camera)
+    t1 = find_trials(project).trials[0]
+    assert t1.pairing_lines() == [
+        "east_json -> north",
+        "north_json -> east",
+        "south_json -> south",
+    ]
+    assert len(t1.notes) == 2 and "though camera east has its name" in t1.notes[0]
+
+
 def test_the_trial_reads_as_written(project):
     """Empty keypoint lists skipped and counted, negative coordinates kept, a missing frame read
     as nobody seen and counted, cameras in the rig's order through the pairing."""
