@@ -815,6 +815,83 @@ def _edit_folder(root: Path, op: str, pick: int, arg) -> None:
         files[pick % len(files)].mkdir()
 
 
+_CONFIG = (
+    "[project]\nframe_rate = 60\nframe_range = []\nexclude_from_batch = []\n\n"
+    "[pose]\npose_model = 'COCO'\n"
+)
+
+
+def _pose2sim_copy(valid, tmp_path_factory) -> Path:
+    """A fresh Pose2Sim session (session and trial Config.toml, a calibration folder, the valid
+    OpenPose folder as a trial's pose/ with its camera folders renamed ``<camera>_json``)."""
+    root = _work(tmp_path_factory) / "pose2sim"
+    if root.exists():
+        shutil.rmtree(root)
+    trial = root / "P1" / "T1"
+    for rel, data in valid["openpose"].items():
+        camera, name = Path(rel).parts
+        (trial / "pose" / f"{camera}_json").mkdir(parents=True, exist_ok=True)
+        (trial / "pose" / f"{camera}_json" / name).write_bytes(data)
+    (root / "Config.toml").write_text(_CONFIG)
+    (trial / "Config.toml").write_text("[project]\nframe_range = [0, 3]\n")
+    (root / "Calibration").mkdir()
+    (root / "Calibration" / "calib.toml").write_bytes(valid["calib_toml"])
+    return root
+
+
+def _read_session(path: Path) -> Recording:
+    """Every trial of a Pose2Sim session, read as `infer --session` would: the last one's frames."""
+    from mvpose_jax.data.pose2sim import find_trials, open_trial
+
+    recording = None
+    for trial in find_trials(path).trials:
+        with open_trial(trial) as stream:
+            first, stop = trial.frame_span(stream.num_frames)
+            recording = stream.read_frames(first, stop)
+    assert recording is not None
+    return recording
+
+
+def test_the_valid_pose2sim_session_reads(valid, tmp_path_factory):
+    rec = _outcome(_read_session, _pose2sim_copy(valid, tmp_path_factory))
+    assert isinstance(rec, Recording) and rec.num_frames == 3
+
+
+@pytest.mark.parametrize("config", ["Config.toml", "P1/T1/Config.toml", "Calibration/calib.toml"])
+@HOSTILE
+@given(edits=byte_edits, cut=cuts)
+def test_mutated_pose2sim_configs(valid, tmp_path_factory, config, edits, cut):
+    root = _pose2sim_copy(valid, tmp_path_factory)
+    (root / config).write_bytes(_mutate_bytes((root / config).read_bytes(), edits, cut))
+    _outcome(_read_session, root)
+
+
+@HOSTILE
+@given(
+    key=st.sampled_from(["frame_rate", "frame_range", "exclude_from_batch", "pose_model"]),
+    value=st.one_of(
+        st.sampled_from(["nan", "inf", "-1", "0", "'auto'", "'all'", "[]", "[1]", "[2, 1]"]),
+        st.sampled_from(["[0, 99999999999999999999]", "[-1, 2]", "{a = 1}", "true", "'BODY_25'"]),
+        st.sampled_from(["[[1, 2]]", "['x', 1]", "'COCO_17'", "''", "1e308", "[0, 1.5]"]),
+    ),
+)
+def test_mutated_pose2sim_settings(valid, tmp_path_factory, key, value):
+    root = _pose2sim_copy(valid, tmp_path_factory)
+    section = "pose" if key == "pose_model" else "project"
+    (root / "P1" / "T1" / "Config.toml").write_text(f"[{section}]\n{key} = {value}\n")
+    _outcome(_read_session, root)
+
+
+@HOSTILE
+@given(edits=folder_edits)
+def test_mutated_pose2sim_trial_folders(valid, tmp_path_factory, edits):
+    root = _pose2sim_copy(valid, tmp_path_factory)
+    for op, pick, arg in edits:
+        with contextlib.suppress(OSError):  # an edit the folder cannot take is skipped
+            _edit_folder(root / "P1" / "T1" / "pose", op, pick, arg)
+    _outcome(_read_session, root)
+
+
 # --------------------------------------------------------------------------- failed saves
 
 

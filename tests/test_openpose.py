@@ -16,6 +16,7 @@ from mvpose_jax.data import (
     save_recording,
 )
 from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.data.openpose import OpenPoseStream, parse_camera_map
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Detections, get_layout
 from mvpose_jax.synthetic import generate_recording
@@ -325,6 +326,87 @@ def test_missing_frames(tmp_path):
         read_openpose(root, missing_frames="skip")
 
 
+def test_entries_without_keypoints_are_skipped_and_counted(tmp_path):
+    """An empty pose_keypoints_2d list (real detectors) and an empty object (Pose2Sim's person
+    association) are no person: the others keep their values, the count says how many."""
+    root = _tiny_folder(tmp_path / "op", 18, COCO_PERSON)
+    full = load_recording(root)
+    target = root / "a" / "clipA_000000000000_keypoints.json"
+    doc = json.loads(target.read_text())
+    empty = {"person_id": [-1], "pose_keypoints_2d": [], "face_keypoints_2d": []}
+    doc["people"] = [empty, doc["people"][0], {}, doc["people"][1]]
+    target.write_text(json.dumps(doc))
+    (root / "b" / "clipB_000000000001_keypoints.json").write_text(json.dumps({"people": [{}]}))
+    with OpenPoseStream(root) as stream:
+        assert stream.report().total_empty == 0  # nothing read yet
+        rec = stream.read_frames(0, 2)
+        stream.read_frames(0, 1)  # reading a frame again does not count it twice
+        report = stream.report()
+    assert dict(report.empty_entries) == {"a": 2, "b": 1}
+    assert report.total_empty == 3 and report.total_missing == 0
+    assert report.lines() == ["3 skeleton entries without keypoints skipped (a 2, b 1)"]
+    np.testing.assert_array_equal(rec.detections.count, [[2, 1], [0, 0]])
+    np.testing.assert_array_equal(rec.detections.xy[0], full.detections.xy[0])
+    np.testing.assert_array_equal(rec.detections.score[0], full.detections.score[0])
+    # An entry with other fields but no body keypoints is still an error, named by its index in
+    # the file (not its row after the skipped entries).
+    doc["people"] = [{}, {"face_keypoints_2d": [1.0, 2.0, 0.5]}]
+    target.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="missing field") as e:
+        load_recording(root)
+    assert e.value.field == "people[1].pose_keypoints_2d"
+
+
+def test_skeletons_partly_outside_the_image_are_taken_as_they_are(tmp_path):
+    root = tmp_path / "op"
+    outside = {0: (-42.5, 520.25, 1.0), 1: (16.75, -3.5, 1.0), 5: (70.0, 80.0, 1.0)}
+    for cam in ("a", "b"):
+        _write_frame(root / cam / "x_0_keypoints.json", [_flat(18, outside)])
+    rec = load_recording(root, layout="openpose_coco18")
+    np.testing.assert_array_equal(
+        rec.detections.xy[0, 0, 0, [0, 1, 5]], [v[:2] for v in outside.values()]
+    )
+    np.testing.assert_array_equal(rec.detections.score[0, 0, 0, [0, 1, 5]], [1.0, 1.0, 1.0])
+
+
+def test_missing_frames_are_counted_per_camera(tmp_path):
+    root = _tiny_folder(tmp_path / "op", 18, COCO_PERSON)
+    (root / "b" / "clipB_000000000001_keypoints.json").unlink()
+    with OpenPoseStream(root, missing_frames="empty") as stream:
+        report = stream.report()
+    assert dict(report.missing_frames) == {"a": 0, "b": 1}
+    assert report.lines() == ["frames without a file, read as nobody seen: b 1"]
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        ["a=cam_1,b=cam_2 c=cam_3"],
+        ["a=cam_1", "b=cam_2", "c=cam_3"],  # nargs="+"
+        [["a=cam_1"], ["b=cam_2, c=cam_3"]],  # action="append", nargs="+"
+        [["a=cam_1", "b=cam_2"], ["c=cam_3", "a=cam_1"]],  # the same pair twice
+    ],
+)
+def test_parse_camera_map_takes_commas_spaces_and_repeated_options(values):
+    assert parse_camera_map(values) == {"a": "cam_1", "b": "cam_2", "c": "cam_3"}
+
+
+@pytest.mark.parametrize(
+    "values, match",
+    [
+        ([["a=cam_1"], ["a=cam_2"]], "'a' is given two cameras"),
+        (["a=cam_1 b"], "FOLDER=CAMERA"),
+        (["=cam_1"], "FOLDER=CAMERA"),
+        (["a="], "FOLDER=CAMERA"),
+        (["a=b=c"], "FOLDER=CAMERA"),
+    ],
+)
+def test_parse_camera_map_errors_name_the_option(values, match):
+    with pytest.raises(InputError, match=match) as e:
+        parse_camera_map(values)
+    assert e.value.field == "--camera-map"
+
+
 def test_cameras_and_rig(tmp_path):
     rig = load_rig("panoptic5")
     root = tmp_path / "op"
@@ -372,7 +454,7 @@ def test_bad_values_name_file_frame_camera_field(tmp_path):
         ({"people": [{"pose_keypoints_2d": [1, 2]}]}, "people[0].pose_keypoints_2d"),
         ({"people": [{"pose_keypoints_2d": [1, "2", 3]}]}, "people[0].pose_keypoints_2d[1]"),
         ({"people": [{"face_keypoints_2d": []}]}, "people[0].pose_keypoints_2d"),
-        ({"people": [{"pose_keypoints_2d": []}]}, "people[0].pose_keypoints_2d"),
+        ({"people": [{}, {"pose_keypoints_2d": [1, 2]}]}, "people[1].pose_keypoints_2d"),
         ({"people": {}}, "people"),
         ({"version": 1.3}, "people"),
         ([], None),

@@ -175,6 +175,9 @@ class _EditedStream(RecordingStream):
             rec = convert_layout(rec, self.layout)
         return rec
 
+    def report(self):
+        return self.inner.report()
+
     def finish(self) -> None:
         self.inner.finish()
 

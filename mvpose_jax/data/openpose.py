@@ -14,6 +14,11 @@ Each file is ``{"people": [{"pose_keypoints_2d": [x0, y0, c0, x1, y1, c1, ...], 
 (pixels; ``c`` is the confidence, in [0, 1]). Only ``pose_keypoints_2d`` is read: OpenPose's other
 entries (``person_id``, face, hands, 3D) are not part of a `Recording`. OpenPose writes ``c = 0``
 and ``x = y = 0`` for a keypoint it did not find; such keypoints are missing (score 0).
+Coordinates outside the image (negative ones included: a skeleton partly out of view) are taken
+as they are. A person entry without keypoints (``"pose_keypoints_2d": []``, which real detectors
+write, or an empty object ``{}``, which Pose2Sim's person association writes for a person one
+camera does not see) is no person: it is skipped and counted (`OpenPoseStream.report`). An entry
+that has other fields but no ``pose_keypoints_2d``, or a list of the wrong length, is an error.
 
 Frames. A file's frame number is the last run of digits in its name before ``_keypoints.json``
 (``run_000000000123_keypoints.json`` is frame 123). When no file has such a name, the frame number
@@ -22,7 +27,8 @@ is the file's position in its camera folder in natural order (digit runs compare
 numberings need not agree. Frames are aligned across cameras by frame number: the recording's
 frame ``f`` is the ``f``-th smallest frame number of any camera (numbers no camera has are not
 frames). A frame number that some cameras have and another lacks is an error naming that camera
-and frame, unless ``missing_frames="empty"``: that camera then saw nobody in that frame. Errors
+and frame, unless ``missing_frames="empty"``: that camera then saw nobody in that frame (counted
+per camera in `OpenPoseStream.report`). Errors
 name frames by their number (as in the file names), not by their position in the recording.
 
 Keypoint layout. The number of keypoints in the files says which layout they hold
@@ -67,7 +73,7 @@ from mvpose_jax.data.checks import (
 )
 from mvpose_jax.data.files import atomic_open
 from mvpose_jax.data.recording import Recording, convert_layout
-from mvpose_jax.data.stream import RecordingStream
+from mvpose_jax.data.stream import ReadReport, RecordingStream
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import get_layout
 
@@ -136,7 +142,8 @@ def read_openpose(
       missing_frames: ``"error"`` (default): a frame number present in some cameras and missing in
         another is an error; ``"empty"``: that camera has no detections in that frame.
     Returns:
-      A `Recording` with detections only (no identities, ground truth or timestamps).
+      A `Recording` with detections only (no identities, ground truth or timestamps). Entries
+      without keypoints are skipped; `OpenPoseStream` counts them (`OpenPoseStream.report`).
     Raises:
       InputError naming the file, frame (its number), camera and field of the first problem.
     """
@@ -159,7 +166,8 @@ class OpenPoseStream(RecordingStream):
     every camera has every frame (all as `read_openpose`, which reads through here); `read_frames`
     then parses only the files of the range. The files' keypoint count (their layout) is taken
     from the first person met, in the order the ranges are read, and every later person must have
-    it. Arguments as `read_openpose`.
+    it. Arguments as `read_openpose`. `report` counts what was taken as it was: entries without
+    keypoints skipped (in the frames read so far) and frames missing per camera.
     """
 
     def __init__(
@@ -215,6 +223,21 @@ class OpenPoseStream(RecordingStream):
         # The files' keypoint count, and the file, frame and person where it was first seen.
         self._K = None if source_layout is None else get_layout(source_layout).num_keypoints
         self._first: tuple[Path, int, int] | None = None
+        # (frame number, camera index) -> entries without keypoints skipped in that file; keyed
+        # so that reading a range again does not count it twice.
+        self._empty: dict[tuple[int, int], int] = {}
+        self._missing = {
+            camera: len(numbers) - len(frame_of[name])
+            for camera, name in zip(camera_names, names, strict=True)
+        }
+
+    def report(self) -> ReadReport:
+        """Entries without keypoints skipped in the frames read so far and frames missing per
+        camera (read as frames without people), by camera name."""
+        empty = dict.fromkeys(self.cameras, 0)
+        for (_, c), n in self._empty.items():
+            empty[self.cameras[c]] += n
+        return ReadReport(empty_entries=empty, missing_frames=dict(self._missing))
 
     def read_frames(self, start: int, stop: int) -> Recording:
         root, names, layout = Path(self.path), self._folders, self.layout
@@ -223,13 +246,19 @@ class OpenPoseStream(RecordingStream):
         # Every skeleton, in file order, with where it goes (frame position, camera, person).
         rows: list[np.ndarray] = []  # (3K,) float64 each
         where: list[tuple[int, int, int]] = []
-        origin: list[tuple[Path, int]] = []  # its file and frame number, for error messages
+        # Its file, frame number and entry index in the file, for error messages.
+        origin: list[tuple[Path, int, int]] = []
         for fi, number in enumerate(numbers):
             for c, name in enumerate(names):
                 path = self._frame_of[name].get(number)
                 if path is None:
                     continue
-                for p, flat in enumerate(_people(path, number, name)):
+                entries = _people(path, number, name)
+                self._empty[(number, c)] = sum(flat is None for flat in entries)
+                slot = 0  # the person's row in this view: empty entries take none
+                for p, flat in enumerate(entries):
+                    if flat is None:
+                        continue
                     if self._K is None:
                         self._first = (path, number, p)
                         self._K = _detect_count(flat.size, path, number, name, p)
@@ -250,8 +279,9 @@ class OpenPoseStream(RecordingStream):
                             field=f"people[{p}].pose_keypoints_2d",
                         )
                     rows.append(flat)
-                    where.append((fi, c, p))
-                    origin.append((path, number))
+                    where.append((fi, c, slot))
+                    origin.append((path, number, p))
+                    slot += 1
 
         # Before any person is met, the files' layout is unknown: an empty range is built in
         # the target layout (converting empty detections gives the same).
@@ -262,7 +292,7 @@ class OpenPoseStream(RecordingStream):
 
         def locate(i: int):  # called by the check only for the first bad row
             failed.append(i)
-            return origin[i][1], names[where[i][1]], where[i][2]
+            return origin[i][1], names[where[i][1]], origin[i][2]  # the entry's index in the file
 
         try:
             xy, score = check_keypoints(
@@ -351,6 +381,45 @@ def save_openpose(
             ]
             with atomic_open(root / name / targets[f], "w") as out:
                 out.write(json.dumps({"version": 1.3, "people": people}, **compact))
+
+
+def parse_camera_map(values: Sequence[str] | Sequence[Sequence[str]]) -> dict[str, str]:
+    """A camera map (folder name -> camera name) from ``FOLDER=CAMERA`` pairs as a command line
+    gives them: pairs separated by commas or spaces, in one string or several, and, for a
+    repeated option (argparse's ``action="append", nargs="+"``), lists of such strings; every pair
+    counts.
+
+    Raises:
+      InputError (field ``--camera-map``): a pair without ``=`` or with an empty side; a folder
+      given twice with different cameras (the same pair twice is kept once).
+    """
+    out: dict[str, str] = {}
+    for item in _flatten(values):
+        for pair in re.split(r"[,\s]+", item.strip()):
+            if not pair:
+                continue
+            folder, sep, camera = pair.partition("=")
+            folder, camera = folder.strip(), camera.strip()
+            if not sep or not folder or not camera or "=" in camera:
+                raise InputError(
+                    f"expected FOLDER=CAMERA pairs separated by commas or spaces, got {pair!r}",
+                    field="--camera-map",
+                )
+            if out.get(folder, camera) != camera:
+                raise InputError(
+                    f"folder {folder!r} is given two cameras: {out[folder]!r} and {camera!r}",
+                    field="--camera-map",
+                )
+            out[folder] = camera
+    return out
+
+
+def _flatten(values: Any) -> list[str]:
+    if isinstance(values, str):
+        return [values]
+    if values is None:
+        return []
+    return [s for value in values for s in _flatten(value)]
 
 
 # --------------------------------------------------------------------------- reading helpers
@@ -504,8 +573,10 @@ def _frame_numbers(root: Path, files: dict[str, list[Path]]) -> dict[str, dict[i
     return out
 
 
-def _people(path: Path, frame: int, camera: str) -> list[np.ndarray]:
-    """The ``pose_keypoints_2d`` of every person in one file: flat float64 arrays (3K,)."""
+def _people(path: Path, frame: int, camera: str) -> list[np.ndarray | None]:
+    """The ``pose_keypoints_2d`` of every person entry in one file, in file order: a flat float64
+    array (3K,), or None for an entry with no keypoints (an empty list, or an empty object ``{}``
+    as Pose2Sim's person association writes for a person one camera does not see)."""
     data = load_json(path)
     err = lambda reason, field: InputError(  # noqa: E731
         reason, file=path, frame=frame, camera=camera, field=field
@@ -522,13 +593,17 @@ def _people(path: Path, frame: int, camera: str) -> list[np.ndarray]:
         field = f"people[{p}].pose_keypoints_2d"
         if not isinstance(person, dict):
             raise err(f"expected an object, got {type(person).__name__}", f"people[{p}]")
+        if not person:
+            out.append(None)
+            continue
         if "pose_keypoints_2d" not in person:
             raise err("missing field", field)
         flat = person["pose_keypoints_2d"]
         if not isinstance(flat, list):
             raise err(f"expected a list of numbers, got {type(flat).__name__}", field)
         if not flat:
-            raise err("no body keypoints (was OpenPose run with the body model disabled?)", field)
+            out.append(None)
+            continue
         if len(flat) % 3:
             raise err(f"{len(flat)} numbers: expected x, y, c for each keypoint", field)
         try:

@@ -22,11 +22,47 @@ Which formats stream (each reader documents how):
 from __future__ import annotations
 
 import abc
+import dataclasses
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 
 from mvpose_jax.data.checks import ClippedScores, warn_clipped
 from mvpose_jax.data.recording import Recording, slice_frames
+
+
+@dataclasses.dataclass(frozen=True)
+class ReadReport:
+    """What a reader took as it was, for the caller's summary (nothing is dropped unsaid).
+
+    Attributes:
+      empty_entries: camera -> person entries without keypoints that were skipped (OpenPose
+        files: an empty ``pose_keypoints_2d`` list or an empty object), in the frames read so far.
+      missing_frames: camera -> frames of the recording with no file for that camera, read as
+        frames where that camera saw nobody (OpenPose folders read with
+        ``missing_frames="empty"``).
+    """
+
+    empty_entries: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    missing_frames: Mapping[str, int] = dataclasses.field(default_factory=dict)
+
+    @property
+    def total_empty(self) -> int:
+        return sum(self.empty_entries.values())
+
+    @property
+    def total_missing(self) -> int:
+        return sum(self.missing_frames.values())
+
+    def lines(self) -> list[str]:
+        """The counts in words, one line each, for a summary; none when there is nothing to say."""
+        out = []
+        if self.total_empty:
+            per = ", ".join(f"{c} {n}" for c, n in self.empty_entries.items() if n)
+            out.append(f"{self.total_empty} skeleton entries without keypoints skipped ({per})")
+        if self.total_missing:
+            per = ", ".join(f"{c} {n}" for c, n in self.missing_frames.items() if n)
+            out.append(f"frames without a file, read as nobody seen: {per}")
+        return out
 
 
 class RecordingStream(abc.ABC):
@@ -67,6 +103,11 @@ class RecordingStream(abc.ABC):
         Raises:
           InputError naming the file, frame (in the whole recording), camera and field.
         """
+
+    def report(self) -> ReadReport:
+        """Counts of what was taken as it was (`ReadReport`); formats that skip nothing report
+        none."""
+        return ReadReport()
 
     def chunks(self, chunk_frames: int, *, start: int = 0) -> Iterator[tuple[int, Recording]]:
         """Consecutive ranges of ``chunk_frames`` frames from frame ``start``: yields (first frame,
