@@ -143,7 +143,8 @@ class InferResult(NamedTuple):
     interrupted: stopped by Ctrl-C (``written`` holds the partial results, or is None when the
     interruption came while writing the results of finished chunks); pipeline: the
     effective config; fps: the clock used; adapted: the adaptation's report; exported: the
-    export files; view: the rerun recording.
+    export files; view: the rerun recording; read_notes: what the reader took as it was (entries
+    without keypoints skipped, frames a camera lacks read as empty: `data.stream.ReadReport`).
     """
 
     frames_total: int
@@ -162,6 +163,7 @@ class InferResult(NamedTuple):
     adapted: AdaptReport | None = None
     exported: tuple[Path, ...] = ()
     view: Path | None = None
+    read_notes: tuple[str, ...] = ()
 
 
 def resolve_pipeline(config: PipelineConfig, matcher_folder: str | None, *, estimator: bool):
@@ -417,6 +419,7 @@ def run_infer(
         if not config.keep_chunks:
             store.remove()
         _write_run_record(config, inputs, pipeline, F)
+        read_notes = tuple(stream.report().lines())
     exported = tuple(export(load_poses(done.npz))) if export else ()
     view = _write_view(config, rig_all, done, fps) if config.view else None
     tracked = pipeline.tracking is not None
@@ -437,6 +440,7 @@ def run_infer(
         adapted,
         exported,
         view,
+        read_notes,
     )
 
 

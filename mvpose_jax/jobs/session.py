@@ -78,6 +78,8 @@ def trial_config(config: SessionConfig, trial: Pose2SimTrial) -> InferConfig:
         rig=str(trial.calibration),
         detections=str(trial.detections),
         layout=config.layout or "coco18",
+        # Only the paired folders (a pose folder may hold others).
+        cameras=trial.cameras,
         # Pose2Sim reads a frame one camera lacks as a frame where it saw nobody.
         missing_frames="empty",
         camera_map=tuple(trial.camera_map.items()),
