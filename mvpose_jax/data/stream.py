@@ -153,3 +153,30 @@ class InMemoryStream(RecordingStream):
 
     def read_frames(self, start: int, stop: int) -> Recording:
         return slice_frames(self.recording, start, stop)
+
+
+class FrameRangeStream(RecordingStream):
+    """Frames ``first`` to ``stop`` (exclusive) of another stream, as a recording of their own:
+    its frame 0 is the other's frame ``first`` (errors still name the frame in the whole file).
+    Closing it closes the other."""
+
+    def __init__(self, inner: RecordingStream, first: int, stop: int):
+        if not 0 <= first < stop <= inner.num_frames:
+            raise ValueError(f"frames {first}-{stop} are not within 0-{inner.num_frames}")
+        super().__init__(
+            inner.path,
+            cameras=inner.cameras,
+            layout=inner.layout,
+            num_frames=stop - first,
+            streamed=inner.streamed,
+        )
+        self.inner, self.first = inner, int(first)
+
+    def read_frames(self, start: int, stop: int) -> Recording:
+        return self.inner.read_frames(self.first + start, self.first + stop)
+
+    def report(self) -> ReadReport:
+        return self.inner.report()
+
+    def close(self) -> None:
+        self.inner.close()

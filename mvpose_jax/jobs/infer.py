@@ -30,6 +30,7 @@ from mvpose_jax.data.chunks import Assembled, ChunkStore
 from mvpose_jax.data.files import atomic_write_text, read_json, to_jsonable
 from mvpose_jax.data.poses import PoseResults, load_poses, load_poses_chunk
 from mvpose_jax.data.recording import recording_fps
+from mvpose_jax.data.stream import FrameRangeStream
 from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.inference import FilterConfig, PipelineConfig, stream_pipeline
 from mvpose_jax.lifting import LiftingConfig
@@ -56,6 +57,8 @@ class RecordingSource:
       camera_map: OpenPose folders: (folder, camera) pairs for folders named otherwise.
       source_layout: OpenPose folders: the files' own layout when their keypoint count is
         ambiguous (e.g. "body25b").
+      frames: (first, stop): only these frames of the recording, stop excluded (cut to the
+        recording's length); None: every frame. The results' frame 0 is frame ``first``.
     """
 
     rig: str
@@ -67,6 +70,7 @@ class RecordingSource:
     missing_frames: str | None = None
     camera_map: tuple[tuple[str, str], ...] | None = None
     source_layout: str | None = None
+    frames: tuple[int, int] | None = None
 
     def reading_options(self) -> dict[str, Any]:
         """`data.open_recording`'s keyword arguments (those given)."""
@@ -294,6 +298,17 @@ def run_infer(
     pipeline = resolve_pipeline(config.pipeline, config.matcher, estimator=bool(config.estimator))
     rig_all = src.load_rig()
     stream = open_recording(src.detections, layout=src.layout, rig=rig_all, **src.reading_options())
+    if src.frames is not None:
+        first, stop = int(src.frames[0]), min(int(src.frames[1]), stream.num_frames)
+        if not 0 <= first < stop:
+            stream.close()
+            raise InputError(
+                f"frames {first}-{src.frames[1]} hold none of the recording's "
+                f"{stream.num_frames} frames",
+                file=src.detections,
+                field="source.frames",
+            )
+        stream = FrameRangeStream(stream, first, stop)
     with stream:
         rig = rig_all.select(list(stream.cameras))
         F = stream.num_frames
@@ -514,6 +529,7 @@ def _inputs(config: InferConfig, stream, fps: float, pipeline: PipelineConfig) -
         "missing_frames": src.missing_frames,
         "camera_map": dict(src.camera_map) if src.camera_map else None,
         "source_layout": src.source_layout,
+        "frames": list(src.frames) if src.frames is not None else None,
         "matcher": where(config.matcher),
         "estimator": where(config.estimator),
         "adapt": config.adapt is not None,

@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import NamedTuple
 
 from mvpose_jax.data.pose2sim import Pose2SimSession, Pose2SimTrial, find_trials, trc_name
-from mvpose_jax.errors import InputError
 from mvpose_jax.inference import PipelineConfig
 from mvpose_jax.jobs.infer import INFER_PIPELINE, InferConfig, InferResult, RecordingSource
 from mvpose_jax.jobs.infer import run_infer as run_infer
@@ -67,13 +66,6 @@ def find_session(config: SessionConfig) -> Pose2SimSession:
 
 def trial_config(config: SessionConfig, trial: Pose2SimTrial) -> InferConfig:
     """The ``infer`` run of one trial."""
-    if trial.frame_range is not None:
-        raise InputError(
-            f"frame_range {list(trial.frame_range)}: a part of a trial is not read yet; "
-            "set frame_range = [] (every frame)",
-            file=trial.config_files[-1] if trial.config_files else trial.folder,
-            field="[project] frame_range",
-        )
     source = RecordingSource(
         rig=str(trial.calibration),
         detections=str(trial.detections),
@@ -84,6 +76,7 @@ def trial_config(config: SessionConfig, trial: Pose2SimTrial) -> InferConfig:
         missing_frames="empty",
         camera_map=tuple(trial.camera_map.items()),
         source_layout=trial.source_layout,
+        frames=trial.frame_range,
     )
     return InferConfig(
         source,
@@ -137,7 +130,8 @@ def _pose2sim_names(result: InferResult, trial: Pose2SimTrial) -> tuple[Path, ..
     out = []
     for n, path in enumerate(trcs, start=1):
         person = None if len(trcs) == 1 else n
-        target = folder / trc_name(trial.name, 0, result.frames_total, person)
+        first = trial.frame_range[0] if trial.frame_range is not None else 0
+        target = folder / trc_name(trial.name, first, first + result.frames_total, person)
         os.replace(path, target)
         out.append(target)
     return tuple(out)
