@@ -31,6 +31,7 @@ COMMANDS = [
     "evaluate",
     "render",
     "export",
+    "view",
 ]
 
 

@@ -25,7 +25,6 @@ import numpy as np
 from mvpose_jax import stages
 from mvpose_jax.adapt import AdaptConfig, AdaptReport
 from mvpose_jax.data import open_recording
-from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.chunks import Assembled, ChunkStore
 from mvpose_jax.data.files import atomic_write_text, read_json, to_jsonable
 from mvpose_jax.data.poses import PoseResults, load_poses, load_poses_chunk
@@ -33,61 +32,13 @@ from mvpose_jax.data.recording import recording_fps
 from mvpose_jax.data.stream import FrameRangeStream
 from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.inference import FilterConfig, PipelineConfig, stream_pipeline
+from mvpose_jax.jobs.common import DetectionsSource, RigSource
 from mvpose_jax.lifting import LiftingConfig
 from mvpose_jax.matching import MatchingConfig
 from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
 from mvpose_jax.smoothing import smooth_chunk_files
 from mvpose_jax.tracking import TrackingConfig
 from mvpose_jax.trained import load_estimator, load_matcher
-
-
-@dataclasses.dataclass(frozen=True)
-class RecordingSource:
-    """A recording and its calibration, and how to read them.
-
-    Attributes:
-      rig: a calibration file (native JSON, CMU Panoptic JSON, anipose/Pose2Sim TOML) or a rig
-        preset's name.
-      detections: a recording in any format `data.open_recording` reads.
-      translation_scale: multiplies the calibration's translations (0.001: mm to metres).
-      orthonormalise: snap the rotations to the nearest rotation matrices.
-      layout: the keypoint layout to work in (None: the file's).
-      cameras: only these cameras of the recording (None: all).
-      missing_frames: OpenPose folders: "error" or "empty" (None: the reader's default).
-      camera_map: OpenPose folders: (folder, camera) pairs for folders named otherwise.
-      source_layout: OpenPose folders: the files' own layout when their keypoint count is
-        ambiguous (e.g. "body25b").
-      frames: (first, stop): only these frames of the recording, stop excluded (cut to the
-        recording's length); None: every frame. The results' frame 0 is frame ``first``.
-    """
-
-    rig: str
-    detections: str
-    translation_scale: float = 1.0
-    orthonormalise: bool = False
-    layout: str | None = None
-    cameras: tuple[str, ...] | None = None
-    missing_frames: str | None = None
-    camera_map: tuple[tuple[str, str], ...] | None = None
-    source_layout: str | None = None
-    frames: tuple[int, int] | None = None
-
-    def reading_options(self) -> dict[str, Any]:
-        """`data.open_recording`'s keyword arguments (those given)."""
-        out: dict[str, Any] = {"cameras": list(self.cameras) if self.cameras else None}
-        if self.missing_frames:
-            out["missing_frames"] = self.missing_frames
-        if self.camera_map:
-            out["camera_map"] = dict(self.camera_map)
-        if self.source_layout:
-            out["source_layout"] = self.source_layout
-        return out
-
-    def load_rig(self):
-        return load_rig(
-            self.rig, translation_scale=self.translation_scale, orthonormalise=self.orthonormalise
-        )
-
 
 # infer's defaults (those of `mvpose-jax infer`): tracked, Butterworth-filtered, the proposals'
 # threshold and the 3D method left to the models given (`resolve_pipeline`).
@@ -104,7 +55,8 @@ class InferConfig:
     """One ``infer`` run.
 
     Attributes:
-      source: the recording and its calibration.
+      rig: the calibration.
+      detections: the recording and how it is read.
       out: the output folder (``poses.json``, ``poses.npz``; ``chunks/`` while the run lasts).
       pipeline: what the pipeline computes. Left to the job (None fields): the proposals'
         threshold (the ``matcher`` folder's chosen one, else 0.5), the combined matcher's
@@ -117,12 +69,15 @@ class InferConfig:
       export: also write the results as these formats (`data.exports.EXPORT_FORMATS`).
       adapt: first fine-tune the estimator on this recording (`adapt.adapt_estimator`), in
         memory.
+      frames: (first, stop): only these frames of the recording, stop excluded (cut to the
+        recording's length); None: every frame. The results' frame 0 is frame ``first``.
       view: also write ``OUT/poses.rrd``, the results with the cameras and the detections as
         a rerun recording (`viewer.write_rerun`; reads the whole recording).
       progress: show a progress bar (a line every few seconds when not on a terminal).
     """
 
-    source: RecordingSource
+    rig: RigSource
+    detections: DetectionsSource
     out: str
     pipeline: PipelineConfig = INFER_PIPELINE
     matcher: str | None = None
@@ -132,6 +87,7 @@ class InferConfig:
     keep_chunks: bool = False
     export: tuple[str, ...] = ()
     adapt: AdaptConfig | None = None
+    frames: tuple[int, int] | None = None
     view: bool = False
     progress: bool = True
 
@@ -284,7 +240,7 @@ def run_infer(
       InputError: bad input or settings (named); an error while running leaves the finished
         chunks assembled as partial results (``notify`` says where) and is raised.
     """
-    src = config.source
+    src = config.detections
     if config.adapt is not None:
         if not config.estimator:
             raise InputError("adapts an estimator: give one", field="adapt")
@@ -296,17 +252,17 @@ def run_infer(
             )
         config.adapt.check()
     pipeline = resolve_pipeline(config.pipeline, config.matcher, estimator=bool(config.estimator))
-    rig_all = src.load_rig()
-    stream = open_recording(src.detections, layout=src.layout, rig=rig_all, **src.reading_options())
-    if src.frames is not None:
-        first, stop = int(src.frames[0]), min(int(src.frames[1]), stream.num_frames)
+    rig_all = config.rig.load()
+    stream = open_recording(src.path, layout=src.layout, rig=rig_all, **src.reading_options())
+    if config.frames is not None:
+        first, stop = int(config.frames[0]), min(int(config.frames[1]), stream.num_frames)
         if not 0 <= first < stop:
             stream.close()
             raise InputError(
-                f"frames {first}-{src.frames[1]} hold none of the recording's "
+                f"frames {first}-{config.frames[1]} hold none of the recording's "
                 f"{stream.num_frames} frames",
-                file=src.detections,
-                field="source.frames",
+                file=src.path,
+                field="frames",
             )
         stream = FrameRangeStream(stream, first, stop)
     with stream:
@@ -462,12 +418,16 @@ def run_infer(
 def _write_view(config: InferConfig, rig_all, done: Assembled, fps: float) -> Path:
     """``OUT/poses.rrd``: the results, their cameras and detections (`viewer.write_rerun`)."""
     from mvpose_jax.data import load_recording
+    from mvpose_jax.data.recording import slice_frames
     from mvpose_jax.viewer import write_rerun
 
     poses = load_poses(done.npz)
-    src = config.source
+    src = config.detections
     options = {**src.reading_options(), "cameras": list(poses.cameras)}
-    detections = load_recording(src.detections, layout=poses.layout, rig=rig_all, **options)
+    detections = load_recording(src.path, layout=poses.layout, rig=rig_all, **options)
+    if config.frames is not None:
+        first = config.frames[0]
+        detections = slice_frames(detections, first, first + len(poses.confidence))
     rig = rig_all.select(list(poses.cameras))
     out = Path(config.out) / "poses.rrd"
     return write_rerun(out, poses, rig, detections=detections, fps=fps, progress=config.progress)
@@ -517,19 +477,19 @@ def _inputs(config: InferConfig, stream, fps: float, pipeline: PipelineConfig) -
     def where(path):
         return None if path is None else str(Path(path).resolve())
 
-    src = config.source
-    rig_file = Path(src.rig)
+    src = config.detections
+    rig_file = Path(config.rig.rig)
     inputs = {
-        "detections": where(src.detections),
-        "rig": where(rig_file) if rig_file.exists() else src.rig,
-        "translation_scale": src.translation_scale,
-        "orthonormalise": src.orthonormalise,
+        "detections": where(src.path),
+        "rig": where(rig_file) if rig_file.exists() else config.rig.rig,
+        "translation_scale": config.rig.translation_scale,
+        "orthonormalise": config.rig.orthonormalise,
         "layout": stream.layout,
         "cameras": list(stream.cameras),
         "missing_frames": src.missing_frames,
         "camera_map": dict(src.camera_map) if src.camera_map else None,
         "source_layout": src.source_layout,
-        "frames": list(src.frames) if src.frames is not None else None,
+        "frames": list(config.frames) if config.frames is not None else None,
         "matcher": where(config.matcher),
         "estimator": where(config.estimator),
         "adapt": config.adapt is not None,

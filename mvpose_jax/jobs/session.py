@@ -17,7 +17,8 @@ from typing import NamedTuple
 
 from mvpose_jax.data.pose2sim import Pose2SimSession, Pose2SimTrial, find_trials, trc_name
 from mvpose_jax.inference import PipelineConfig
-from mvpose_jax.jobs.infer import INFER_PIPELINE, InferConfig, InferResult, RecordingSource
+from mvpose_jax.jobs.common import DetectionsSource, RigSource
+from mvpose_jax.jobs.infer import INFER_PIPELINE, InferConfig, InferResult
 from mvpose_jax.jobs.infer import run_infer as run_infer
 
 
@@ -66,20 +67,19 @@ def find_session(config: SessionConfig) -> Pose2SimSession:
 
 def trial_config(config: SessionConfig, trial: Pose2SimTrial) -> InferConfig:
     """The ``infer`` run of one trial."""
-    source = RecordingSource(
-        rig=str(trial.calibration),
-        detections=str(trial.detections),
+    detections = DetectionsSource(
+        str(trial.detections),
         layout=config.layout or "coco18",
-        # Only the paired folders (a pose folder may hold others).
-        cameras=trial.cameras,
         # Pose2Sim reads a frame one camera lacks as a frame where it saw nobody.
         missing_frames="empty",
-        camera_map=tuple(trial.camera_map.items()),
+        camera_map=dict(trial.camera_map),
         source_layout=trial.source_layout,
-        frames=trial.frame_range,
+        # Only the paired folders (a pose folder may hold others).
+        cameras=trial.cameras,
     )
     return InferConfig(
-        source,
+        RigSource(str(trial.calibration)),
+        detections,
         os.path.join(config.out, trial.name),
         config.pipeline,
         matcher=config.matcher,
@@ -88,6 +88,7 @@ def trial_config(config: SessionConfig, trial: Pose2SimTrial) -> InferConfig:
         resume=config.resume,
         keep_chunks=config.keep_chunks,
         export=("trc",) if config.trc else (),
+        frames=trial.frame_range,
         view=config.view,
         progress=config.progress,
     )

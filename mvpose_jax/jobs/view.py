@@ -9,7 +9,7 @@ from pathlib import Path
 from mvpose_jax.data import load_recording
 from mvpose_jax.data.poses import load_poses
 from mvpose_jax.errors import InputError
-from mvpose_jax.jobs.infer import RecordingSource
+from mvpose_jax.jobs.common import DetectionsSource, RigSource
 from mvpose_jax.viewer import write_rerun
 
 
@@ -19,8 +19,9 @@ class ViewConfig:
 
     Attributes:
       poses: ``poses.npz`` / ``poses.json`` (or their folder), as ``infer`` writes them.
-      source: the calibration (``source.rig``) and, when ``source.detections`` is given, the
-        detections the poses were made from (read on the poses' cameras).
+      rig: the calibration.
+      detections: the detections the poses were made from (read on the poses' cameras), or
+        None.
       out: the ``.rrd`` file to write.
       floor_height: the floor's height along the rig's up (None: under the people's lowest
         keypoints).
@@ -29,8 +30,9 @@ class ViewConfig:
     """
 
     poses: str
-    source: RecordingSource
+    rig: RigSource
     out: str
+    detections: DetectionsSource | None = None
     floor_height: float | None = None
     fps: float | None = None
     spawn: bool = False
@@ -47,7 +49,7 @@ def run_view(config: ViewConfig) -> Path:
     if Path(config.out).suffix.lower() != ".rrd":
         raise InputError("the output is a rerun recording: name it FILE.rrd", field="out")
     poses = load_poses(config.poses)
-    rig_all = config.source.load_rig()
+    rig_all = config.rig.load()
     missing = [c for c in poses.cameras if c not in rig_all.names]
     if missing:
         raise InputError(
@@ -57,10 +59,10 @@ def run_view(config: ViewConfig) -> Path:
         )
     rig = rig_all.select(list(poses.cameras))
     detections = None
-    if config.source.detections:
-        options = {**config.source.reading_options(), "cameras": list(poses.cameras)}
+    if config.detections is not None:
+        options = {**config.detections.reading_options(), "cameras": list(poses.cameras)}
         detections = load_recording(
-            config.source.detections, layout=poses.layout, rig=rig_all, **options
+            config.detections.path, layout=poses.layout, rig=rig_all, **options
         )
     return write_rerun(
         config.out,

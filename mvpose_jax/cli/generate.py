@@ -1,0 +1,174 @@
+"""``mvpose-jax generate`` and ``synthetic-figure``: synthetic recordings on any rig."""
+
+from __future__ import annotations
+
+import argparse
+
+from mvpose_jax.cli.options import (
+    add_detection_options,
+    add_rig_argument,
+    detections_source,
+    rig_source,
+)
+from mvpose_jax.cli.registry import command
+from mvpose_jax.jobs.generate import (
+    RATE_OPTIONS,
+    TRAINING_FLOOR_JITTER_M,
+    GenerateConfig,
+    SyntheticFigureConfig,
+    generate,
+    synthetic_figure,
+)
+
+#   mvpose-jax generate --rig panoptic5 --people 4 --frames 500 --seed 0 --out scene.json
+#   mvpose-jax generate --rig arplab6 --single-person-recordings 20 --frames 1000 --out train/
+
+
+def _generate_arguments(p: argparse.ArgumentParser) -> None:
+    from mvpose_jax.synthetic import DetectorConfig, MotionConfig
+
+    add_rig_argument(p)
+    p.add_argument("--people", type=int, default=4, help="people in the scene (default 4)")
+    p.add_argument("--frames", type=int, default=500, help="frames per recording (default 500)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output file (.json native, .npz) or, with --single-person-recordings, a folder",
+    )
+    p.add_argument(
+        "--single-person-recordings",
+        type=int,
+        default=0,
+        metavar="N",
+        help="write N one-person training recordings into the --out folder instead of one scene",
+    )
+    p.add_argument(
+        "--format",
+        choices=("native", "npz"),
+        default=None,
+        help="file format for the single-person recordings (default native JSON)",
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=MotionConfig.fps,
+        help=f"frame rate (default {MotionConfig.fps:g})",
+    )
+    floor = p.add_mutually_exclusive_group()
+    floor.add_argument(
+        "--floor-height",
+        type=float,
+        default=None,
+        help="floor height along the up vector, metres (default: measured with --floor-from, "
+        "else guessed from the camera positions, with a warning)",
+    )
+    floor.add_argument(
+        "--floor-from",
+        metavar="DETECTIONS",
+        default=None,
+        help="measure the floor from your own detections of people on this rig (native JSON, "
+        "original JSON, .npz or an OpenPose folder): the triangulated feet of people seen by 3+ "
+        "cameras",
+    )
+    add_detection_options(p, what="--floor-from")
+    p.add_argument(
+        "--floor-jitter",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="each recording's floor is drawn within this distance of the floor height (its "
+        "capture area follows), so that models trained on them tolerate a floor that is off "
+        f"(default {TRAINING_FLOOR_JITTER_M:g} with --single-person-recordings, the training "
+        "data; 0 for a scene)",
+    )
+    p.add_argument(
+        "--clean",
+        action="store_true",
+        help="a perfect detector: no noise, offsets, drops, misses, false positives or swaps",
+    )
+    defaults = DetectorConfig()
+    for option, field in RATE_OPTIONS.items():
+        p.add_argument(
+            f"--{option}",
+            type=float,
+            default=None,
+            help=f"detector {field.replace('_', ' ')} (default {getattr(defaults, field):g})",
+        )
+
+
+@command(
+    "generate",
+    "Generate a synthetic recording (or single-person training recordings) on any rig.",
+    _generate_arguments,
+)
+def _generate(args: argparse.Namespace) -> int:
+    rates = {
+        field: getattr(args, option.replace("-", "_"))
+        for option, field in RATE_OPTIONS.items()
+        if getattr(args, option.replace("-", "_")) is not None
+    }
+    config = GenerateConfig(
+        rig=rig_source(args),
+        out=args.out,
+        people=args.people,
+        frames=args.frames,
+        seed=args.seed,
+        single_person_recordings=args.single_person_recordings,
+        format=args.format,
+        fps=args.fps,
+        floor_height=args.floor_height,
+        floor_from=detections_source(args, args.floor_from) if args.floor_from else None,
+        floor_jitter=args.floor_jitter,
+        clean=args.clean,
+        rates=rates,
+    )
+    done = generate(config)
+    if done.floor is not None:
+        measured = done.floor
+        print(
+            f"floor measured from {args.floor_from}: {measured.height:.3f} m along up (spread "
+            f"{measured.spread:.3f} m over {measured.num_samples} person-frames)"
+        )
+    if args.single_person_recordings > 0:
+        print(
+            f"wrote {done.recordings} single-person recordings of {args.frames} frames to {done.out}/"
+        )
+        return 0
+    print(
+        f"wrote {done.out}: {done.frames} frames, {done.cameras} cameras, {args.people} people, "
+        f"{done.detections} detections"
+    )
+    return 0
+
+
+def _synthetic_figure_arguments(p: argparse.ArgumentParser) -> None:
+    add_rig_argument(p)
+    p.add_argument("--people", type=int, default=4, help="people in the scene (default 4)")
+    p.add_argument("--frames", type=int, default=150, help="frames to simulate (default 150)")
+    p.add_argument("--frame", type=int, default=-1, help="frame to draw (default: the last)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--out",
+        default="results/synthetic_frame.png",
+        help="output PNG (default results/synthetic_frame.png)",
+    )
+
+
+@command(
+    "synthetic-figure",
+    "Draw one frame of a synthetic recording: the detections in every camera (coloured by true "
+    "identity, false positives grey) and the 3D ground truth.",
+    _synthetic_figure_arguments,
+)
+def _synthetic_figure(args: argparse.Namespace) -> int:
+    config = SyntheticFigureConfig(
+        rig=rig_source(args),
+        out=args.out,
+        people=args.people,
+        frames=args.frames,
+        frame=args.frame,
+        seed=args.seed,
+    )
+    print(synthetic_figure(config))
+    return 0

@@ -1,0 +1,272 @@
+"""Training jobs: a matcher or an estimator model folder from single-person recordings.
+
+`train_matcher_job` also chooses the proposals' settings on multi-person frames composed from the
+dev recordings and writes them into the folder; `train_estimator_job` leaves the comparison with
+triangulation on the dev people there (`train.compare_with_triangulation`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, NamedTuple
+
+from mvpose_jax.errors import InputError
+from mvpose_jax.jobs.common import RigSource, read_dev_quality, recordings_in
+
+if TYPE_CHECKING:
+    from mvpose_jax.proposals import CombinedConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingRun:
+    """What every training job shares: data, output folder, devices and checkpoints.
+
+    Attributes:
+      rig: the cameras.
+      train: single-person recordings (a file, an OpenPose folder, or a folder of them).
+      dev: validation recordings, as ``train`` (the estimator: None takes the last 10% of the
+        training people).
+      out: the model folder (best and latest checkpoints).
+      layout: keypoint layout to convert the recordings to (None: theirs).
+      source_layout: OpenPose folders' keypoint layout (None: from the count).
+      seed: initialisation, sample order and augmentation.
+      devices: data-parallel devices, a count or "all" (None: one).
+      checkpoint_every: steps between saves of the latest state (0: only at validations).
+      coordinator_address, num_processes, process_id: several hosts (`parallel`).
+      resume: continue from the latest checkpoint in ``out``.
+    """
+
+    rig: RigSource
+    train: str
+    dev: str | None
+    out: str
+    layout: str | None = None
+    source_layout: str | None = None
+    seed: int = 0
+    devices: int | str | None = None
+    checkpoint_every: int = 500
+    coordinator_address: str | None = None
+    num_processes: int | None = None
+    process_id: int | None = None
+    resume: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class MatcherJob:
+    """A matcher's training (`trained.MatcherConfig` with these changes; None keeps its value).
+
+    Attributes:
+      run: data, folder, devices.
+      cameras: inference cameras C_i (None: every camera of the rig).
+      quick: `MatcherConfig.quick()` instead of the paper's.
+      max_epochs, learning_rate, max_people, keypoint_dropout: overrides.
+    """
+
+    run: TrainingRun
+    cameras: tuple[str, ...] | None = None
+    quick: bool = False
+    max_epochs: int | None = None
+    learning_rate: float | None = None
+    max_people: int | None = None
+    keypoint_dropout: float | None = None
+
+
+class ProposalChoice(NamedTuple):
+    """The proposals' settings chosen on composed dev frames (`proposals.write_proposal_threshold`).
+
+    Attributes:
+      threshold: the GAT's threshold; ari: threshold -> ARI on the composed frames.
+      combined: the combined matcher's settings; combined_ari: its threshold -> ARI.
+    """
+
+    threshold: float
+    ari: dict
+    combined: CombinedConfig
+    combined_ari: dict
+
+
+class MatcherTrained(NamedTuple):
+    """A matcher's training: validation loss, steps, seconds, folder, and the proposal settings
+    chosen (None on every process but the first of several hosts)."""
+
+    best_val_loss: float
+    steps: int
+    seconds: float
+    out: str
+    proposals: ProposalChoice | None
+
+
+def train_matcher_job(job: MatcherJob) -> MatcherTrained:
+    """Trains the matcher into ``job.run.out`` and writes its chosen proposal settings there."""
+    from mvpose_jax.data.files import check_writable
+    from mvpose_jax.matcher_settings import choose_matcher_settings
+    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
+    from mvpose_jax.proposals import write_proposal_threshold
+    from mvpose_jax.train import train_matcher
+    from mvpose_jax.trained import MatcherConfig
+
+    run = job.run
+    check_writable(run.out, folder=True)
+    # Before anything touches a device: a multi-host run must join its coordinator first.
+    initialize_distributed(run.coordinator_address, run.num_processes, run.process_id)
+    rig = run.rig.load()
+    config = MatcherConfig.quick() if job.quick else MatcherConfig()
+    train = dataclasses.replace(
+        config.train,
+        seed=run.seed,
+        num_devices=resolve_num_devices(run.devices),
+        checkpoint_every_steps=run.checkpoint_every,
+        **{
+            k: v
+            for k, v in (("max_epochs", job.max_epochs), ("learning_rate", job.learning_rate))
+            if v is not None
+        },
+    )
+    config = dataclasses.replace(
+        config,
+        train=train,
+        cameras=tuple(job.cameras) if job.cameras else None,
+        **({"max_people": job.max_people} if job.max_people else {}),
+        **({"keypoint_dropout": job.keypoint_dropout} if job.keypoint_dropout is not None else {}),
+    )
+    if not 0 <= config.keypoint_dropout < 1:
+        raise InputError(
+            f"--keypoint-dropout must be in [0, 1), not {config.keypoint_dropout}",
+            field="keypoint_dropout",
+        )
+    train_recs = recordings_in(run.train, run.layout, run.source_layout)
+    dev_recs = recordings_in(run.dev, run.layout, run.source_layout)
+    matcher, fit = train_matcher(
+        rig, train_recs, dev_recs, config, checkpoint_dir=run.out, resume=run.resume
+    )
+    import jax
+
+    choice = None
+    if jax.process_index() == 0:
+        chosen = choose_matcher_settings(matcher, dev_recs, seed=run.seed)
+        write_proposal_threshold(
+            run.out,
+            chosen.threshold,
+            chosen.ari_by_threshold,
+            chosen.composed_frames,
+            combined=chosen.combined,
+            combined_ari=chosen.ari_by_combined_threshold,
+        )
+        choice = ProposalChoice(
+            chosen.threshold,
+            chosen.ari_by_threshold,
+            chosen.combined,
+            chosen.ari_by_combined_threshold,
+        )
+    return MatcherTrained(fit.best_val_loss, fit.steps, fit.seconds, run.out, choice)
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorJob:
+    """An estimator's training (`trained.EstimatorConfig`).
+
+    Attributes:
+      run: data, folder, devices.
+      train_cameras: training cameras C_t (None: every camera of the rig).
+      infer_cameras: inference cameras C_i, a subset of C_t (None: C_t).
+      paper_size: the paper's MLP widths (else `MLPConfig.quick()`'s).
+      output: what the MLP predicts ("absolute", "anchored", "residual"; `models.MLPConfig`).
+      loss_power: per-sample loss e^power.
+      augment: view-subset samples per seed sample.
+      steps, batch_size, learning_rate, patience: the fit loop.
+      constant_lr: no cosine decay.
+    """
+
+    run: TrainingRun
+    train_cameras: tuple[str, ...] | None = None
+    infer_cameras: tuple[str, ...] | None = None
+    paper_size: bool = False
+    output: str = "residual"
+    loss_power: float = 1.0
+    augment: int = 4
+    steps: int = 4000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    constant_lr: bool = False
+    patience: int = 20
+
+
+class EstimatorTrained(NamedTuple):
+    """An estimator's training: training people, the best validation reprojection error (px per
+    keypoint; NaN without validations), steps, seconds, folder, and the dev comparison with
+    triangulation (`jobs.common.read_dev_quality`; None when not written)."""
+
+    people: int
+    best_px_per_keypoint: float
+    steps: int
+    seconds: float
+    out: str
+    dev_quality: dict | None
+
+
+def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
+    """Trains the estimator into ``job.run.out``."""
+    from mvpose_jax.data.files import check_writable
+    from mvpose_jax.features import single_person_samples
+    from mvpose_jax.models import MLPConfig
+    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
+    from mvpose_jax.train import train_estimator
+    from mvpose_jax.trained import EstimatorConfig, TrainConfig
+
+    run = job.run
+    check_writable(run.out, folder=True)
+    # Before anything touches a device: a multi-host run must join its coordinator first.
+    initialize_distributed(run.coordinator_address, run.num_processes, run.process_id)
+    rig = run.rig.load()
+    train_cams = tuple(job.train_cameras or rig.names)
+    infer_cams = tuple(job.infer_cameras or train_cams)
+    for c in train_cams:
+        rig.camera_index(c)  # unknown names fail here, naming the camera
+
+    xy, score = single_person_samples(
+        recordings_in(run.train, run.layout, run.source_layout), train_cams
+    )
+    if run.dev:
+        dev_xy, dev_score = single_person_samples(
+            recordings_in(run.dev, run.layout, run.source_layout), train_cams
+        )
+    else:
+        n = max(1, len(xy) // 10)
+        xy, score, dev_xy, dev_score = xy[:-n], score[:-n], xy[-n:], score[-n:]
+    mlp = MLPConfig() if job.paper_size else MLPConfig.quick()
+    config = EstimatorConfig(
+        train_cameras=train_cams,
+        infer_cameras=infer_cams,
+        mlp=MLPConfig(widths=mlp.widths, output=job.output),
+        num_augment=job.augment,
+        loss_power=job.loss_power,
+        train=TrainConfig(
+            learning_rate=job.learning_rate,
+            batch_size=job.batch_size,
+            max_steps=job.steps,
+            patience=job.patience,
+            seed=run.seed,
+            final_lr_fraction=1.0 if job.constant_lr else 0.01,
+            num_devices=resolve_num_devices(run.devices),
+            checkpoint_every_steps=run.checkpoint_every,
+        ),
+    )
+    _, fit = train_estimator(
+        rig.select(list(train_cams)),
+        xy,
+        score,
+        dev_xy,
+        dev_score,
+        config,
+        checkpoint_dir=run.out,
+        resume=run.resume,
+    )
+    best = min(fit.history, key=lambda h: h["val_loss"]) if fit.history else {}
+    return EstimatorTrained(
+        len(xy),
+        best.get("val_px_per_keypoint", float("nan")),
+        fit.steps,
+        fit.seconds,
+        run.out,
+        read_dev_quality(run.out),
+    )
