@@ -501,9 +501,17 @@ def test_infer_reads_pose2sim_folders_and_skips_stray_cameras(recording, tmp_pat
     capsys.readouterr()
     assert main([*args, "--camera-map", cmap]) == 2  # the stray folder, named
     assert "uncalibrated" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main([*args, "--camera-map", "view0"])
-    assert "expected FOLDER=CAMERA" in capsys.readouterr().err
+    assert main([*args, "--camera-map", "view0"]) == 2
+    assert "field '--camera-map': expected FOLDER=CAMERA" in capsys.readouterr().err
+    # Pairs separated by spaces, and a repeated option: every pair counts.
+    pairs = cmap.split(",")
+    base = ["infer", "--rig", "panoptic5", "--detections", str(root)]
+    base += ["--cameras", *recording.cameras]
+    spaced = ["--camera-map", *pairs]
+    repeated = [a for pair in pairs for a in ("--camera-map", pair)]
+    for i, how in enumerate((spaced, repeated)):
+        assert main([*base, *how, "--out", str(tmp_path / f"q{i}")]) == 0
+        assert load_poses(tmp_path / f"q{i}").cameras == recording.cameras
 
 
 def test_source_layout_reaches_the_openpose_reader(tmp_path, capsys):
@@ -659,7 +667,7 @@ def test_infer_exports_after_the_poses(three_people, tmp_path, capsys):
     tracks = sorted({int(t) for t in res.track[res.poses.valid]} - {-1})
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(
-        ["poses.json", "poses.npz"]
+        ["infer.json", "poses.json", "poses.npz"]
         + [f"poses_track{t}.{e}" for t in tracks for e in ("trc", "c3d")]
     )
     assert "exported" in captured.out

@@ -8,8 +8,9 @@ import pytest
 
 from mvpose_jax.data import load_recording, save_recording
 from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.data.recording import recording_fps
 from mvpose_jax.errors import InputError
-from mvpose_jax.jobs.common import DetectionsSource, RigSource, load_detections, recording_fps
+from mvpose_jax.jobs.common import DetectionsSource, RigSource, load_detections
 from mvpose_jax.synthetic import generate_recording
 
 
