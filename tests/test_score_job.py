@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from mvpose_jax.data import save_recording
+from mvpose_jax.data import save_recording, select_cameras
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.poses import PoseResults, save_poses
 from mvpose_jax.errors import InputError
@@ -183,3 +183,13 @@ def test_a_skeleton_the_detections_lack_is_named_with_frame_and_camera(scene, tm
         run_score(_config(tmp_path / "p", tmp_path / "fewer.json", tmp_path / "o"))
     assert e.value.field == "skeletons" and e.value.frame == 3
     assert e.value.camera == exact.cameras[2] and e.value.file.endswith("fewer.json")
+
+
+def test_detections_without_one_of_the_poses_cameras_are_named(scene, tmp_path):
+    rig, _, exact, _ = scene
+    save_poses(_truth_result(exact), tmp_path / "p")
+    save_recording(select_cameras(exact, exact.cameras[:3]), tmp_path / "three.json", rig=rig)
+    with pytest.raises(InputError) as e:
+        run_score(_config(tmp_path / "p", tmp_path / "three.json", tmp_path / "o"))
+    assert e.value.field == "cameras" and e.value.camera == exact.cameras[3]
+    assert e.value.file.endswith("three.json")
