@@ -439,10 +439,11 @@ def track_fragments(valid: np.ndarray, track: np.ndarray, short_frames: int = 10
     )
 
 
-def write_label_free_report(
-    report: LabelFreeReport, folder: str | os.PathLike
-) -> tuple[Path, Path]:
-    """Writes ``folder/label_free.json`` and ``folder/label_free.png`` (atomically); returns them.
+def write_label_free_report(report: LabelFreeReport, out: str | os.PathLike) -> tuple[Path, Path]:
+    """Writes the report as JSON and its figure (atomically); returns (JSON path, PNG path).
+
+    ``out``: a folder (``out/label_free.json`` and ``out/label_free.png``) or a ``.json`` file
+    (the figure beside it, the same name ending ``.png``).
 
     The figure: the share of each camera's keypoints the result puts within the largest radius
     (a heatmap, cameras by keypoints) and each track's bone-length spread.
@@ -451,11 +452,14 @@ def write_label_free_report(
 
     from mvpose_jax.render import save_figure
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    json_path = folder / "label_free.json"
+    out = Path(out)
+    if out.suffix.lower() == ".json":
+        json_path, png_path = out, out.with_suffix(".png")
+    else:
+        json_path, png_path = out / "label_free.json", out / "label_free.png"
+    json_path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(json_path, json.dumps(report.to_dict(), indent=1, allow_nan=False) + "\n")
-    return json_path, save_figure(_figure(report), folder / "label_free.png")
+    return json_path, save_figure(_figure(report), png_path)
 
 
 # ------------------------------------------------------------------------------- internals

@@ -25,6 +25,7 @@ from experiments.mvor import (
     to_joints,
     true_identity,
 )
+from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D
 
@@ -270,7 +271,7 @@ def test_protocol_on_known_errors(tiny):
 
 
 def test_geometric_pipelines_recover_the_tiny_scene(tiny):
-    from experiments.real import run
+    from experiments.real import CORRUPTED, run
 
     report = run(load_mvor(tiny))
     for name, row in report["rows"].items():
@@ -282,6 +283,55 @@ def test_geometric_pipelines_recover_the_tiny_scene(tiny):
         Poses3D(np.zeros((1, 1, 18, 3)), np.ones((1, 1), bool), np.ones((1, 1, 18), bool))
     )
     assert joints.xyz.shape == (1, 1, 10, 3) and joints.keypoint_valid.all()
+
+    # The label-free validation: exact detections, so every honest variant explains every
+    # keypoint of every skeleton (3 people x 3 cameras x 14 keypoints the files give) at 0 px.
+    v = report["label_free_validation"]
+    corrupt = {name for name, _ in CORRUPTED}
+    assert len(v["variants"]) >= 8 + len(corrupt)
+    for name, row in v["variants"].items():
+        lf = row["label_free"]
+        assert row["leave_one_out_visible_keypoints"] == 126, name
+        assert row["leave_one_out_blind_keypoints"] == 0, name  # 3 views: 2 others everywhere
+        if name not in corrupt:
+            assert lf["all skeletons within 20 px"] == 1.0 and lf["median px"] < 0.01, name
+    # Without its wrists a result explains 12 of each skeleton's 14 keypoints.
+    wrists = v["variants"]["geometric default, wrists dropped"]["label_free"]
+    assert wrists["coverage"] == pytest.approx(12 / 14)
+    assert wrists["all skeletons within 20 px"] == pytest.approx(12 / 14)
+    # The detections are the truth's projections: the noise floor is nil; nobody is blind.
+    arms = v["noise_floor"]["arms"]["overall"]
+    assert arms["median_px"] < 0.01 and arms["visible"] == 3 * 3 * 6
+    assert v["blind"]["annotated_people"] == 3 and v["blind"]["seen_in_fewer_than_2_views"] == 0
+    # Only the corruptions change the ranking: the share agrees with PCK3D@150 (ties aside).
+    assert v["spearman"]["all skeletons within 20 px"]["PCK3D@150"] > 0.9
+
+
+def test_corruptions_move_a_tenth_of_keypoints_5_cm_or_drop_them():
+    from experiments.real import corrupted
+
+    rng = np.random.default_rng(0)
+    F, G, K = 40, 3, 18
+    xyz = rng.normal(size=(F, G, K, 3)).astype(np.float32)
+    result = PoseResults(
+        Poses3D(xyz, np.ones((F, G), bool), np.ones((F, G, K), bool)),
+        np.ones((F, G), np.float32),
+        np.zeros((F, G, 1), np.int32),
+        np.zeros((F, 1, 1), np.int32),
+        ("cam1",),
+        "coco18",
+    )
+    moved = corrupted(result, "move", np.random.default_rng(1))
+    d = np.linalg.norm(moved.poses.xyz - xyz, axis=-1)
+    changed = d > 1e-6
+    assert 0.07 < changed.mean() < 0.13
+    np.testing.assert_allclose(d[changed], 0.05, atol=1e-5)
+    no_wrists = corrupted(result, "wrists", rng).poses.keypoint_valid
+    assert (~no_wrists).sum(-1).max() == 2 and not no_wrists[..., [9, 10]].any()
+    dropped = corrupted(result, "drop", rng).poses.keypoint_valid
+    assert 0.15 < 1 - dropped.mean() < 0.25
+    with pytest.raises(ValueError):
+        corrupted(result, "bend", rng)
 
 
 # ------------------------------------------------------------------------------- hostile input
@@ -427,3 +477,17 @@ def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
         assert a["rows"][name] == b["rows"][name]
     assert (tmp_path / "a" / "real_joints.png").stat().st_size > 0
     assert "MPJPE per joint" in (tmp_path / "a" / "real.md").read_text()
+    # The label-free validation: as deterministic, a second table.
+    va, vb = (r["label_free_validation"] for r in (a, b))
+    for v in (va, vb):
+        for row in v["variants"].values():
+            row.pop("seconds_label_free")
+    assert va == vb and len(va["variants"]) >= 8
+    assert set(va["spearman"]["all skeletons within 20 px"]) == {
+        "PCK3D@150",
+        "PCP upper",
+        "MPJPE",
+        "missed people",
+    }
+    text = (tmp_path / "a" / "real.md").read_text()
+    assert "## The label-free score against the labelled one" in text and "Noise floor" in text
