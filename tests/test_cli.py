@@ -32,6 +32,7 @@ COMMANDS = [
     "render",
     "export",
     "view",
+    "score",
 ]
 
 

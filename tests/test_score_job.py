@@ -13,7 +13,7 @@ from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.poses import PoseResults, save_poses
 from mvpose_jax.errors import InputError
 from mvpose_jax.inference import run_pipeline
-from mvpose_jax.jobs.infer import RecordingSource
+from mvpose_jax.jobs.common import DetectionsSource, RigSource
 from mvpose_jax.jobs.score import ScoreConfig, run_score, summary_lines
 from mvpose_jax.label_free import label_free_score, reference_reprojection
 from mvpose_jax.lifting import members_from_identity
@@ -47,7 +47,9 @@ def _truth_result(rec) -> PoseResults:
 
 
 def _config(poses, detections, out, **kw) -> ScoreConfig:
-    return ScoreConfig(str(poses), RecordingSource(RIG, str(detections)), str(out), **kw)
+    return ScoreConfig(
+        str(poses), RigSource(RIG), DetectionsSource(str(detections)), str(out), **kw
+    )
 
 
 def test_the_truth_on_exact_detections_scores_every_keypoint_within_0_px(scene, tmp_path):

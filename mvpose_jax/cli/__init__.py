@@ -16,7 +16,7 @@ from collections.abc import Sequence
 # The command modules register their subcommands on import, in the order --help lists them.
 # isort: off
 from mvpose_jax.cli import rig, generate, train, adapt, convert, infer  # noqa: F401
-from mvpose_jax.cli import smooth, evaluate, render, export, view  # noqa: F401
+from mvpose_jax.cli import smooth, evaluate, render, export, view, score  # noqa: F401
 
 # isort: on
 from mvpose_jax.cli.options import SOURCE_LAYOUT_HELP

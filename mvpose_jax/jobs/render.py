@@ -46,7 +46,7 @@ def render(config: RenderConfig) -> Rendered:
     """Draws the frames asked for (a progress bar on stderr)."""
     import cv2
     import numpy as np
-    from tqdm.auto import tqdm
+    from mvpose_jax.progress import progress_bar
 
     from mvpose_jax.data.files import check_writable
     from mvpose_jax.render import (
@@ -119,11 +119,11 @@ def render(config: RenderConfig) -> Rendered:
     written = 0
     if video:
         with VideoWriter(out, config.fps or recording_fps(rec.timestamps)) as writer:
-            for f in tqdm(frames, desc="render", unit="frame"):
+            for f in progress_bar(frames, desc="render", unit="frame"):
                 writer.write(picture(f))
                 written += 1
         return Rendered(written, out)
-    for f in tqdm(frames, desc="render", unit="frame"):
+    for f in progress_bar(frames, desc="render", unit="frame"):
         write_image(out / f"frame_{f:06d}.png", picture(f))
         if config.figures_3d:
             v = poses.poses.valid[f]

@@ -16,7 +16,7 @@ import numpy as np
 from mvpose_jax.data import load_recording
 from mvpose_jax.data.poses import PoseResults, load_poses
 from mvpose_jax.errors import InputError
-from mvpose_jax.jobs.infer import RecordingSource
+from mvpose_jax.jobs.common import DetectionsSource, RigSource
 from mvpose_jax.label_free import (
     LabelFreeConfig,
     LabelFreeReport,
@@ -33,8 +33,9 @@ class ScoreConfig:
 
     Attributes:
       poses: ``poses.npz`` / ``poses.json`` (or their folder), as ``infer`` writes them.
-      source: the calibration (``source.rig``) and the detections the poses were made from
-        (``source.detections``, read on the poses' cameras, in the poses' layout).
+      rig: the calibration.
+      detections: the detections the poses were made from (read on the poses' cameras, in the
+        poses' layout).
       out: a ``.json`` file (the figure beside it, ``.png``) or a folder (``label_free.json``
         and ``label_free.png`` in it).
       label_free: the score's settings.
@@ -44,7 +45,8 @@ class ScoreConfig:
     """
 
     poses: str
-    source: RecordingSource
+    rig: RigSource
+    detections: DetectionsSource
     out: str
     label_free: LabelFreeConfig = LabelFreeConfig()
     noise_floor: bool = True
@@ -64,7 +66,7 @@ def run_score(config: ScoreConfig) -> tuple[LabelFreeReport, tuple[Path, Path]]:
         the poses use that the detections do not have), naming file, frame, camera and field.
     """
     poses = load_poses(config.poses)
-    rig_all = config.source.load_rig()
+    rig_all = config.rig.load()
     missing = [c for c in poses.cameras if c not in rig_all.names]
     if missing:
         raise InputError(
@@ -72,13 +74,11 @@ def run_score(config: ScoreConfig) -> tuple[LabelFreeReport, tuple[Path, Path]]:
             file=config.poses,
             field="cameras",
         )
-    options = {**config.source.reading_options(), "cameras": list(poses.cameras)}
-    recording = load_recording(
-        config.source.detections, layout=poses.layout, rig=rig_all, **options
-    )
+    options = {**config.detections.reading_options(), "cameras": list(poses.cameras)}
+    recording = load_recording(config.detections.path, layout=poses.layout, rig=rig_all, **options)
     frames = _checked_frames(poses, recording.detections, config)
     detections = Detections(*(np.asarray(a)[:frames] for a in recording.detections))
-    _check_skeletons(poses, detections, config.source.detections)
+    _check_skeletons(poses, detections, config.detections.path)
     floor = None
     truth = recording.ground_truth
     if config.noise_floor and truth is not None and recording.identity is not None:
@@ -102,7 +102,7 @@ def run_score(config: ScoreConfig) -> tuple[LabelFreeReport, tuple[Path, Path]]:
             noise_floor=floor,
         )
     except InputError as e:
-        raise e.at(file=config.source.detections) from None
+        raise e.at(file=config.detections.path) from None
     return report, write_label_free_report(report, config.out)
 
 
@@ -171,7 +171,7 @@ def _checked_frames(poses: PoseResults, detections: Detections, config: ScoreCon
         raise InputError(
             f"{have} frames, but the poses ({config.poses}) are {what} {expected} frames: "
             "not the detections they were made from",
-            file=config.source.detections,
+            file=config.detections.path,
             field="frames",
         )
     return frames
