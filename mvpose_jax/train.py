@@ -44,8 +44,8 @@ import optax
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, project_points, rig_centre_and_radius
-from mvpose_jax.checkpoints import Checkpoints
-from mvpose_jax.data.files import atomic_write_text, to_jsonable
+from mvpose_jax.checkpoints import Checkpoints, TrainState  # TrainState: defined with what holds it
+from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
 from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches, split_graph_batch
@@ -53,25 +53,17 @@ from mvpose_jax.losses import masked_mean, match_mse, reprojection_error_l1
 from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
 from mvpose_jax.parallel import make_data_mesh, mesh_size, replicate, replicated, shard_batch
 from mvpose_jax.trained import (
-    DEV_QUALITY_FILE,
     Estimator,
     EstimatorConfig,
     Matcher,
     MatcherConfig,
+    ModelFolder,
     TrainConfig,
 )
 from mvpose_jax.triangulate import triangulate_points
 
 if TYPE_CHECKING:  # annotations only: importing data.recording loads every reader
     from mvpose_jax.data.recording import Recording
-
-
-class TrainState(NamedTuple):
-    """Everything that changes during training."""
-
-    step: jax.Array  # () int32
-    params: nnx.State  # trainable nnx.Param leaves
-    opt_state: optax.OptState
 
 
 def make_optimizer(config: TrainConfig, steps_per_epoch: int = 1) -> optax.GradientTransformation:
@@ -577,6 +569,102 @@ def estimator_loss_fn(
     return loss_fn
 
 
+class EstimatorTraining(NamedTuple):
+    """One estimator's training set-up (`estimator_training`), the same for training, adaptation
+    and the benchmark."""
+
+    graphdef: Any
+    rest: Any
+    state: TrainState  # the starting state (replicated over ``mesh`` when there is one)
+    train_step: Callable  # jitted (state, EstimatorBatch, key) -> (state, metrics)
+    # jitted (params, EstimatorBatch) -> {"val_loss", "val_px_per_keypoint"}: no augmentation
+    evaluate: Callable
+    rig_train: Rig  # the loss cameras C_t
+    rig_infer: Rig  # the input cameras C_i
+    infer_idx: tuple[int, ...]  # C_i's indices in C_t
+    normalisation: tuple[Any, Any] | None  # as `make_estimator_batch` (None: rig_train's)
+    mesh: jax.sharding.Mesh | None  # data parallelism (`TrainConfig.num_devices`)
+
+    def batches(self, xy, score, chunk: int = 4096) -> EstimatorBatch:
+        """People's detections (N, C_t, K, 2) and scores (N, C_t, K) in the training cameras as
+        one `EstimatorBatch` (built ``chunk`` people at a time, to bound the host's memory)."""
+        parts = [
+            make_estimator_batch(
+                self.rig_train,
+                self.infer_idx,
+                xy[i : i + chunk],
+                score[i : i + chunk],
+                self.normalisation,
+            )
+            for i in range(0, len(xy), chunk)
+        ]
+        return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+
+
+def estimator_training(
+    rig: Rig,
+    config: EstimatorConfig,
+    num_keypoints: int,
+    *,
+    steps_per_epoch: int = 1,
+    start: Estimator | None = None,
+) -> EstimatorTraining:
+    """The estimator's training set-up: cameras, model, optimiser, train step and evaluation.
+
+    Args:
+      rig: a rig holding (at least) ``config.train_cameras`` (None: all of ``rig``).
+      config: the estimator's `EstimatorConfig`; ``config.train`` the optimisation (its seed
+        initialises a fresh model, its ``num_devices`` makes the mesh).
+      num_keypoints: K.
+      steps_per_epoch: for the optimiser's schedule (`make_optimizer`).
+      start: a trained estimator to go on from (adaptation): its parameters (copied: the step
+        donates its state) and its normalised frame; None: a fresh model in ``rig_train``'s frame.
+    Raises:
+      InputError on inference cameras that are not training cameras, or a mesh that cannot be
+      made.
+    """
+    train_names = config.train_cameras or rig.names
+    infer_names = config.infer_cameras or train_names
+    missing = [c for c in infer_names if c not in train_names]
+    if missing:
+        raise InputError(
+            f"inference cameras {missing} are not training cameras", field="infer_cameras"
+        )
+    rig_train = rig.select(list(train_names))
+    infer_idx = tuple(list(train_names).index(c) for c in infer_names)
+    rig_infer = rig_train.select(list(infer_idx))
+    tcfg = config.train
+    mesh = _mesh(tcfg)
+    if start is None:
+        model = PoseMLP(len(infer_idx), num_keypoints, config.mlp, rngs=nnx.Rngs(tcfg.seed))
+        normalisation = None
+    else:
+        params = jax.tree.map(jnp.copy, start.params)
+        model = nnx.merge(start.graphdef, params, start.rest)
+        normalisation = start.normalisation
+    tx = make_optimizer(tcfg, steps_per_epoch)
+    graphdef, rest, state = init_train_state(model, tx)
+    loss_fn = estimator_loss_fn(
+        rig_train, rig_infer, config.num_augment, config.loss_power, normalisation
+    )
+    train_step = make_train_step(graphdef, rest, tx, loss_fn, mesh=mesh)
+    evaluate = make_estimator_eval(graphdef, rest, rig_train, config.loss_power, normalisation)
+    if mesh is not None:
+        state = replicate(mesh, state)
+    return EstimatorTraining(
+        graphdef,
+        rest,
+        state,
+        train_step,
+        evaluate,
+        rig_train,
+        rig_infer,
+        infer_idx,
+        normalisation,
+        mesh,
+    )
+
+
 def train_estimator(
     rig: Rig,
     train_xy: np.ndarray,
@@ -605,49 +693,21 @@ def train_estimator(
       InputError on cameras missing from the rig, a batch size that does not split over
       ``config.train.num_devices``, or (resuming) a checkpoint of another config or a damaged one.
     """
-    train_names = config.train_cameras or rig.names
-    infer_names = config.infer_cameras or train_names
-    rig_train = rig.select(list(train_names))
-    missing = [c for c in infer_names if c not in train_names]
-    if missing:
-        raise InputError(
-            f"inference cameras {missing} are not training cameras", field="infer_cameras"
-        )
-    infer_idx = [train_names.index(c) for c in infer_names]
-    rig_infer = rig_train.select(infer_idx)
-    K = train_xy.shape[-2]
     tcfg = config.train
-
-    def batches_of(xy, score, chunk=4096):
-        parts = [
-            make_estimator_batch(rig_train, infer_idx, xy[i : i + chunk], score[i : i + chunk])
-            for i in range(0, len(xy), chunk)
-        ]
-        return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
-
-    train_data = batches_of(train_xy, train_score)
-    dev_data = batches_of(dev_xy, dev_score)
-
     n_train = len(train_xy)
     batch = min(tcfg.batch_size, n_train)
     steps_per_epoch = math.ceil(n_train / batch)
-    mesh = _mesh(tcfg)
+    setup = estimator_training(rig, config, train_xy.shape[-2], steps_per_epoch=steps_per_epoch)
+    mesh, graphdef, rest, state = setup.mesh, setup.graphdef, setup.rest, setup.state
     if mesh is not None and batch % mesh_size(mesh):
         raise InputError(
             f"batch size {batch} does not split over {mesh_size(mesh)} devices; use a multiple of "
             f"{mesh_size(mesh)}",
             field="batch_size",
         )
-    model = PoseMLP(len(infer_idx), K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
-    tx = make_optimizer(tcfg, steps_per_epoch)
-    graphdef, rest, state = init_train_state(model, tx)
-    loss_fn = estimator_loss_fn(rig_train, rig_infer, config.num_augment, config.loss_power)
-    step = make_train_step(graphdef, rest, tx, loss_fn, mesh=mesh)
-    eval_loss = jax.jit(
-        functools.partial(_estimator_eval, graphdef, rest, rig_train, rig_infer, config.loss_power)
-    )
+    train_data = setup.batches(train_xy, train_score)
+    dev_data = setup.batches(dev_xy, dev_score)
     if mesh is not None:
-        state = replicate(mesh, state)
         dev_data = replicate(mesh, dev_data)  # evaluated whole on each device (it is small)
 
     def epoch_batches(epoch):
@@ -657,19 +717,21 @@ def train_estimator(
             yield samples if mesh is None else shard_batch(mesh, samples)
 
     def evaluate(state):
-        return {k: float(v) for k, v in eval_loss(state.params, dev_data).items()}
+        return {k: float(v) for k, v in setup.evaluate(state.params, dev_data).items()}
 
     run_config = to_jsonable(dataclasses.asdict(config))
     # What restoring needs beyond the config: the resolved cameras and the keypoint count.
     run_config.update(
-        train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K)
+        train_cameras=list(setup.rig_train.names),
+        infer_cameras=list(setup.rig_infer.names),
+        num_keypoints=int(train_xy.shape[-2]),
     )
-    centre, radius = rig_centre_and_radius(rig_train)
+    centre, radius = rig_centre_and_radius(setup.rig_train)
     # The normalised frame travels with the model (inference may hold only the inference cameras).
     run_config["frame"] = [float(x) for x in np.asarray(centre)] + [float(radius)]
     result = _fit_resumable(
         state,
-        step,
+        setup.train_step,
         epoch_batches,
         evaluate,
         tcfg,
@@ -687,16 +749,14 @@ def train_estimator(
             graphdef,
             rest,
             jax.device_get(result.state.params),
-            rig_train,
-            infer_idx,
+            setup.rig_train,
+            setup.infer_idx,
             dev_xy,
             dev_score,
         )
-        atomic_write_text(
-            Path(checkpoint_dir) / DEV_QUALITY_FILE, json.dumps(quality, indent=1) + "\n"
-        )
+        ModelFolder(checkpoint_dir).write_dev_quality(quality)
     return Estimator(
-        graphdef, rest, result.state.params, rig_infer, config, (centre, radius)
+        graphdef, rest, result.state.params, setup.rig_infer, config, (centre, radius)
     ), result
 
 
@@ -814,7 +874,7 @@ def _fit_resumable(
     checkpoints = (
         None
         if checkpoint_dir is None
-        else Checkpoints(checkpoint_dir, max_to_keep=config.max_to_keep)
+        else ModelFolder(checkpoint_dir).checkpoints(max_to_keep=config.max_to_keep)
     )
     try:
         resumed = Resumed(state, None, math.inf, None)

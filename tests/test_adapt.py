@@ -28,12 +28,7 @@ from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import predict_people, propose_with_matcher, run_pipeline
 from mvpose_jax.metrics import matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
-from mvpose_jax.proposals import (
-    CombinedConfig,
-    read_combined_config,
-    read_proposal_threshold,
-    write_proposal_threshold,
-)
+from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.synthetic import (
     SyntheticConfig,
     generate_recording,
@@ -48,6 +43,9 @@ from mvpose_jax.trained import (
     TrainConfig,
     load_estimator,
     load_matcher,
+    read_combined_config,
+    read_proposal_threshold,
+    write_proposal_threshold,
 )
 
 TINY = MLPConfig(widths=(32, 32), output="residual")
