@@ -37,6 +37,7 @@ from mvpose_jax.adapt import (
 )
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
 from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.estimator_training import estimator_training
 from mvpose_jax.features import assemble_features, estimator_inputs, single_person_samples
 from mvpose_jax.graphs import (
     build_graphs,
@@ -55,19 +56,13 @@ from mvpose_jax.lifting import (
     predict_people,
     triangulate_grouped,
 )
+from mvpose_jax.matcher_training import matcher_loss_fn
 from mvpose_jax.matching import gat_match_table, propose_with_matcher
-from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
+from mvpose_jax.models import MatchingGAT, to_world
 from mvpose_jax.proposals import propose_people
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.synthetic import generate_single_person_recordings
-from mvpose_jax.train import (
-    estimator_loss_fn,
-    init_train_state,
-    make_estimator_batch,
-    make_optimizer,
-    make_train_step,
-    matcher_loss_fn,
-)
+from mvpose_jax.train import init_train_state, make_optimizer, make_train_step
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig
 
 # The configuration the targets are stated for (DESIGN.md §5 and the tracker issue).
@@ -775,15 +770,10 @@ def training(tier: Tier) -> dict:
 
 
 def _train_estimator_step(rig, xy, score, mlp, tier: Tier) -> dict:
-    C, K = rig.num_cameras, xy.shape[-2]
     config = EstimatorConfig(mlp=mlp)
-    model = PoseMLP(C, K, mlp, rngs=nnx.Rngs(0))
-    tx = make_optimizer(config.train)
-    graphdef, rest, state = init_train_state(model, tx)
-    step = make_train_step(
-        graphdef, rest, tx, estimator_loss_fn(rig, rig, config.num_augment, config.loss_power)
-    )
-    data = make_estimator_batch(rig, list(range(C)), xy, score)
+    setup = estimator_training(rig, config, xy.shape[-2])  # as train_estimator sets it up
+    state, step = setup.state, setup.train_step
+    data = setup.batches(xy, score)
     B = tier.train_batch
     rng = np.random.default_rng(0)
     key = jax.random.key(0)

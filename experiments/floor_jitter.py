@@ -17,6 +17,7 @@ import numpy as np
 
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.estimator_training import train_estimator
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.lifting import members_from_identity, poses_of_members
 from mvpose_jax.metrics import pose_metrics
@@ -28,7 +29,6 @@ from mvpose_jax.synthetic import (
     generate_single_person_recordings,
     scene_geometry,
 )
-from mvpose_jax.train import train_estimator
 from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
 

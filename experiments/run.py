@@ -58,6 +58,7 @@ from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.errors import InputError
+from mvpose_jax.estimator_training import train_estimator
 from mvpose_jax.features import people_from_identity, single_person_samples
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import (
@@ -68,6 +69,7 @@ from mvpose_jax.lifting import (
     triangulate_grouped,
 )
 from mvpose_jax.matcher_settings import composed_frames
+from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.matching import (
     epipolar_distances_of_rows,
     epipolar_match_distances,
@@ -101,7 +103,6 @@ from mvpose_jax.synthetic import (
     generate_single_person_recordings,
 )
 from mvpose_jax.tracking import TrackingConfig
-from mvpose_jax.train import train_estimator, train_matcher
 from mvpose_jax.trained import MATCHER_TRAIN, EstimatorConfig, MatcherConfig, TrainConfig
 
 # The paper's numbers (reference only; never mixed into ours).

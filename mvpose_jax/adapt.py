@@ -23,11 +23,8 @@ training loss; `save_adapted_matcher` writes a folder `trained.load_matcher` loa
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -37,33 +34,24 @@ import numpy as np
 from flax import nnx
 
 from mvpose_jax.cameras import Rig
-from mvpose_jax.checkpoints import Checkpoints
-from mvpose_jax.data.files import atomic_write_text, to_jsonable
+from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
+from mvpose_jax.estimator_training import compare_with_triangulation, estimator_training
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import group_people
 from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.skeletons import Detections
-from mvpose_jax.train import (
-    EstimatorBatch,
-    TrainState,
-    compare_with_triangulation,
-    estimator_loss_fn,
-    fit,
-    init_train_state,
-    make_estimator_batch,
-    make_estimator_eval,
-    make_optimizer,
-    make_train_step,
+from mvpose_jax.train import TrainState, fit, init_train_state, make_optimizer, make_train_step
+from mvpose_jax.trained import (
+    Estimator,
+    Matcher,
+    ModelFolder,
+    TrainConfig,
 )
-from mvpose_jax.trained import DEV_QUALITY_FILE, Estimator, Matcher, TrainConfig
 
 # The time bound of the issue (19, item 3): at most 2 minutes per 1,000 frames (quick size, 2 CPU
 # cores); the default wall-clock budget of an adaptation.
 SECONDS_PER_1000_FRAMES = 120.0
-
-# Written beside the adapted model by `save_adapted_estimator`.
-ADAPT_REPORT_FILE = "adapt_report.json"
 
 
 def _budget_seconds(max_seconds: float | None, num_frames: int) -> float:
@@ -317,7 +305,6 @@ def adapt_estimator(
             field="cameras",
         )
     infer_idx = [list(cameras).index(c) for c in estimator.rig_infer.names]
-    rig_loss = rig.select(list(cameras))
     det = Detections(
         np.asarray(detections.xy, np.float32)[:, cam_idx],
         np.asarray(detections.score, np.float32)[:, cam_idx],
@@ -346,20 +333,8 @@ def adapt_estimator(
             f"and {need_held}: a longer recording, or smaller --block-frames",
             field="detections",
         )
-    normalisation = estimator.normalisation
     power = estimator.config.loss_power if config.loss_power is None else config.loss_power
     augment = estimator.config.num_augment if config.num_augment is None else config.num_augment
-
-    def batch_of(sel) -> EstimatorBatch:
-        parts = [
-            make_estimator_batch(
-                rig_loss, infer_idx, xy[sel][i : i + 4096], score[sel][i : i + 4096], normalisation
-            )
-            for i in range(0, int(sel.sum()), 4096)
-        ]
-        return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
-
-    adapt_data, held_data = batch_of(~held), batch_of(held)
     batch = min(config.batch_size, n_adapt)
     max_steps = config.max_steps
     tcfg = TrainConfig(
@@ -374,18 +349,28 @@ def adapt_estimator(
         final_lr_fraction=config.final_lr_fraction,
         checkpoint_every_steps=0,
     )
-    tx = make_optimizer(tcfg, config.check_every)
-    # A copy: the train step donates its state, and the caller keeps the given estimator.
-    graphdef, rest, state = init_train_state(
-        nnx.merge(estimator.graphdef, jax.tree.map(jnp.copy, estimator.params), estimator.rest),
-        tx,
+    # The estimator's own set-up, on the grouping cameras, from its parameters (copied: the
+    # caller keeps the given estimator) and in its normalised frame.
+    setup = estimator_training(
+        rig,
+        dataclasses.replace(
+            estimator.config,
+            train_cameras=tuple(cameras),
+            infer_cameras=tuple(estimator.rig_infer.names),
+            num_augment=augment,
+            loss_power=power,
+            train=tcfg,
+        ),
+        K,
+        steps_per_epoch=config.check_every,
+        start=estimator,
     )
-    loss_fn = estimator_loss_fn(rig_loss, estimator.rig_infer, augment, power, normalisation)
-    train_step = make_train_step(graphdef, rest, tx, loss_fn)
-    eval_fn = make_estimator_eval(graphdef, rest, rig_loss, power, normalisation)
+    graphdef, rest, state = setup.graphdef, setup.rest, setup.state
+    adapt_data = setup.batches(xy[~held], score[~held])
+    held_data = setup.batches(xy[held], score[held])
 
     def evaluate(s: TrainState) -> dict[str, float]:
-        return {k: float(v) for k, v in eval_fn(s.params, held_data).items()}
+        return {k: float(v) for k, v in setup.evaluate(s.params, held_data).items()}
 
     def check_batches(epoch: int):
         # An "epoch" of the fit loop is one evaluation period: check_every random batches.
@@ -396,7 +381,7 @@ def adapt_estimator(
 
     result_state, steps, history, before, after, stopped = _fit_within_budget(
         state,
-        train_step,
+        setup.train_step,
         check_batches,
         evaluate,
         tcfg,
@@ -412,11 +397,11 @@ def adapt_estimator(
         graphdef,
         rest,
         result_state.params,
-        rig_loss,
-        infer_idx,
+        setup.rig_train,
+        setup.infer_idx,
         xy[held],
         score[held],
-        normalisation=normalisation,
+        normalisation=estimator.normalisation,
     )
     quality["how"] += " (here: the people of the adaptation's held-out frames)"
     report = AdaptReport(
@@ -464,9 +449,6 @@ def save_adapted_estimator(
     Raises:
       InputError when ``directory`` holds something already.
     """
-    out = Path(directory)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError("exists and is not an empty folder; choose a new one", file=out)
     config = to_jsonable(dataclasses.asdict(estimator.config))
     names = list(estimator.rig_infer.names)
     centre, radius = estimator.normalisation
@@ -479,25 +461,11 @@ def save_adapted_estimator(
         frame=[float(x) for x in np.asarray(centre)] + [float(radius)],
         adapted={k: v for k, v in report.to_json().items() if k not in ("history", "quality")},
     )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        params = jax.device_put(estimator.params)
-        state = TrainState(jnp.asarray(report.best_step, jnp.int32), params, ())
-        checkpoints = Checkpoints(tmp)
-        try:
-            checkpoints.save_best(state, config, report.heldout_loss_after)
-        finally:
-            checkpoints.close()
-        atomic_write_text(tmp / ADAPT_REPORT_FILE, json.dumps(report.to_json(), indent=1) + "\n")
-        atomic_write_text(tmp / DEV_QUALITY_FILE, json.dumps(report.quality, indent=1) + "\n")
-        if out.exists():
-            out.rmdir()  # empty (checked above)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+    with ModelFolder.create(directory) as folder:
+        folder.save_params(estimator.params, report.best_step, config, report.heldout_loss_after)
+        folder.write_adapt_report(report.to_json())
+        folder.write_dev_quality(report.quality)
+    return Path(directory)
 
 
 # =========================================================================== the matcher
@@ -633,8 +601,8 @@ def adapt_matcher(
       frames of cross-view pairs to hold some out.
     """
     from mvpose_jax.graphs import build_graphs, detection_features, graph_budget
+    from mvpose_jax.matcher_training import matcher_eval_sums, matcher_loss_fn
     from mvpose_jax.matching import propose_with_matcher
-    from mvpose_jax.train import matcher_eval_sums, matcher_loss_fn
 
     start = time.perf_counter()
     config.check()
@@ -786,43 +754,23 @@ def save_adapted_matcher(
 ) -> Path:
     """Writes an adapted matcher as a folder `trained.load_matcher` loads, with
     ``adapt_report.json`` beside the checkpoint and, from the matcher folder ``settings_from``,
-    its proposal settings (`proposals.PROPOSAL_THRESHOLD_FILE`: chosen on its dev frames, kept).
+    its chosen proposal settings (`trained.ModelFolder.copy_proposal_settings`: chosen on its dev
+    frames, kept).
 
     Assembled under a temporary name and renamed into place when complete.
 
     Raises:
       InputError when ``directory`` holds something already.
     """
-    from mvpose_jax.proposals import PROPOSAL_THRESHOLD_FILE
-
-    out = Path(directory)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError("exists and is not an empty folder; choose a new one", file=out)
     config = to_jsonable(dataclasses.asdict(matcher.config))
     config.update(
         cameras=list(matcher.rig.names),
         num_keypoints=int(report.settings["num_keypoints"]),
         adapted={k: v for k, v in report.to_json().items() if k != "history"},
     )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        state = TrainState(
-            jnp.asarray(report.best_step, jnp.int32), jax.device_put(matcher.params), ()
-        )
-        checkpoints = Checkpoints(tmp)
-        try:
-            checkpoints.save_best(state, config, report.heldout_loss_after)
-        finally:
-            checkpoints.close()
-        atomic_write_text(tmp / ADAPT_REPORT_FILE, json.dumps(report.to_json(), indent=1) + "\n")
-        source = None if settings_from is None else Path(settings_from) / PROPOSAL_THRESHOLD_FILE
-        if source is not None and source.exists():
-            shutil.copyfile(source, tmp / PROPOSAL_THRESHOLD_FILE)
-        if out.exists():
-            out.rmdir()
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+    with ModelFolder.create(directory) as folder:
+        folder.save_params(matcher.params, report.best_step, config, report.heldout_loss_after)
+        folder.write_adapt_report(report.to_json())
+        if settings_from is not None:
+            folder.copy_proposal_settings(ModelFolder(settings_from))
+    return Path(directory)

@@ -1,22 +1,29 @@
 """Orbax checkpoints of a training run: best and latest states, each with the run's config.
 
-The only orbax import of the package. Training saves whole `train.TrainState`s (parameters,
+The only orbax import of the package. Training saves whole `TrainState`s (parameters,
 optimiser state, step) so a killed run resumes exactly; inference restores the parameters alone
 (`Checkpoints.restore_params`, a partial restore), so loading a model needs no optimiser.
+`TrainState` is defined here, with what holds it, so that neither `train` (which steps it) nor
+`trained` (which saves adapted parameters as one) is needed to read or write a checkpoint.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
 
 from mvpose_jax.errors import InputError
 
-if TYPE_CHECKING:
-    from mvpose_jax.train import TrainState
+
+class TrainState(NamedTuple):
+    """Everything that changes during training (what a checkpoint holds)."""
+
+    step: jax.Array  # () int32
+    params: Any  # nnx.State: the trainable nnx.Param leaves
+    opt_state: Any  # optax.OptState (() in a folder of parameters alone)
 
 
 class Checkpoints:

@@ -5,8 +5,9 @@ first, joined by a union-find that never puts two skeletons of one camera in one
 settings are chosen here by one rule for every matcher: the best per-frame adjusted Rand index
 on labelled frames (in practice, frames composed from held-out single-person recordings):
 `choose_proposal_threshold` for the GAT, `choose_geometric_cutoff` for the epipolar matcher,
-`choose_combined_threshold` for the combined matcher. The chosen settings travel beside the
-checkpoint (`write_proposal_threshold`, `read_proposal_threshold`, `read_combined_config`).
+`choose_combined_threshold` for the combined matcher. The chosen settings travel in the
+matcher's folder, which `trained.ModelFolder` writes and reads (`write_proposal_settings`,
+`read_proposal_threshold`, `read_combined_config`).
 
 The combined matcher (`propose_combined`, issue 19) joins the GAT's decisions with epipolar
 geometry so that it does not lose to the epipolar matcher where the GAT meets data it was not
@@ -35,14 +36,10 @@ Host-side numpy; no model here.
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.errors import InputError
 from mvpose_jax.metrics import matching_scores
 
@@ -674,73 +671,3 @@ def choose_combined_threshold(
         ari[float(th)] = matching_scores(identity, pred.identity, count)["ari"]
     best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - config.threshold)))
     return best, ari
-
-
-PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
-
-
-def write_proposal_threshold(
-    folder: str | os.PathLike,
-    threshold: float,
-    ari: dict[float, float],
-    composed_frames: int,
-    *,
-    combined: CombinedConfig | None = None,
-    combined_ari: dict[float, float] | None = None,
-) -> Path:
-    """Writes a matcher's chosen threshold (and, when given, the combined matcher's settings with
-    the ARI of each threshold tried) beside its checkpoints (`PROPOSAL_THRESHOLD_FILE`)."""
-    record = {
-        "threshold": threshold,
-        "ari_by_threshold": {str(k): round(v, 6) for k, v in ari.items()},
-        "composed_frames": int(composed_frames),
-        "how": "the best per-frame adjusted Rand index of the proposals on multi-person frames composed "
-        "from the dev recordings (inference.choose_matcher_threshold)",
-    }
-    if combined is not None:
-        record["combined"] = dataclasses.asdict(combined)
-        if combined_ari is not None:
-            record["combined"]["ari_by_threshold"] = {
-                str(k): round(v, 6) for k, v in combined_ari.items()
-            }
-    path = Path(folder) / PROPOSAL_THRESHOLD_FILE
-    atomic_write_text(path, json.dumps(record, indent=1) + "\n")
-    return path
-
-
-def read_proposal_threshold(folder: str | os.PathLike | None, given: float | None = None) -> float:
-    """The proposal threshold: ``given``, else the matcher folder's chosen one, else the paper's 0.5."""
-    if given is not None:
-        return given
-    path = Path(folder) / PROPOSAL_THRESHOLD_FILE if folder else None
-    if path is None or not path.exists():
-        return 0.5
-    try:
-        return float(json.loads(path.read_text())["threshold"])
-    except (ValueError, KeyError, TypeError) as e:
-        raise InputError(
-            f"unreadable proposal threshold ({e})", file=path, field="threshold"
-        ) from e
-
-
-def read_combined_config(folder: str | os.PathLike | None) -> CombinedConfig:
-    """The combined matcher's settings recorded in a matcher folder (`write_proposal_threshold`),
-    else `CombinedConfig`'s defaults."""
-    path = Path(folder) / PROPOSAL_THRESHOLD_FILE if folder else None
-    if path is None or not path.exists():
-        return CombinedConfig()
-    try:
-        record = json.loads(path.read_text()).get("combined")
-        if record is None:
-            return CombinedConfig()
-        # Each setting as its field's type: numbers as floats; a switch only as a JSON boolean
-        # (bool("false") would be True).
-        types = {f.name: type(f.default) for f in dataclasses.fields(CombinedConfig)}
-        for k, v in record.items():
-            if types.get(k) is bool and not isinstance(v, bool):
-                raise TypeError(f"{k} must be true or false, not {v!r}")
-        return CombinedConfig(**{k: types[k](v) for k, v in record.items() if k in types})
-    except (ValueError, AttributeError, TypeError) as e:
-        raise InputError(
-            f"unreadable combined matcher settings ({e})", file=path, field="combined"
-        ) from e

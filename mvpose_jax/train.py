@@ -19,11 +19,8 @@ Resuming (`fit`, `Checkpoints`, `resume_state`): the latest state is checkpointe
 data-stream position, best validation loss, early-stopping counter, history), so a killed run
 resumed from its folder ends with the parameters an uninterrupted run ends with.
 
-The 3D estimator's training (DESIGN.md §1.3) is `train_estimator`: inputs from the inference
-cameras C_i, reprojection loss over all training cameras C_t, view-subset augmentation inside the
-step (each seed sample gets ``num_augment`` derived samples with random non-empty proper subsets
-of its available views; their initial 3D is recomputed from the kept views; their loss uses every
-view of the seed). No 3D ground truth is an input of anything here.
+Each model's own training builds on this module: `estimator_training` (the 3D estimator) and
+`matcher_training` (the skeleton matcher). No 3D ground truth is an input of anything here.
 """
 
 from __future__ import annotations
@@ -33,7 +30,7 @@ import functools
 import json
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -43,35 +40,18 @@ import numpy as np
 import optax
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, project_points, rig_centre_and_radius
-from mvpose_jax.checkpoints import Checkpoints
-from mvpose_jax.data.files import atomic_write_text, to_jsonable
+from mvpose_jax.checkpoints import Checkpoints, TrainState  # TrainState: defined with what holds it
+from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
-from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
-from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches, split_graph_batch
-from mvpose_jax.losses import masked_mean, match_mse, reprojection_error_l1
-from mvpose_jax.models import MatchingGAT, PoseMLP, to_world
-from mvpose_jax.parallel import make_data_mesh, mesh_size, replicate, replicated, shard_batch
+from mvpose_jax.losses import masked_mean
+from mvpose_jax.parallel import make_data_mesh, replicated
 from mvpose_jax.trained import (
-    DEV_QUALITY_FILE,
-    Estimator,
-    EstimatorConfig,
-    Matcher,
-    MatcherConfig,
+    ModelFolder,
     TrainConfig,
 )
-from mvpose_jax.triangulate import triangulate_points
 
 if TYPE_CHECKING:  # annotations only: importing data.recording loads every reader
-    from mvpose_jax.data.recording import Recording
-
-
-class TrainState(NamedTuple):
-    """Everything that changes during training."""
-
-    step: jax.Array  # () int32
-    params: nnx.State  # trainable nnx.Param leaves
-    opt_state: optax.OptState
+    pass
 
 
 def make_optimizer(config: TrainConfig, steps_per_epoch: int = 1) -> optax.GradientTransformation:
@@ -267,7 +247,7 @@ def fit(
     Raises:
       InputError when ``resume_from`` belongs to another step than ``state``.
     """
-    from tqdm.auto import tqdm
+    from mvpose_jax.progress import progress_bar
 
     base_key = jax.random.key(config.seed)
     max_steps = config.max_steps or config.max_epochs * steps_per_epoch
@@ -308,7 +288,7 @@ def fit(
             time.perf_counter() - start,
         ).to_json()
 
-    bar = tqdm(
+    bar = progress_bar(
         total=total,
         initial=min(step, total),
         desc=desc,
@@ -486,306 +466,7 @@ def shuffled_batches(num_items: int, batch_size: int, seed: int, epoch: int) -> 
 # --------------------------------------------------------------------------- the 3D estimator
 
 
-class EstimatorBatch(NamedTuple):
-    """Seed samples of the 3D estimator: one person each, with all training views."""
-
-    inputs: EstimatorInputs  # features of the inference views (N, C_i, ...)
-    available: jax.Array  # (N, C_i) bool, the inference view has at least one keypoint
-    xy: jax.Array  # (N, C_t, K, 2) detections in every training camera (loss targets)
-    score: jax.Array  # (N, C_t, K) scores, 0 = missing
-
-
-def make_estimator_batch(
-    rig_train: Rig,
-    infer_cameras: Sequence[int],
-    xy: jax.Array,
-    score: jax.Array,
-    normalisation: tuple[Any, Any] | None = None,
-) -> EstimatorBatch:
-    """Builds estimator samples from people's detections in the training cameras.
-
-    Args:
-      rig_train: the training cameras C_t.
-      infer_cameras: indices into C_t of the inference cameras C_i.
-      xy: (N, C_t, K, 2) pixels; score: (N, C_t, K).
-      normalisation: (centre (3,), radius ()) of the normalised space; default ``rig_train``'s
-        (an estimator trained elsewhere, `Estimator.normalisation`, keeps its own).
-    """
-    idx = np.asarray(infer_cameras)
-    rig_infer = rig_train.select(list(idx))
-    xy = jnp.asarray(xy, jnp.float32)
-    score = jnp.asarray(score, jnp.float32)
-    inputs = estimator_inputs(
-        rig_infer,
-        xy[:, idx],
-        score[:, idx],
-        rig_centre_and_radius(rig_train) if normalisation is None else normalisation,
-    )
-    available = (score[:, idx] > 0).any(axis=-1)
-    return EstimatorBatch(inputs, available, xy, score)
-
-
-def random_view_subsets(
-    key: jax.Array, available: jax.Array, num: int
-) -> tuple[jax.Array, jax.Array]:
-    """Random non-empty proper subsets of each sample's available views.
-
-    Args:
-      available: (N, C) bool.
-      num: subsets per sample.
-    Returns:
-      masks (num, N, C) bool and valid (num, N): False where the sample has < 2 views (no
-      non-empty proper subset exists).
-    """
-    N, C = available.shape
-    n_avail = available.sum(axis=-1)  # (N,)
-    k_size, k_order = jax.random.split(key)
-    # Subset size uniform in 1 .. n_avail - 1, then that many views chosen at random.
-    size = 1 + jnp.floor(
-        jax.random.uniform(k_size, (num, N)) * jnp.maximum(n_avail - 1, 1)[None]
-    ).astype(jnp.int32)
-    priority = jnp.where(available[None], jax.random.uniform(k_order, (num, N, C)), -1.0)
-    rank = jnp.argsort(jnp.argsort(-priority, axis=-1), axis=-1)  # 0 = highest priority
-    masks = (rank < size[..., None]) & available[None]
-    return masks, jnp.broadcast_to(n_avail >= 2, (num, N))
-
-
-def estimator_loss_fn(
-    rig_train: Rig,
-    rig_infer: Rig,
-    num_augment: int,
-    loss_power: float = 2.0,
-    normalisation: tuple[Any, Any] | None = None,
-):
-    """``loss_fn(model, batch, key)`` of the estimator, for `make_train_step`; ``normalisation``
-    as `make_estimator_batch`."""
-    centre, radius = rig_centre_and_radius(rig_train) if normalisation is None else normalisation
-
-    def loss_fn(model, batch: EstimatorBatch, key):
-        subsets, subset_ok = random_view_subsets(key, batch.available, num_augment)
-        masks = jnp.concatenate([batch.available[None], subsets], axis=0)  # (1+A, N, C_i)
-        ok = jnp.concatenate([batch.available.any(-1)[None], subset_ok], axis=0)  # (1+A, N)
-        feats = jax.vmap(assemble_features, in_axes=(None, 0))(batch.inputs, masks)
-        xyz = to_world(model(feats), centre, radius)  # (1+A, N, K, 3)
-        err = jax.vmap(reprojection_error_l1, in_axes=(None, 0, None, None))(
-            rig_train, xyz, batch.xy, batch.score
-        )  # (1+A, N)
-        n_kp = jnp.maximum((batch.score > 0).sum(axis=(1, 2)), 1)
-        metrics = {"px_per_keypoint": masked_mean(err[0] / n_kp, ok[0])}
-        return err**loss_power, ok, metrics
-
-    return loss_fn
-
-
-def train_estimator(
-    rig: Rig,
-    train_xy: np.ndarray,
-    train_score: np.ndarray,
-    dev_xy: np.ndarray,
-    dev_score: np.ndarray,
-    config: EstimatorConfig = EstimatorConfig(),
-    *,
-    checkpoint_dir: str | Path | None = None,
-    progress: bool = True,
-    resume: bool = False,
-) -> tuple[Estimator, FitResult]:
-    """Trains a 3D estimator from people's 2D detections alone (no 3D labels).
-
-    Args:
-      rig: a rig holding (at least) the training cameras.
-      train_xy, dev_xy: (N, C_t, K, 2) per-person detections in the training cameras, in the
-        order of ``config.train_cameras``; train_score, dev_score: (N, C_t, K).
-      config: `EstimatorConfig`.
-      checkpoint_dir: where best and latest checkpoints go (optional).
-      resume: continue from the latest checkpoint in ``checkpoint_dir`` (same config required),
-        exactly where it stopped.
-    Returns:
-      (the best `Estimator`, the `FitResult`).
-    Raises:
-      InputError on cameras missing from the rig, a batch size that does not split over
-      ``config.train.num_devices``, or (resuming) a checkpoint of another config or a damaged one.
-    """
-    train_names = config.train_cameras or rig.names
-    infer_names = config.infer_cameras or train_names
-    rig_train = rig.select(list(train_names))
-    missing = [c for c in infer_names if c not in train_names]
-    if missing:
-        raise InputError(
-            f"inference cameras {missing} are not training cameras", field="infer_cameras"
-        )
-    infer_idx = [train_names.index(c) for c in infer_names]
-    rig_infer = rig_train.select(infer_idx)
-    K = train_xy.shape[-2]
-    tcfg = config.train
-
-    def batches_of(xy, score, chunk=4096):
-        parts = [
-            make_estimator_batch(rig_train, infer_idx, xy[i : i + chunk], score[i : i + chunk])
-            for i in range(0, len(xy), chunk)
-        ]
-        return jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
-
-    train_data = batches_of(train_xy, train_score)
-    dev_data = batches_of(dev_xy, dev_score)
-
-    n_train = len(train_xy)
-    batch = min(tcfg.batch_size, n_train)
-    steps_per_epoch = math.ceil(n_train / batch)
-    mesh = _mesh(tcfg)
-    if mesh is not None and batch % mesh_size(mesh):
-        raise InputError(
-            f"batch size {batch} does not split over {mesh_size(mesh)} devices; use a multiple of "
-            f"{mesh_size(mesh)}",
-            field="batch_size",
-        )
-    model = PoseMLP(len(infer_idx), K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
-    tx = make_optimizer(tcfg, steps_per_epoch)
-    graphdef, rest, state = init_train_state(model, tx)
-    loss_fn = estimator_loss_fn(rig_train, rig_infer, config.num_augment, config.loss_power)
-    step = make_train_step(graphdef, rest, tx, loss_fn, mesh=mesh)
-    eval_loss = jax.jit(
-        functools.partial(_estimator_eval, graphdef, rest, rig_train, rig_infer, config.loss_power)
-    )
-    if mesh is not None:
-        state = replicate(mesh, state)
-        dev_data = replicate(mesh, dev_data)  # evaluated whole on each device (it is small)
-
-    def epoch_batches(epoch):
-        for idx in shuffled_batches(n_train, batch, tcfg.seed, epoch):
-            samples = jax.tree.map(lambda a: a[idx], train_data)
-            # The global batch (the same on every host), split over the devices.
-            yield samples if mesh is None else shard_batch(mesh, samples)
-
-    def evaluate(state):
-        return {k: float(v) for k, v in eval_loss(state.params, dev_data).items()}
-
-    run_config = to_jsonable(dataclasses.asdict(config))
-    # What restoring needs beyond the config: the resolved cameras and the keypoint count.
-    run_config.update(
-        train_cameras=list(train_names), infer_cameras=list(infer_names), num_keypoints=int(K)
-    )
-    centre, radius = rig_centre_and_radius(rig_train)
-    # The normalised frame travels with the model (inference may hold only the inference cameras).
-    run_config["frame"] = [float(x) for x in np.asarray(centre)] + [float(radius)]
-    result = _fit_resumable(
-        state,
-        step,
-        epoch_batches,
-        evaluate,
-        tcfg,
-        steps_per_epoch=steps_per_epoch,
-        checkpoint_dir=checkpoint_dir,
-        run_config=run_config,
-        resume=resume,
-        desc="estimator",
-        progress=progress,
-    )
-    if checkpoint_dir is not None and jax.process_index() == 0:
-        # The yardstick a user needs before trusting the model on their rig: its reprojection
-        # error on the dev people against triangulation's, on the keypoints both reconstruct.
-        quality = compare_with_triangulation(
-            graphdef,
-            rest,
-            jax.device_get(result.state.params),
-            rig_train,
-            infer_idx,
-            dev_xy,
-            dev_score,
-        )
-        atomic_write_text(
-            Path(checkpoint_dir) / DEV_QUALITY_FILE, json.dumps(quality, indent=1) + "\n"
-        )
-    return Estimator(
-        graphdef, rest, result.state.params, rig_infer, config, (centre, radius)
-    ), result
-
-
-def compare_with_triangulation(
-    graphdef,
-    rest,
-    params,
-    rig_train: Rig,
-    infer_idx: Sequence[int],
-    xy,
-    score,
-    normalisation: tuple[Any, Any] | None = None,
-) -> dict:
-    """Mean reprojection error (px per detected keypoint and training camera) of an estimator's
-    people and of DLT triangulation from the same inference views, on the keypoints the
-    triangulation reconstructs (seen in 2+ inference views).
-
-    Args:
-      xy: (N, C_t, K, 2), score: (N, C_t, K): people of the dev recordings, training cameras.
-      normalisation: as `make_estimator_batch`.
-    Returns:
-      {"estimator_px", "triangulation_px", "keypoints"}.
-    """
-    data = make_estimator_batch(rig_train, infer_idx, xy, score, normalisation)
-    centre, radius = rig_centre_and_radius(rig_train) if normalisation is None else normalisation
-    model = nnx.merge(graphdef, params, rest)
-    xyz_est = to_world(model(assemble_features(data.inputs, data.available)), centre, radius)
-    idx = np.asarray(infer_idx)
-    xy_i, score_i = jnp.moveaxis(data.xy[:, idx], 1, 0), jnp.moveaxis(data.score[:, idx], 1, 0)
-    xyz_tri, ok = triangulate_points(rig_train.select(list(idx)), xy_i, score_i)  # (N, K, 3)
-    seen = (data.score > 0) & ok[:, None, :]  # (N, C_t, K)
-
-    def per_keypoint(xyz):
-        px = jnp.moveaxis(project_points(rig_train, xyz), 0, 1)  # (N, C_t, K, 2)
-        err = jnp.abs(px - data.xy).sum(-1)
-        return float(jnp.where(seen, err, 0.0).sum() / jnp.maximum(seen.sum(), 1))
-
-    return {
-        "estimator_px": round(per_keypoint(xyz_est), 4),
-        "triangulation_px": round(per_keypoint(xyz_tri), 4),
-        "keypoints": int(seen.sum()),
-        "how": "mean L1 reprojection error per detected keypoint, over the training cameras, of "
-        "the dev people's keypoints that DLT triangulates from the inference cameras",
-    }
-
-
-def make_estimator_eval(
-    graphdef, rest, rig_train: Rig, loss_power: float, normalisation: tuple[Any, Any] | None = None
-) -> Callable:
-    """A jitted ``(params, EstimatorBatch) -> {"val_loss", "val_px_per_keypoint"}``: the
-    reprojection loss over ``rig_train``'s cameras (no augmentation) and the mean error per
-    detected keypoint; ``normalisation`` as `make_estimator_batch`."""
-    return jax.jit(
-        functools.partial(
-            _estimator_eval,
-            graphdef,
-            rest,
-            rig_train,
-            None,
-            loss_power,
-            normalisation=normalisation,
-        )
-    )
-
-
-def _estimator_eval(
-    graphdef,
-    rest,
-    rig_train,
-    rig_infer,
-    loss_power,
-    params,
-    data: EstimatorBatch,
-    normalisation=None,
-):
-    centre, radius = rig_centre_and_radius(rig_train) if normalisation is None else normalisation
-    model = nnx.merge(graphdef, params, rest)
-    feats = assemble_features(data.inputs, data.available)
-    xyz = to_world(model(feats), centre, radius)
-    err = reprojection_error_l1(rig_train, xyz, data.xy, data.score)
-    ok = data.available.any(-1)
-    n_kp = jnp.maximum((data.score > 0).sum(axis=(1, 2)), 1)
-    return {
-        "val_loss": masked_mean(err**loss_power, ok),
-        "val_px_per_keypoint": masked_mean(err / n_kp, ok),
-    }
-
-
-def _mesh(config: TrainConfig) -> jax.sharding.Mesh | None:
+def training_mesh(config: TrainConfig) -> jax.sharding.Mesh | None:
     """The data-parallel mesh of ``config.num_devices`` (None: one device, no mesh)."""
     if config.num_devices is None:
         return None
@@ -795,7 +476,7 @@ def _mesh(config: TrainConfig) -> jax.sharding.Mesh | None:
         raise InputError(str(e), field="num_devices") from None
 
 
-def _fit_resumable(
+def fit_resumable(
     state,
     train_step,
     epoch_batches,
@@ -814,7 +495,7 @@ def _fit_resumable(
     checkpoints = (
         None
         if checkpoint_dir is None
-        else Checkpoints(checkpoint_dir, max_to_keep=config.max_to_keep)
+        else ModelFolder(checkpoint_dir).checkpoints(max_to_keep=config.max_to_keep)
     )
     try:
         resumed = Resumed(state, None, math.inf, None)
@@ -838,135 +519,3 @@ def _fit_resumable(
     finally:
         if checkpoints is not None:
             checkpoints.close()
-
-
-# =========================================================================== skeleton matching
-# (DESIGN.md §1.2) Self-supervised: labels come from composing single-person recordings.
-
-
-# The paper's matcher optimisation: Adam 1e-4, 15 graphs per batch, validation every 5 epochs,
-# early stop after 5 checks without improvement. (Gradient clipping at 10 is ours; it only acts
-# on rare spikes.)
-def matcher_loss_fn(
-    model: MatchingGAT, batch: GraphBatch, key
-) -> tuple[jax.Array, jax.Array, dict]:
-    """``loss_fn(model, batch, key)`` of the matcher for `make_train_step`: MSE on match nodes."""
-    del key  # augmentation happens on the host, when samples are composed
-    scores = model(batch)
-    mask = batch.is_match & batch.node_mask
-    correct = (scores > 0.5) == (batch.label > 0.5)
-    return (
-        match_mse(scores, batch.label),
-        mask,
-        {"accuracy": masked_mean(correct.astype(jnp.float32), mask)},
-    )
-
-
-def train_matcher(
-    rig: Rig,
-    train_recordings: Sequence[Recording],
-    dev_recordings: Sequence[Recording],
-    config: MatcherConfig = MatcherConfig(),
-    *,
-    checkpoint_dir: str | Path | None = None,
-    progress: bool = True,
-    resume: bool = False,
-) -> tuple[Matcher, FitResult]:
-    """Trains a skeleton matcher from single-person recordings alone (no association labels).
-
-    With ``config.train.num_devices``, each step's graphs are split by whole graphs over the
-    devices (`split_graph_batch`), the same samples in the same order as on one device.
-
-    Args:
-      rig: a rig holding (at least) the inference cameras.
-      train_recordings, dev_recordings: single-person recordings (each needs the cameras).
-      config: `MatcherConfig`.
-      checkpoint_dir: where best and latest checkpoints go (optional).
-      resume: continue from the latest checkpoint in ``checkpoint_dir`` (same config required).
-    Returns:
-      (the best `Matcher`, the `FitResult`).
-    """
-    tcfg = config.train
-    rig_infer = rig.select(list(config.cameras or rig.names))
-    train_pool = make_pool(rig_infer, train_recordings)
-    dev_pool = make_pool(rig_infer, dev_recordings)
-    compose = dict(
-        max_people=config.max_people,
-        subset_probability=config.subset_probability,
-        min_views=config.min_views,
-        keypoint_dropout=config.keypoint_dropout,
-    )
-    per_batch = tcfg.batch_size
-    steps_per_epoch = config.steps_per_epoch
-    num_dev = max(1, math.ceil(config.num_dev_samples / per_batch))
-    dev_batches = sample_batches(
-        dev_pool, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, per_batch, **compose
-    )
-
-    K = train_recordings[0].num_keypoints
-    model = MatchingGAT(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
-    tx = make_optimizer(config.train, config.steps_per_epoch)
-    graphdef, rest, state = init_train_state(model, tx)
-    mesh = _mesh(tcfg)
-    if mesh is None:
-        step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
-        eval_batch = jax.jit(functools.partial(matcher_eval_sums, graphdef, rest))
-    else:
-        step = make_train_step(graphdef, rest, tx, stacked_loss_fn(matcher_loss_fn), mesh=mesh)
-        eval_batch = jax.jit(functools.partial(_stacked_matcher_eval, graphdef, rest))
-        state = replicate(mesh, state)
-        dev_batches = [
-            shard_batch(mesh, split_graph_batch(b, mesh_size(mesh))[0]) for b in dev_batches
-        ]
-
-    def epoch_batches(epoch):
-        rng = np.random.default_rng([tcfg.seed, epoch])
-        # Built lazily: the host builds batch i+1 while the device runs step i (async dispatch).
-        for _ in range(steps_per_epoch):
-            batch = sample_batches(train_pool, rng, 1, per_batch, **compose)[0]
-            # The global batch (the same on every host), one padded block of graphs per device.
-            yield (
-                batch
-                if mesh is None
-                else shard_batch(mesh, split_graph_batch(batch, mesh_size(mesh))[0])
-            )
-
-    def evaluate(state):
-        sums = [eval_batch(state.params, b) for b in dev_batches]
-        total = {k: sum(float(s[k]) for s in sums) for k in sums[0]}
-        n = max(total["count"], 1.0)
-        return {"val_loss": total["sq_error"] / n, "val_accuracy": total["correct"] / n}
-
-    run_config = {**to_jsonable(dataclasses.asdict(config)), "num_keypoints": K}
-    result = _fit_resumable(
-        state,
-        step,
-        epoch_batches,
-        evaluate,
-        tcfg,
-        steps_per_epoch=steps_per_epoch,
-        checkpoint_dir=checkpoint_dir,
-        run_config=run_config,
-        resume=resume,
-        desc="matcher",
-        progress=progress,
-    )
-    return Matcher(graphdef, rest, result.state.params, rig_infer, config), result
-
-
-def matcher_eval_sums(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:
-    """The matcher's squared errors, correct decisions (at 0.5) and count over a batch's real
-    match nodes (sums, so that batches add up)."""
-    scores = nnx.merge(graphdef, params, rest)(batch)
-    mask = (batch.is_match & batch.node_mask).astype(jnp.float32)
-    correct = ((scores > 0.5) == (batch.label > 0.5)).astype(jnp.float32)
-    return {
-        "sq_error": jnp.sum(match_mse(scores, batch.label) * mask),
-        "correct": jnp.sum(correct * mask),
-        "count": jnp.sum(mask),
-    }
-
-
-def _stacked_matcher_eval(graphdef, rest, params, batch: GraphBatch) -> dict[str, jax.Array]:
-    sums = jax.vmap(lambda b: matcher_eval_sums(graphdef, rest, params, b))(batch)  # (S,) each
-    return {k: jnp.sum(v) for k, v in sums.items()}

@@ -1,16 +1,25 @@
-"""Trained models as inference uses them: their configs, the bundles and the loaders.
+"""Trained models as inference uses them: their configs, the bundles, the loaders and the folder.
 
 `Matcher` and `Estimator` hold what inference needs (the model's graph definition, its
-parameters and cameras); `load_matcher` / `load_estimator` rebuild them from a training run's
-checkpoint folder by restoring the parameters alone, so nothing here imports an optimiser.
-The configs are frozen dataclasses whose defaults are the paper's (DESIGN.md §1.2-1.3).
+parameters and cameras); `load_matcher` / `load_estimator` rebuild them from a model folder by
+restoring the parameters alone, so nothing here imports an optimiser. The configs are frozen
+dataclasses whose defaults are the paper's (DESIGN.md §1.2-1.3).
+
+`ModelFolder` is the one owner of a model folder's layout: training (`train`), adaptation
+(`adapt`) and the loaders read and write its checkpoints, config, chosen proposal settings and
+reports through it, and nothing else opens a file inside one by name.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import os
+import shutil
+import tempfile
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -20,9 +29,11 @@ import numpy as np
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, rig_centre_and_radius
-from mvpose_jax.checkpoints import Checkpoints
+from mvpose_jax.checkpoints import Checkpoints, TrainState
+from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
+from mvpose_jax.proposals import CombinedConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,25 +136,20 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
     """Restores an estimator saved by `train_estimator` (its config comes with the checkpoint).
 
     Args:
-      directory: the ``checkpoint_dir`` of training.
+      directory: the ``checkpoint_dir`` of training (a `ModelFolder`).
       rig: a rig holding the estimator's inference cameras (by name).
     """
-    checkpoints = Checkpoints(_trained_folder(directory, which, "train-estimator"))
-    try:
-        saved = checkpoints.read_config(which)
-        config = estimator_config_from_dict(saved)
-        if "num_keypoints" not in saved:
-            raise InputError(
-                "checkpoint config lacks num_keypoints", file=directory, field="config"
-            )
-        rig_infer = rig.select(list(config.infer_cameras or config.train_cameras or rig.names))
-        K = int(saved["num_keypoints"])
-        graphdef, params, rest = nnx.split(
-            PoseMLP(rig_infer.num_cameras, K, config.mlp, rngs=nnx.Rngs(0)), nnx.Param, ...
-        )
-        params = checkpoints.restore_params(jax.eval_shape(lambda: params), which)
-    finally:
-        checkpoints.close()
+    folder = ModelFolder(directory).require(which, "train-estimator")
+    saved = folder.read_config(which)
+    config = estimator_config_from_dict(saved)
+    if "num_keypoints" not in saved:
+        raise InputError("checkpoint config lacks num_keypoints", file=directory, field="config")
+    rig_infer = rig.select(list(config.infer_cameras or config.train_cameras or rig.names))
+    K = int(saved["num_keypoints"])
+    graphdef, params, rest = nnx.split(
+        PoseMLP(rig_infer.num_cameras, K, config.mlp, rngs=nnx.Rngs(0)), nnx.Param, ...
+    )
+    params = folder.restore_params(jax.eval_shape(lambda: params), which)
     # Checkpoints from before the normalisation was saved used the inference rig's own.
     normalisation = rig_centre_and_radius(rig_infer)
     if "frame" in saved:
@@ -155,32 +161,27 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
                 field="config.frame",
             )
         normalisation = (jnp.asarray(f[:3]), jnp.asarray(f[3]))
-    _warn_if_worse_than_triangulation(Path(directory))
+    _warn_if_worse_than_triangulation(folder)
     return Estimator(graphdef, rest, params, rig_infer, config, normalisation)
-
-
-# Written by `train.train_estimator` beside the checkpoints.
-DEV_QUALITY_FILE = "dev_reprojection.json"
 
 
 class ModelQualityWarning(MvposeWarning):
     """A trained model does worse on its own dev data than the geometry it should improve on."""
 
 
-def _warn_if_worse_than_triangulation(directory: Path) -> None:
-    path = directory / DEV_QUALITY_FILE
-    if not path.is_file():
+def _warn_if_worse_than_triangulation(folder: ModelFolder) -> None:
+    q = folder.read_dev_quality()
+    if q is None:
         return  # trained before the comparison was written
     try:
-        q = json.loads(path.read_text())
         est, tri = float(q["estimator_px"]), float(q["triangulation_px"])
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise InputError(f"unreadable ({e})", file=path) from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise InputError(f"unreadable ({e})", file=folder.path / DEV_QUALITY_FILE) from None
     if est > tri:
         warnings.warn(
-            f"{directory}: on its dev recordings this estimator reprojects {est:.2f} px per keypoint "
-            f"where triangulation reprojects {tri:.2f} px (same keypoints): it is likely trained "
-            "too briefly or on other data; triangulation (no --estimator) may serve better",
+            f"{folder.path}: on its dev recordings this estimator reprojects {est:.2f} px per "
+            f"keypoint where triangulation reprojects {tri:.2f} px (same keypoints): it is likely "
+            "trained too briefly or on other data; triangulation (no --estimator) may serve better",
             ModelQualityWarning,
             stacklevel=3,
         )
@@ -274,18 +275,14 @@ def load_matcher(
     num_keypoints: int | None = None,
     which: str = "best",
 ) -> Matcher:
-    """Restores a matcher saved by `train_matcher`.
+    """Restores a matcher saved by `train_matcher` (from a `ModelFolder`).
 
     ``config`` and ``num_keypoints`` default to those saved with the checkpoint (checkpoints of
     older runs lack the keypoint count and need it passed).
     """
-    _trained_folder(directory, which, "train-matcher")
+    folder = ModelFolder(directory).require(which, "train-matcher")
     if config is None or num_keypoints is None:
-        checkpoints = Checkpoints(directory)
-        try:
-            saved = checkpoints.read_config(which)
-        finally:
-            checkpoints.close()
+        saved = folder.read_config(which)
         config = config or matcher_config_from_dict(saved)
         if num_keypoints is None:
             if "num_keypoints" not in saved:
@@ -296,21 +293,263 @@ def load_matcher(
     rig_infer = rig.select(list(config.cameras or rig.names))
     model = MatchingGAT(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
-    checkpoints = Checkpoints(directory)
-    try:
-        params = checkpoints.restore_params(jax.eval_shape(lambda: params), which)
-    finally:
-        checkpoints.close()
+    params = folder.restore_params(jax.eval_shape(lambda: params), which)
     return Matcher(graphdef, rest, params, rig_infer, config)
 
 
-def _trained_folder(directory: str | Path, which: str, command: str) -> Path:
-    """The folder of a training run, refused before anything opens it (orbax would create the
-    checkpoint folders of a mistyped path, leaving empty ``best/`` and ``latest/`` behind)."""
-    path = Path(directory)
-    if not (path / which).is_dir():
-        what = "no such folder" if not path.exists() else f"no {which}/ checkpoint folder in it"
-        raise InputError(
-            f"not a trained model ({what}; `mvpose-jax {command} --out` writes one)", file=path
-        )
-    return path
+# =========================================================================== the model folder
+
+# The files beside a model folder's checkpoints. Their names are those folders have always been
+# written with, so that every folder written before `ModelFolder` loads as it did.
+DEV_QUALITY_FILE = "dev_reprojection.json"
+PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
+ADAPT_REPORT_FILE = "adapt_report.json"
+
+
+class ModelFolder:
+    """A trained model's folder: the one place that knows its layout.
+
+    Layout (``path/``):
+      ``best/``, ``latest/``: orbax checkpoints (`checkpoints.Checkpoints`), each with the run's
+        config as JSON (`kind`: "estimator" with an ``mlp`` entry, "matcher" with a ``gat`` one;
+        an ``adapted`` entry marks an adapted model, whose folder has ``best/`` alone);
+      ``dev_reprojection.json``: an estimator against triangulation on its dev people
+        (`write_dev_quality`; `load_estimator` warns from it);
+      ``proposal_threshold.json``: a matcher's chosen proposal settings (`write_proposal_settings`);
+      ``adapt_report.json``: what an adaptation did (`write_adapt_report`).
+
+    Opening one reads nothing; `require` refuses a path that is no model folder before orbax
+    could create checkpoint folders in it.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+
+    def __repr__(self) -> str:
+        return f"ModelFolder({str(self.path)!r})"
+
+    # ---------------------------------------------------------------- checkpoints and config
+
+    def checkpoints(self, max_to_keep: int = 3) -> Checkpoints:
+        """The folder's `Checkpoints` (created when missing), for training to write and resume;
+        the caller closes it."""
+        return Checkpoints(self.path, max_to_keep=max_to_keep)
+
+    def require(self, which: str = "best", command: str = "train-estimator") -> ModelFolder:
+        """Itself, when it holds a ``which`` checkpoint folder; else `InputError` naming the
+        ``mvpose-jax`` command that writes one (orbax would otherwise create the checkpoint
+        folders of a mistyped path, leaving empty ``best/`` and ``latest/`` behind)."""
+        if not (self.path / which).is_dir():
+            what = (
+                "no such folder"
+                if not self.path.exists()
+                else f"no {which}/ checkpoint folder in it"
+            )
+            raise InputError(
+                f"not a trained model ({what}; `mvpose-jax {command} --out` writes one)",
+                file=self.path,
+            )
+        return self
+
+    def read_config(self, which: str = "best") -> dict:
+        """The run config saved with the ``which`` checkpoint."""
+        checkpoints = Checkpoints(self.path)
+        try:
+            return checkpoints.read_config(which)
+        finally:
+            checkpoints.close()
+
+    def restore_params(self, abstract_params, which: str = "best"):
+        """The trained parameters alone (`Checkpoints.restore_params`; no optimiser needed)."""
+        checkpoints = Checkpoints(self.path)
+        try:
+            return checkpoints.restore_params(abstract_params, which)
+        finally:
+            checkpoints.close()
+
+    def kind(self, which: str = "best") -> str:
+        """ "estimator" or "matcher", from the saved config; `InputError` when it is neither."""
+        saved = self.read_config(which)
+        if "mlp" in saved:
+            return "estimator"
+        if "gat" in saved:
+            return "matcher"
+        raise InputError("holds neither an estimator nor a matcher", file=self.path, field="config")
+
+    def is_adapted(self, which: str = "best") -> bool:
+        """Whether the model was adapted to a recording (`adapt`) rather than trained."""
+        return "adapted" in self.read_config(which)
+
+    def save_params(self, params, step: int, config: dict, val_loss: float) -> None:
+        """Saves parameters alone (no optimiser state) as the ``best`` checkpoint of ``step``,
+        with ``config``: the form of an adapted model, which `load_estimator` / `load_matcher`
+        read as they read a trained one."""
+        state = TrainState(jnp.asarray(step, jnp.int32), jax.device_put(params), ())
+        checkpoints = Checkpoints(self.path)
+        try:
+            checkpoints.save_best(state, config, val_loss)
+        finally:
+            checkpoints.close()
+
+    @classmethod
+    @contextlib.contextmanager
+    def create(cls, directory: str | os.PathLike) -> Iterator[ModelFolder]:
+        """A new model folder, assembled under a temporary name beside ``directory`` and renamed
+        into place when the ``with`` block ends without error: an interrupted writer leaves no
+        half-written model.
+
+        Raises:
+          InputError when ``directory`` holds something already.
+        """
+        out = Path(directory)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise InputError("exists and is not an empty folder; choose a new one", file=out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        try:
+            yield cls(tmp)
+            if out.exists():
+                out.rmdir()  # empty (checked above)
+            os.replace(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+    # ---------------------------------------------------------------- reports
+
+    def write_dev_quality(self, quality: dict) -> Path:
+        """Writes the estimator-against-triangulation comparison (`train.compare_with_triangulation`)."""
+        return self._write_json(DEV_QUALITY_FILE, quality)
+
+    def read_dev_quality(self) -> dict | None:
+        """The comparison `write_dev_quality` wrote (None: a folder without one)."""
+        return self._read_json(DEV_QUALITY_FILE)
+
+    @property
+    def adapt_report_path(self) -> Path:
+        """Where `write_adapt_report` writes (for messages)."""
+        return self.path / ADAPT_REPORT_FILE
+
+    def write_adapt_report(self, report: dict) -> Path:
+        """Writes what an adaptation did (`adapt.AdaptReport.to_json`)."""
+        return self._write_json(ADAPT_REPORT_FILE, report)
+
+    def read_adapt_report(self) -> dict | None:
+        """The report `write_adapt_report` wrote (None: not an adapted folder)."""
+        return self._read_json(ADAPT_REPORT_FILE)
+
+    # ---------------------------------------------------------------- chosen proposal settings
+
+    def write_proposal_settings(
+        self,
+        threshold: float,
+        ari: dict[float, float],
+        composed_frames: int,
+        *,
+        combined: CombinedConfig | None = None,
+        combined_ari: dict[float, float] | None = None,
+    ) -> Path:
+        """Writes a matcher's chosen proposal threshold with the ARI of each threshold tried on
+        ``composed_frames`` frames (and, when given, the combined matcher's settings and ARIs);
+        chosen by `proposals.choose_proposal_threshold` / `choose_combined_threshold`."""
+        record = {
+            "threshold": threshold,
+            "ari_by_threshold": {str(k): round(v, 6) for k, v in ari.items()},
+            "composed_frames": int(composed_frames),
+            "how": "the best per-frame adjusted Rand index of the proposals on multi-person frames "
+            "composed from the dev recordings (inference.choose_matcher_threshold)",
+        }
+        if combined is not None:
+            record["combined"] = dataclasses.asdict(combined)
+            if combined_ari is not None:
+                record["combined"]["ari_by_threshold"] = {
+                    str(k): round(v, 6) for k, v in combined_ari.items()
+                }
+        return self._write_json(PROPOSAL_THRESHOLD_FILE, record)
+
+    def read_proposal_threshold(self, given: float | None = None) -> float:
+        """``given``, else the chosen threshold, else the paper's 0.5."""
+        if given is not None:
+            return given
+        path = self.path / PROPOSAL_THRESHOLD_FILE
+        if not path.exists():
+            return 0.5
+        try:
+            return float(json.loads(path.read_text())["threshold"])
+        except (ValueError, KeyError, TypeError) as e:
+            raise InputError(
+                f"unreadable proposal threshold ({e})", file=path, field="threshold"
+            ) from e
+
+    def read_combined_config(self) -> CombinedConfig:
+        """The combined matcher's chosen settings, else `CombinedConfig`'s defaults."""
+        path = self.path / PROPOSAL_THRESHOLD_FILE
+        if not path.exists():
+            return CombinedConfig()
+        try:
+            record = json.loads(path.read_text()).get("combined")
+            if record is None:
+                return CombinedConfig()
+            # Each setting as its field's type: numbers as floats; a switch only as a JSON
+            # boolean (bool("false") would be True).
+            types = {f.name: type(f.default) for f in dataclasses.fields(CombinedConfig)}
+            for k, v in record.items():
+                if types.get(k) is bool and not isinstance(v, bool):
+                    raise TypeError(f"{k} must be true or false, not {v!r}")
+            return CombinedConfig(**{k: types[k](v) for k, v in record.items() if k in types})
+        except (ValueError, AttributeError, TypeError) as e:
+            raise InputError(
+                f"unreadable combined matcher settings ({e})", file=path, field="combined"
+            ) from e
+
+    def copy_proposal_settings(self, source: ModelFolder) -> bool:
+        """Copies ``source``'s chosen proposal settings here as they are; False: it has none."""
+        path = source.path / PROPOSAL_THRESHOLD_FILE
+        if not path.exists():
+            return False
+        shutil.copyfile(path, self.path / PROPOSAL_THRESHOLD_FILE)
+        return True
+
+    # ---------------------------------------------------------------- plumbing
+
+    def _write_json(self, name: str, record: dict) -> Path:
+        path = self.path / name
+        atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+        return path
+
+    def _read_json(self, name: str) -> dict | None:
+        path = self.path / name
+        if not path.is_file():
+            return None
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise InputError(f"unreadable ({e})", file=path) from None
+
+
+def write_proposal_threshold(
+    folder: str | os.PathLike,
+    threshold: float,
+    ari: dict[float, float],
+    composed_frames: int,
+    *,
+    combined: CombinedConfig | None = None,
+    combined_ari: dict[float, float] | None = None,
+) -> Path:
+    """`ModelFolder.write_proposal_settings` of the matcher folder ``folder``."""
+    return ModelFolder(folder).write_proposal_settings(
+        threshold, ari, composed_frames, combined=combined, combined_ari=combined_ari
+    )
+
+
+def read_proposal_threshold(folder: str | os.PathLike | None, given: float | None = None) -> float:
+    """The proposal threshold: ``given``, else the matcher folder's chosen one, else the paper's 0.5."""
+    if given is not None or not folder:
+        return 0.5 if given is None else given
+    return ModelFolder(folder).read_proposal_threshold(given)
+
+
+def read_combined_config(folder: str | os.PathLike | None) -> CombinedConfig:
+    """The combined matcher's settings recorded in a matcher folder (`write_proposal_threshold`),
+    else `CombinedConfig`'s defaults."""
+    return ModelFolder(folder).read_combined_config() if folder else CombinedConfig()

@@ -15,8 +15,9 @@ import numpy as np
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, make_rig, rig_centre_and_radius
+from mvpose_jax.matcher_training import matcher_loss_fn
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
-from mvpose_jax.train import init_train_state, make_optimizer, make_train_step, matcher_loss_fn
+from mvpose_jax.train import init_train_state, make_optimizer, make_train_step
 from mvpose_jax.trained import Estimator, EstimatorConfig, MatcherConfig
 
 

@@ -12,6 +12,7 @@ import pytest
 from flax import nnx
 
 from mvpose_jax import adapt as adapt_module
+from mvpose_jax import estimator_training as train_module
 from mvpose_jax.adapt import (
     AdaptConfig,
     MatcherAdaptConfig,
@@ -24,24 +25,19 @@ from mvpose_jax.adapt import (
 from mvpose_jax.cameras import rig_centre_and_radius
 from mvpose_jax.data.calibration import load_preset
 from mvpose_jax.errors import InputError
+from mvpose_jax.estimator_training import train_estimator
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import predict_people
 from mvpose_jax.matching import propose_with_matcher
 from mvpose_jax.metrics import matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
-from mvpose_jax.proposals import (
-    CombinedConfig,
-    read_combined_config,
-    read_proposal_threshold,
-    write_proposal_threshold,
-)
+from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.synthetic import (
     SyntheticConfig,
     generate_recording,
     generate_single_person_recordings,
 )
-from mvpose_jax.train import train_estimator
 from mvpose_jax.trained import (
     Estimator,
     EstimatorConfig,
@@ -50,6 +46,9 @@ from mvpose_jax.trained import (
     TrainConfig,
     load_estimator,
     load_matcher,
+    read_combined_config,
+    read_proposal_threshold,
+    write_proposal_threshold,
 )
 
 TINY = MLPConfig(widths=(32, 32), output="residual")
@@ -124,7 +123,7 @@ def test_heldout_people_are_never_trained_on(rig, shifted_scene, monkeypatch):
     )
     members = run_pipeline(rig, det).members
     trained_rows = []
-    make_step = adapt_module.make_train_step
+    make_step = train_module.make_train_step
 
     def spying_make_train_step(*args, **kwargs):
         step = make_step(*args, **kwargs)
@@ -135,7 +134,8 @@ def test_heldout_people_are_never_trained_on(rig, shifted_scene, monkeypatch):
 
         return spy
 
-    monkeypatch.setattr(adapt_module, "make_train_step", spying_make_train_step)
+    # The estimator's set-up (`estimator_training.estimator_training`) makes the step adaptation runs.
+    monkeypatch.setattr(train_module, "make_train_step", spying_make_train_step)
     _, report = adapt_estimator(
         rig, det, untrained_estimator(rig), members=members, config=config, progress=False
     )

@@ -1064,11 +1064,16 @@ def test_infer_proposals_option_combined_by_default_with_a_matcher(
 ):
     import mvpose_jax.jobs.infer as infer_job
     from mvpose_jax.inference import run_pipeline
+    from mvpose_jax.matcher_training import train_matcher
     from mvpose_jax.models import GATConfig
-    from mvpose_jax.proposals import CombinedConfig, write_proposal_threshold
+    from mvpose_jax.proposals import CombinedConfig
     from mvpose_jax.synthetic import generate_single_person_recordings
-    from mvpose_jax.train import train_matcher
-    from mvpose_jax.trained import MatcherConfig, TrainConfig, load_matcher
+    from mvpose_jax.trained import (
+        MatcherConfig,
+        TrainConfig,
+        load_matcher,
+        write_proposal_threshold,
+    )
 
     rig = load_rig("panoptic5")
     recs = generate_single_person_recordings(rig, num_recordings=3, num_frames=4, seed=2)

@@ -14,6 +14,7 @@ from mvpose_jax.cameras import make_rig
 from mvpose_jax.compiled import bound_model_fn
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.errors import InputError
+from mvpose_jax.estimator_training import train_estimator
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.graphs import (
     build_graphs,
@@ -22,6 +23,7 @@ from mvpose_jax.graphs import (
 )
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import members_from_identity, poses_of_members
+from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.matching import (
     _match_scores,
     _match_scores_fn,
@@ -34,10 +36,6 @@ from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig
 from mvpose_jax.proposals import propose_people
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
-from mvpose_jax.train import (
-    train_estimator,
-    train_matcher,
-)
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 from mvpose_jax.triangulate import skeleton_spread
 from tests.helpers import TINY_GAT as TINY

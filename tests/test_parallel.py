@@ -38,13 +38,14 @@ def _worker() -> None:
     """Runs in a subprocess with 4 host devices; prints one JSON report."""
     from mvpose_jax.data.calibration import load_preset
     from mvpose_jax.errors import InputError
+    from mvpose_jax.estimator_training import train_estimator
     from mvpose_jax.features import single_person_samples
     from mvpose_jax.lifting import predict_people
+    from mvpose_jax.matcher_training import train_matcher
     from mvpose_jax.matching import match_scores
     from mvpose_jax.models import MLPConfig
     from mvpose_jax.parallel import make_data_mesh
     from mvpose_jax.synthetic import generate_single_person_recordings
-    from mvpose_jax.train import train_estimator, train_matcher
     from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 
     assert jax.device_count() == NUM_DEVICES, jax.devices()
@@ -188,7 +189,8 @@ def test_inference_on_4_devices_gives_the_numbers_of_1_device(report, name):
 def test_matcher_stacked_on_one_device_is_todays_loss():
     """``num_devices=1``: the one block is today's batch itself, and the lifted loss is today's."""
     from mvpose_jax.losses import masked_mean
-    from mvpose_jax.train import matcher_loss_fn, stacked_loss_fn
+    from mvpose_jax.matcher_training import matcher_loss_fn
+    from mvpose_jax.train import stacked_loss_fn
 
     batch = build_graphs(*random_frames(np.random.default_rng(4), 5))
     stacked, origin = split_graph_batch(batch, 1)

@@ -16,7 +16,6 @@ from mvpose_jax.errors import InputError
 from mvpose_jax.metrics import matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT
 from mvpose_jax.proposals import (
-    PROPOSAL_THRESHOLD_FILE,
     PROPOSAL_THRESHOLDS,
     CombinedConfig,
     choose_combined_threshold,
@@ -27,13 +26,16 @@ from mvpose_jax.proposals import (
     grouping_consistency,
     propose_combined,
     propose_people,
-    read_combined_config,
-    read_proposal_threshold,
     union_find_exclusive,
-    write_proposal_threshold,
 )
 from mvpose_jax.synthetic import generate_single_person_recordings
-from mvpose_jax.trained import MatcherConfig
+from mvpose_jax.trained import (
+    PROPOSAL_THRESHOLD_FILE,
+    MatcherConfig,
+    read_combined_config,
+    read_proposal_threshold,
+    write_proposal_threshold,
+)
 
 
 def test_choose_proposal_threshold_takes_the_band_that_separates_true_from_false_pairs():

@@ -23,8 +23,8 @@ import pytest
 
 from mvpose_jax.checkpoints import Checkpoints
 from mvpose_jax.errors import InputError
+from mvpose_jax.estimator_training import train_estimator
 from mvpose_jax.models import MLPConfig
-from mvpose_jax.train import train_estimator
 from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
 pytestmark = pytest.mark.slow  # trains, kills and resumes runs

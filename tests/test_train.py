@@ -12,20 +12,16 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from mvpose_jax.estimator_training import random_view_subsets, train_estimator
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.lifting import predict_people
+from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.models import MLPConfig, PoseMLP
 from mvpose_jax.synthetic import (
     SyntheticConfig,
     generate_single_person_recordings,
 )
-from mvpose_jax.train import (
-    init_train_state,
-    make_optimizer,
-    random_view_subsets,
-    train_estimator,
-    train_matcher,
-)
+from mvpose_jax.train import init_train_state, make_optimizer
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig, load_estimator
 from tests.helpers import TINY_GAT as TINY
 

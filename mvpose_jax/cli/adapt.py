@@ -4,7 +4,6 @@ detections."""
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from mvpose_jax.cli.options import (
     adapt_settings,
@@ -93,7 +92,7 @@ def _adapt(args: argparse.Namespace) -> int:
     print_adapt_report(done.report)
     print(
         f"wrote {args.out} (`infer --estimator {args.out}` loads it) and its report "
-        f"{Path(args.out) / 'adapt_report.json'}"
+        f"{done.report_path}"
     )
     print_dev_quality(done.dev_quality)
     return 0

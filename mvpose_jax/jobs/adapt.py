@@ -84,11 +84,13 @@ class AdaptJob:
 
 class Adapted(NamedTuple):
     """What `adapt` did: the estimator's report (`adapt.AdaptReport`), the matcher's (None
-    unless adapted), and the estimator folder's dev comparison with triangulation (or None)."""
+    unless adapted), the estimator folder's dev comparison with triangulation (or None), and
+    where the adaptation's report was written."""
 
     report: AdaptReport
     matcher_report: MatcherAdaptReport | None
     dev_quality: dict | None
+    report_path: Path
 
 
 def adapt(job: AdaptJob) -> Adapted:
@@ -119,7 +121,7 @@ def adapt(job: AdaptJob) -> Adapted:
     matcher_report = None
     if job.matcher_out is not None:
         from mvpose_jax.adapt import MatcherAdaptConfig, adapt_matcher, save_adapted_matcher
-        from mvpose_jax.proposals import read_combined_config
+        from mvpose_jax.trained import read_combined_config
 
         # One budget for the whole command (the estimator's, its max_seconds or its default
         # rule): the matcher gets at most half of it, the estimator what is left.
@@ -151,4 +153,7 @@ def adapt(job: AdaptJob) -> Adapted:
     report.settings["estimator"] = str(Path(job.estimator).resolve())
     report.settings["detections"] = str(Path(job.detections.path).resolve())
     save_adapted_estimator(job.out, adapted, report)
-    return Adapted(report, matcher_report, read_dev_quality(job.out))
+    from mvpose_jax.trained import ModelFolder
+
+    report_path = ModelFolder(job.out).adapt_report_path
+    return Adapted(report, matcher_report, read_dev_quality(job.out), report_path)

@@ -164,7 +164,7 @@ def proposal_settings(
     The threshold is the GAT's and the epipolar matcher's setting; the combined matcher's come
     from the matcher folder, so a given one would be silently ignored: it is refused instead.
     """
-    from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
+    from mvpose_jax.trained import read_combined_config, read_proposal_threshold
 
     proposals = options.proposals or ("combined" if matcher is not None else "epipolar")
     if proposals != "epipolar" and matcher is None:
@@ -221,9 +221,6 @@ def poses_and_detections(
 def read_dev_quality(folder: str) -> dict | None:
     """A model folder's comparison of the estimator with triangulation on the dev people
     (`train.compare_with_triangulation`'s file), or None when it has none."""
-    import json
+    from mvpose_jax.trained import ModelFolder
 
-    from mvpose_jax.trained import DEV_QUALITY_FILE
-
-    path = Path(folder) / DEV_QUALITY_FILE
-    return json.loads(path.read_text()) if path.is_file() else None
+    return ModelFolder(folder).read_dev_quality()

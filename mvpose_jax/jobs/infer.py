@@ -35,10 +35,14 @@ from mvpose_jax.inference import FilterConfig, PipelineConfig, stream_pipeline
 from mvpose_jax.jobs.common import DetectionsSource, RigSource
 from mvpose_jax.lifting import LiftingConfig
 from mvpose_jax.matching import MatchingConfig
-from mvpose_jax.proposals import read_combined_config, read_proposal_threshold
 from mvpose_jax.smoothing import smooth_chunk_files
 from mvpose_jax.tracking import TrackingConfig
-from mvpose_jax.trained import load_estimator, load_matcher
+from mvpose_jax.trained import (
+    load_estimator,
+    load_matcher,
+    read_combined_config,
+    read_proposal_threshold,
+)
 
 # infer's defaults (those of `mvpose-jax infer`): tracked, Butterworth-filtered, the proposals'
 # threshold and the 3D method left to the models given (`resolve_pipeline`).

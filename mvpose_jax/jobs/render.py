@@ -46,9 +46,9 @@ def render(config: RenderConfig) -> Rendered:
     """Draws the frames asked for (a progress bar on stderr)."""
     import cv2
     import numpy as np
-    from mvpose_jax.progress import progress_bar
 
     from mvpose_jax.data.files import check_writable
+    from mvpose_jax.progress import progress_bar
     from mvpose_jax.render import (
         VideoWriter,
         draw_view,

@@ -100,10 +100,9 @@ def train_matcher_job(job: MatcherJob) -> MatcherTrained:
     """Trains the matcher into ``job.run.out`` and writes its chosen proposal settings there."""
     from mvpose_jax.data.files import check_writable
     from mvpose_jax.matcher_settings import choose_matcher_settings
+    from mvpose_jax.matcher_training import train_matcher
     from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
-    from mvpose_jax.proposals import write_proposal_threshold
-    from mvpose_jax.train import train_matcher
-    from mvpose_jax.trained import MatcherConfig
+    from mvpose_jax.trained import MatcherConfig, write_proposal_threshold
 
     run = job.run
     check_writable(run.out, folder=True)
@@ -207,10 +206,10 @@ class EstimatorTrained(NamedTuple):
 def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
     """Trains the estimator into ``job.run.out``."""
     from mvpose_jax.data.files import check_writable
+    from mvpose_jax.estimator_training import train_estimator
     from mvpose_jax.features import single_person_samples
     from mvpose_jax.models import MLPConfig
     from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
-    from mvpose_jax.train import train_estimator
     from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
     run = job.run
