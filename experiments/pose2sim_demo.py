@@ -25,14 +25,15 @@ Pose2Sim's TRC files hold BODY_25B markers without the eyes and ears, in metres 
 field) in axes Y up: `TRC_TO_COCO18` maps them to our coco18 keypoints by name; coco18's ``neck``
 is the mean of the shoulders (as our reader builds it from the detections; Pose2Sim's ``Neck`` is
 BODY_25B's upper neck below the chin, another point), and its eyes and ears are missing (misses in
-the score: the rows on the 12 keypoints every row has are in a second table). The TRC's axes are
+the score: the rows on the 14 keypoints every row has are in a second table). The TRC's axes are
 rotated back to the calibration's world by the one of the 24 axis rotations that reprojects best
 (`trc_axes`; reported).
 
 The single-person trials: our geometric default against Pose2Sim's filtered TRC.
 
-Writes ``DIR/pose2sim_demo.md`` and ``DIR/pose2sim_demo.json`` (deterministic: no clock times in
-them unless ``--timings``). ``--smoke``: the first `SMOKE_FRAMES` frames of the two-person trial.
+Writes ``DIR/pose2sim_demo.md`` and ``DIR/pose2sim_demo.json`` (deterministic), and the wall time
+of each of our rows to ``DIR/timings.json`` and ``DIR/pose2sim_demo_timed.md`` (the tables with a
+seconds column). ``--smoke``: the first `SMOKE_FRAMES` frames of the two-person trial only.
 """
 
 from __future__ import annotations
@@ -153,8 +154,11 @@ def read_trc(path: str | Path) -> Trc:
             continue
         fields = line.rstrip("\n").split("\t")
         values = fields[2 : 2 + 3 * M]
-        if len(fields) < 2 or len(values) < 3 * M and any(v.strip() for v in fields[2 + 3 * M :]):
-            raise InputError(f"line {number}: {len(fields)} fields", file=path, field="row")
+        # Absent last markers may be left out of a row; more values than markers is an error.
+        if len(fields) < 2 or any(v.strip() for v in fields[2 + 3 * M :]):
+            raise InputError(
+                f"line {number}: {len(fields)} fields for {M} markers", file=path, field="row"
+            )
         values += [""] * (3 * M - len(values))
         try:
             frames.append(int(float(fields[0])))

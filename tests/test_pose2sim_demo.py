@@ -52,6 +52,13 @@ def test_read_trc_refuses_a_wrong_marker_count(tmp_path):
         demo.read_trc(path)
 
 
+def test_read_trc_refuses_a_row_with_more_values_than_markers(tmp_path):
+    path = tmp_path / "bad.trc"
+    path.write_text(POSE2SIM_TRC.replace("-47\t\n", "-47\t1.0\n"))
+    with pytest.raises(InputError, match="line 9"):
+        demo.read_trc(path)
+
+
 def test_read_trc_reads_back_our_exporter(tmp_path):
     """What `data.exports` writes (OpenSim axes, mm, per track) reads back as R @ world, m."""
     rng = np.random.default_rng(0)
