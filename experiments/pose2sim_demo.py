@@ -433,12 +433,14 @@ def _trial_rows(
     # The keypoints every row can have: coco18 less the eyes and ears Pose2Sim's TRC lacks.
     common = [k for k in get_layout(LAYOUT).keypoints if k in TRC_TO_COCO18.values()] + ["neck"]
     common_detections = shared_keypoints_only(detections, common)
-    rows = []
+    rows, lines = [], {}
     for label, result in results.items():
+        report = label_free_score(result, rig, detections, layout=LAYOUT)
+        lines[label] = summary_lines(report)
         row = {
             "row": label,
             "seconds": seconds.get(label),
-            "all_keypoints": score_row(result, rig, detections),
+            "all_keypoints": _numbers(report),
             "common_keypoints": score_row(result, rig, common_detections),
         }
         rows.append(row)
@@ -449,10 +451,7 @@ def _trial_rows(
         "common_keypoints": common,
         "pose2sim_trc": axes,
         "rows": rows,
-        "summary_lines": {
-            label: summary_lines(label_free_score(r, rig, detections, layout=LAYOUT))
-            for label, r in results.items()
-        },
+        "summary_lines": lines,
     }
 
 
