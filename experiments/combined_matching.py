@@ -39,12 +39,6 @@ from mvpose_jax.synthetic import SHIFTS
 SWITCHES = ("repair_splits", "drop_duplicates")
 
 
-def _load(rig, path: Path):
-    if not path.exists():
-        raise SystemExit(f"{path}: no such models folder (only the first is trained when missing)")
-    return load_models(rig, path)
-
-
 def _runs_of(path: Path) -> list[dict]:
     runs = json.loads(path.read_text())
     return runs if isinstance(runs, list) else [runs]  # older files held one run
@@ -103,6 +97,15 @@ def main(argv=None) -> int:
         print("\n".join(shift_tables(runs)))
         return 0
     rig = load_rig("panoptic5")
+    # Paths that cannot hold models fail now, not after the scenes and the first models are made.
+    for i, path in enumerate(args.models):
+        if path is not None and path.is_file():
+            ap.error(
+                f"--models {path}: a file; the models are kept as model folders now (not "
+                "pickles): give a folder (the first is trained and written there if missing)"
+            )
+        if i > 0 and not path.exists():
+            ap.error(f"--models {path}: no such folder (only the first is trained when missing)")
     splits = args.splits.split(",")
     scenes = {
         name: Data(
@@ -113,7 +116,7 @@ def main(argv=None) -> int:
     runs = []
     for i, path in enumerate(args.models):
         try:
-            m = cached_models(rig, path) if i == 0 else _load(rig, path)
+            m = cached_models(rig, path) if i == 0 else load_models(rig, path)
         except InputError as e:
             raise SystemExit(str(e)) from None
         fit = dict(m.fit)

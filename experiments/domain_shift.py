@@ -174,15 +174,6 @@ def shift_rows(
     return out
 
 
-def _mpjpe_on(poses: Poses3D, tri: Poses3D, gt: Poses3D, scoring: dict) -> float:
-    """MPJPE (mm) of ``poses`` on the keypoints triangulation ``tri`` reconstructs (like with
-    like: the keypoints only a network gives are left out)."""
-    restricted = Poses3D(
-        poses.xyz, poses.valid & tri.valid, tri.keypoint_valid & poses.valid[..., None]
-    )
-    return round(float(pose_metrics(restricted, gt, **scoring)["mpjpe_mm"]), 3)
-
-
 def run(
     sc: Scale, seeds: list[int], data_seed: int, out: Path, progress: bool
 ) -> tuple[list[dict], list[str]]:
@@ -381,3 +372,12 @@ def _matcher_adapt_table(runs: list[dict], names: list[str], split: str) -> list
             f"| {diff_mean_sd(runs, (*ari, 'combined_adapted', 'ari'), (*ari, 'epipolar', 'ari'), 4)} |"
         )
     return lines
+
+
+def _mpjpe_on(poses: Poses3D, tri: Poses3D, gt: Poses3D, scoring: dict) -> float:
+    """MPJPE (mm) of ``poses`` on the keypoints triangulation ``tri`` reconstructs (like with
+    like: the keypoints only a network gives are left out)."""
+    restricted = Poses3D(
+        poses.xyz, poses.valid & tri.valid, tri.keypoint_valid & poses.valid[..., None]
+    )
+    return round(float(pose_metrics(restricted, gt, **scoring)["mpjpe_mm"]), 3)

@@ -37,60 +37,6 @@ from mvpose_jax.metrics import PCP_CLASSES, pose_metrics
 from mvpose_jax.skeletons import Poses3D
 
 
-def _timed_pipeline(rig, det, **kwargs):
-    run_pipeline(rig, det, **kwargs)  # warm-up (compilation)
-    return run_pipeline(rig, det, **kwargs)
-
-
-def _times(res, poses_seconds: float | None = None) -> dict:
-    F = max(1, res.poses.valid.shape[0])
-    people = max(1, int(res.poses.valid.sum()))
-    s3d = res.seconds["poses"] if poses_seconds is None else poses_seconds
-    return {
-        "t_pp_ms": 1000 * res.seconds["proposals"] / F,
-        "t_3Dg_ms": 1000 * s3d / F,
-        "t_3Di_ms": 1000 * s3d / people,
-    }
-
-
-def _compare(rig, det, gt, ours, members, scoring: dict, ours_seconds=None) -> tuple[dict, dict]:
-    """Ours against both triangulations on the same person groups (``members``)."""
-    r = {
-        "ours": {
-            **pose_metrics(ours.poses, gt, confidence=ours.confidence, **scoring),
-            **(ours_seconds or {}),
-        }
-    }
-    tris = {}
-    for method in ("centroid", "dlt"):
-        poses_of_members(rig, det, members, method=method)  # warm-up
-        t0 = time.perf_counter()
-        tri, tconf = poses_of_members(rig, det, members, method=method)
-        t3d = time.perf_counter() - t0
-        F = max(1, tri.valid.shape[0])
-        times = (
-            {}
-            if ours_seconds is None
-            else {
-                "t_pp_ms": ours_seconds["t_pp_ms"],
-                "t_3Dg_ms": 1000 * t3d / F,
-                "t_3Di_ms": 1000 * t3d / max(1, int(tri.valid.sum())),
-            }
-        )
-        r[method] = {**pose_metrics(tri, gt, confidence=tconf, **scoring), **times}
-        # Ours on exactly the keypoints this triangulation reconstructed (like with like).
-        restricted = Poses3D(
-            ours.poses.xyz,
-            ours.poses.valid & tri.valid,
-            tri.keypoint_valid & ours.poses.valid[..., None],
-        )
-        r[f"ours_on_{method}_keypoints"] = {
-            "mpjpe_mm": pose_metrics(restricted, gt, **scoring)["mpjpe_mm"]
-        }
-        tris[method] = tri
-    return r, tris
-
-
 def pose_rows(data: Data, split: str, matcher, estimator, fit: dict) -> tuple[dict, dict]:
     """Table 6 twice on a split's scenes: the whole pipeline (matcher proposals, then ours or
     triangulation on the same proposals), and the 3D stage alone on the true groupings; plus ours
@@ -328,3 +274,57 @@ def pose_papers_table() -> list[str]:
         "`python -m benchmarks.run`).",
         "",
     ]
+
+
+def _timed_pipeline(rig, det, **kwargs):
+    run_pipeline(rig, det, **kwargs)  # warm-up (compilation)
+    return run_pipeline(rig, det, **kwargs)
+
+
+def _times(res, poses_seconds: float | None = None) -> dict:
+    F = max(1, res.poses.valid.shape[0])
+    people = max(1, int(res.poses.valid.sum()))
+    s3d = res.seconds["poses"] if poses_seconds is None else poses_seconds
+    return {
+        "t_pp_ms": 1000 * res.seconds["proposals"] / F,
+        "t_3Dg_ms": 1000 * s3d / F,
+        "t_3Di_ms": 1000 * s3d / people,
+    }
+
+
+def _compare(rig, det, gt, ours, members, scoring: dict, ours_seconds=None) -> tuple[dict, dict]:
+    """Ours against both triangulations on the same person groups (``members``)."""
+    r = {
+        "ours": {
+            **pose_metrics(ours.poses, gt, confidence=ours.confidence, **scoring),
+            **(ours_seconds or {}),
+        }
+    }
+    tris = {}
+    for method in ("centroid", "dlt"):
+        poses_of_members(rig, det, members, method=method)  # warm-up
+        t0 = time.perf_counter()
+        tri, tconf = poses_of_members(rig, det, members, method=method)
+        t3d = time.perf_counter() - t0
+        F = max(1, tri.valid.shape[0])
+        times = (
+            {}
+            if ours_seconds is None
+            else {
+                "t_pp_ms": ours_seconds["t_pp_ms"],
+                "t_3Dg_ms": 1000 * t3d / F,
+                "t_3Di_ms": 1000 * t3d / max(1, int(tri.valid.sum())),
+            }
+        )
+        r[method] = {**pose_metrics(tri, gt, confidence=tconf, **scoring), **times}
+        # Ours on exactly the keypoints this triangulation reconstructed (like with like).
+        restricted = Poses3D(
+            ours.poses.xyz,
+            ours.poses.valid & tri.valid,
+            tri.keypoint_valid & ours.poses.valid[..., None],
+        )
+        r[f"ours_on_{method}_keypoints"] = {
+            "mpjpe_mm": pose_metrics(restricted, gt, **scoring)["mpjpe_mm"]
+        }
+        tris[method] = tri
+    return r, tris
