@@ -153,7 +153,7 @@ def test_model_cache_refuses_old_pickles_and_unfinished_folders(tmp_path):
         load_models(rig, unfinished)
 
 
-def test_registry_module_lists_modules_not_private_names():
+def test_experiment_modules_import_no_private_names_and_not_run():
     # Side studies and the registry use the shared modules' public names only.
     import ast
     import pathlib
