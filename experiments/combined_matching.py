@@ -1,17 +1,19 @@
 """The combined matcher on the domain-shift scenes without training anything:
-``python -m experiments.combined_matching --models M.pkl [M1.pkl M2.pkl] [--splits validation]
+``python -m experiments.combined_matching --models DIR [DIR1 DIR2] [--splits validation]
 [--shifts a,b]``.
 
-Loads quick-scale 5-view matchers and estimators, one pickle per training seed (as
-`experiments.filter_cutoffs` writes them, trained as ``experiments.run`` trains them; the first
-is trained here with seed 0 when its file is missing), runs `experiments.run.shift_rows` (every
-matcher's per-frame ARI, every grouping with every 3D method) on each chosen shift and split of
-the scenes of seed 0 (``--scenes-seed``), and prints the domain-shift summary tables of each
-split (with several pickles, their mean ± sd). The combined matcher's settings are the ones
-recorded with each matcher (``fit["combined"]``), else the library's defaults at the matcher's
-epipolar cutoff (`experiments.run.combined_config`; ``--library-switches``: its on/off switches
-at the library's defaults). One shift and split takes about a minute on 2 busy CPU cores per
-pickle.
+Loads quick-scale 5-view matchers and estimators, one models folder per training seed
+(`experiments.fitting.cached_models`: the model folders ``mvpose-jax train-matcher`` and
+``train-estimator`` write, and the matcher's fit record; trained as ``experiments.run`` trains
+them; the first is trained here with seed 0 when its folder is missing; `experiments.
+filter_cutoffs` shares them), runs `experiments.domain_shift.shift_rows` (every matcher's
+per-frame ARI, every grouping with every 3D method) on each chosen shift and split of the scenes
+of seed 0 (``--scenes-seed``), and prints the domain-shift summary tables of each split (with
+several folders, their mean ± sd). The combined matcher's settings are the ones recorded with
+each matcher (``fit["combined"]``), else the library's defaults at the matcher's epipolar cutoff
+(`experiments.fitting.combined_config`; ``--library-switches``: its on/off switches at the
+library's defaults). One shift and split takes about a minute on 2 busy CPU cores per folder.
+The pickles these models were kept in before are refused (train the folder again).
 """
 
 from __future__ import annotations
@@ -19,33 +21,22 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import pickle
 from pathlib import Path
 
-from experiments.filter_cutoffs import models
-from experiments.run import (
-    SCALES,
-    Data,
-    combined_config,
-    make_shifted_scenes,
-    shift_rows,
-    shift_tables,
-)
+from experiments.config import SCALES
+from experiments.data import Data, make_shifted_scenes
+from experiments.domain_shift import shift_rows
+from experiments.domain_shift import tables as shift_tables
+from experiments.fitting import cached_models, combined_config, load_models
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text
+from mvpose_jax.errors import InputError
 from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.synthetic import SHIFTS
 
 # The combined matcher's on/off settings, chosen on validation scenes for the library (not per
 # matcher, unlike its threshold and cutoff, which are chosen on each matcher's dev frames).
 SWITCHES = ("repair_splits", "drop_duplicates")
-
-
-def _load(path: Path) -> dict:
-    if not path.exists():
-        raise SystemExit(f"{path}: no such models pickle (only the first is trained when missing)")
-    with open(path, "rb") as f:
-        return pickle.load(f)
 
 
 def _runs_of(path: Path) -> list[dict]:
@@ -60,13 +51,16 @@ def main(argv=None) -> int:
         type=Path,
         nargs="+",
         default=[None],
-        help="pickles of trained models, one per training seed (the first made if missing); a "
-        "pickle's training seed is its 'seed' entry, else its position (0, 1, ...)",
+        metavar="DIR",
+        help="models folders (experiments.fitting.cached_models: matcher/ and estimator/ model "
+        "folders and fit.json), one per training seed; the first is trained with seed 0 and "
+        "written there if missing; a folder's training seed is in its fit.json (old .pkl files "
+        "are refused)",
     )
     ap.add_argument("--splits", default="validation", help="validation and/or test (comma list)")
     ap.add_argument("--shifts", default=",".join(SHIFTS), help="comma list of shift names")
     ap.add_argument(
-        "--out", type=Path, help="write every number as JSON (a list, a run per pickle)"
+        "--out", type=Path, help="write every number as JSON (a list, a run per models folder)"
     )
     ap.add_argument(
         "--scenes-seed",
@@ -103,6 +97,15 @@ def main(argv=None) -> int:
         print("\n".join(shift_tables(runs)))
         return 0
     rig = load_rig("panoptic5")
+    # Paths that cannot hold models fail now, not after the scenes and the first models are made.
+    for i, path in enumerate(args.models):
+        if path is not None and path.is_file():
+            ap.error(
+                f"--models {path}: a file; the models are kept as model folders now (not "
+                "pickles): give a folder (the first is trained and written there if missing)"
+            )
+        if i > 0 and not path.exists():
+            ap.error(f"--models {path}: no such folder (only the first is trained when missing)")
     splits = args.splits.split(",")
     scenes = {
         name: Data(
@@ -112,17 +115,21 @@ def main(argv=None) -> int:
     }
     runs = []
     for i, path in enumerate(args.models):
-        m = models(rig, path) if i == 0 else _load(path)
+        try:
+            m = cached_models(rig, path) if i == 0 else load_models(rig, path)
+        except InputError as e:
+            raise SystemExit(str(e)) from None
+        fit = dict(m.fit)
         if args.library_switches:
             default = CombinedConfig()
-            m["fit"]["combined"] = dataclasses.asdict(combined_config(m["fit"])) | {
+            fit["combined"] = dataclasses.asdict(combined_config(fit)) | {
                 k: getattr(default, k) for k in SWITCHES
             }
         run = {
-            "seed": int(m.get("seed", i)),
+            "seed": m.seed,
             "models": None if path is None else str(path),
             "scenes_seed": args.scenes_seed,
-            "combined": dataclasses.asdict(combined_config(m["fit"])),
+            "combined": dataclasses.asdict(combined_config(fit)),
             "shifts": {},
         }
         for name, data in scenes.items():
@@ -130,9 +137,9 @@ def main(argv=None) -> int:
                 split: shift_rows(
                     data,
                     split,
-                    m["matcher"],
-                    m["estimator"],
-                    m["fit"],
+                    m.matcher,
+                    m.estimator,
+                    fit,
                     adapt=SCALES["quick"].adapt if args.adapt else None,
                     matcher_adapt=SCALES["quick"].matcher_adapt if args.adapt_matcher else None,
                 )

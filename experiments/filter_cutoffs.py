@@ -2,7 +2,8 @@
 pipeline: ``python -m experiments.filter_cutoffs [--splits validation] [--cutoffs 1.5,2,3]``.
 
 Trains the seed-0 quick-scale 5-view matcher and estimator as ``experiments.run`` does (or loads
-them from ``--models``, a pickle this script wrote), runs both pipelines with tracking on each
+them from ``--models``, a models folder: `experiments.fitting.cached_models`, shared with
+`experiments.combined_matching`; old pickles are refused), runs both pipelines with tracking on each
 tracking scene (``[0, 4, n]`` validation, ``[0, 6, n]`` test; 1-8 people, 300 frames), and prints
 for each cut-off the jitter (times the ground truth's), MPJPE and PCP, with the unfiltered row
 and the identity metrics. docs/tracking.md's table of cut-offs comes from the validation split.
@@ -12,64 +13,51 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
 from pathlib import Path
 
 import numpy as np
 
-from experiments.run import (
-    SCALES,
-    fit_estimator,
-    fit_matcher,
-    make_data,
-    make_scenes,
-    make_tracking_scenes,
-    pooled_tracks,
-    tracking_truth,
-)
+from experiments.config import SCALES
+from experiments.data import make_tracking_scenes, pooled_tracks, tracking_truth
+from experiments.fitting import cached_models
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.poses import PoseResults
+from mvpose_jax.errors import InputError
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.metrics import identity_metrics, jitter, pose_metrics
 from mvpose_jax.smoothing import smooth_poses
 from mvpose_jax.tracking import TrackingConfig
 
 
-def models(rig, path: Path | None) -> dict:
-    if path is not None and path.exists():
-        with open(path, "rb") as f:
-            return pickle.load(f)
-    sc = SCALES["quick"]
-    data = make_data(rig, make_scenes(rig, sc, 0), sc, 0, True)
-    matcher, fit = fit_matcher(data, sc, rig.names, 0, True)
-    estimator, _ = fit_estimator(data, sc, rig.names, rig.names, 0, True)
-    out = {"matcher": matcher, "estimator": estimator, "fit": fit}
-    if path is not None:
-        with open(path, "wb") as f:
-            pickle.dump(out, f)
-    return out
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.filter_cutoffs")
     ap.add_argument("--splits", default="validation", help="validation and/or test (comma list)")
     ap.add_argument("--cutoffs", default="1.5,1.75,2,3", help="Butterworth cut-offs (Hz)")
-    ap.add_argument("--models", type=Path, help="pickle of the trained models (made if missing)")
+    ap.add_argument(
+        "--models",
+        type=Path,
+        metavar="DIR",
+        help="models folder (experiments.fitting.cached_models: matcher/ and estimator/ model "
+        "folders and fit.json; trained and written there if missing; old .pkl files are refused)",
+    )
     ap.add_argument("--out", type=Path, help="write every number as JSON")
     args = ap.parse_args(argv)
     rig = load_rig("panoptic5")
-    m = models(rig, args.models)
+    try:
+        m = cached_models(rig, args.models)
+    except InputError as e:
+        raise SystemExit(str(e)) from None
     scenes = make_tracking_scenes(rig, SCALES["quick"], 0)
     fps, out = 30.0, {}
     pipelines = {
         "gat_mlp": {
-            "matcher": m["matcher"],
-            "estimator": m["estimator"],
+            "matcher": m.matcher,
+            "estimator": m.estimator,
             "proposals": "gat",
-            "threshold": m["fit"]["threshold"],
+            "threshold": m.fit["threshold"],
         },
-        "epipolar_dlt": {"half_score_px": m["fit"]["geometric_cutoff_px"]},
+        "epipolar_dlt": {"half_score_px": m.fit["geometric_cutoff_px"]},
     }
     for split in args.splits.split(","):
         recs = scenes[split]

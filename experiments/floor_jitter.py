@@ -11,10 +11,10 @@ covered, because training it takes hours here.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import numpy as np
 
+from experiments.config import estimator_config, seed_stream
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.estimator_training import train_estimator
@@ -29,7 +29,6 @@ from mvpose_jax.synthetic import (
     generate_single_person_recordings,
     scene_geometry,
 )
-from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
 
 def main(argv=None) -> int:
@@ -47,20 +46,12 @@ def main(argv=None) -> int:
     rig = load_rig(args.rig)
     floor = scene_geometry(rig).floor_height
     scenes = [
-        generate_recording(rig, num_people=n, num_frames=args.scene_frames, seed=[0, 3, n])
+        generate_recording(
+            rig, num_people=n, num_frames=args.scene_frames, seed=seed_stream("validation", 0, n)
+        )
         for n in args.people
     ]
-    config = EstimatorConfig(
-        mlp=dataclasses.replace(MLPConfig.quick(), output="residual"),
-        train=TrainConfig(
-            learning_rate=1e-3,
-            batch_size=256,
-            max_steps=args.steps,
-            patience=1000,
-            final_lr_fraction=0.01,
-        ),
-        loss_power=1.0,
-    )
+    config = estimator_config(MLPConfig.quick(), steps=args.steps)
     variants = {
         "floor right": (0.0, 0.0),
         f"floor {args.offset:+g} m": (args.offset, 0.0),
@@ -71,10 +62,14 @@ def main(argv=None) -> int:
         scene = SceneConfig(floor_height=floor + offset, floor_jitter_m=jitter)
         cfg = SyntheticConfig(scene=scene)
         train = generate_single_person_recordings(
-            rig, num_recordings=args.recordings, num_frames=args.frames, config=cfg, seed=[0, 1]
+            rig,
+            num_recordings=args.recordings,
+            num_frames=args.frames,
+            config=cfg,
+            seed=seed_stream("train", 0),
         )
         dev = generate_single_person_recordings(
-            rig, num_recordings=5, num_frames=40, config=cfg, seed=[0, 2]
+            rig, num_recordings=5, num_frames=40, config=cfg, seed=seed_stream("dev", 0)
         )
         xy, score = single_person_samples(train)
         dxy, dscore = single_person_samples(dev)

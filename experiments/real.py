@@ -45,13 +45,13 @@ from experiments.mvor import (
     PCP_RATIO,
     UPPER_BODY_LIMBS,
     MvorData,
-    evaluate,
     load_mvor,
     poses_to_joints,
     reprojection_of_truth,
     select_frames,
     true_identity,
 )
+from experiments.mvor_protocol import evaluate
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.inference import run_pipeline

@@ -1,8 +1,8 @@
 """Choosing robust triangulation's thresholds: ``python -m experiments.robust_triangulation``.
 
-On synthetic multi-person scenes (validation seeds ``[seed, 3, n]``, the streams
-`experiments.run` chooses every setting on; ``--split test`` reads the test scenes
-``[seed, 5, n]`` at the chosen thresholds only), the geometric proposals (`run_pipeline` without
+On synthetic multi-person scenes (validation seeds ``[seed, 3, n]``, the streams every
+experiment chooses its settings on, `experiments.config.seed_stream`; ``--split test`` reads the
+test scenes ``[seed, 5, n]`` at the chosen thresholds only), the geometric proposals (`run_pipeline` without
 models) group the skeletons; crowded scenes make them put a wrong skeleton (another person's, or
 a fragment) in some groups. On those same groups every (keypoint, whole-view) threshold pair of
 the grid is scored against plain DLT: PCP and MPJPE (`metrics.pose_metrics`). Prints a Markdown
@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.config import SPLITS, seed_stream
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.inference import run_pipeline
@@ -28,7 +29,6 @@ from mvpose_jax.metrics import pose_metrics
 from mvpose_jax.skeletons import Poses3D
 from mvpose_jax.synthetic import generate_recording
 
-SPLITS = {"validation": 3, "test": 5}
 KEYPOINT_PX = (10.0, 15.0, 20.0, 30.0, 40.0, 60.0, math.inf)
 VIEW_PX = (15.0, 20.0, 30.0, 40.0, 60.0, math.inf)
 
@@ -87,7 +87,7 @@ def corrupt_groups(
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--rig", default="panoptic5")
-    p.add_argument("--split", choices=tuple(SPLITS), default="validation")
+    p.add_argument("--split", choices=SPLITS, default="validation")
     p.add_argument("--seed", type=int, default=0, help="the scenes' seed (default 0)")
     p.add_argument("--people", type=int, nargs="+", default=[6, 7, 8])
     p.add_argument("--frames", type=int, default=100, help="frames per scene")
@@ -115,7 +115,7 @@ def main(argv=None) -> int:
             rig,
             num_people=n,
             num_frames=args.frames,
-            seed=[args.seed, SPLITS[args.split], n],
+            seed=seed_stream(args.split, args.seed, n),
         )
         res = run_pipeline(rig, rec.detections)
         members = res.members

@@ -1,6 +1,6 @@
 """Identities on crowded tracking scenes: ``python -m experiments.tracking_scenes``.
 
-The tracking scenes of `experiments.run` (``panoptic5``, 1-8 people, 300 frames at 30 fps,
+The tracking scenes of the experiments (`experiments.config.seed_stream`; ``panoptic5``, 1-8 people, 300 frames at 30 fps,
 detector model on): validation seeds ``[0, 4, n]`` (every tracker setting is chosen on these),
 test seeds ``[0, 6, n]`` (reported only). Each scene goes through the geometric pipeline
 (epipolar proposals, ``--half-score-px``) with DLT and with robust triangulation, then through
@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.config import TRACKING_SPLITS, seed_stream
+from experiments.data import seen_truth
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import group_people
@@ -30,19 +32,10 @@ from mvpose_jax.skeletons import Poses3D
 from mvpose_jax.synthetic import generate_recording
 from mvpose_jax.tracking import TrackingConfig, initial_state, track_frames
 
-SPLITS = {"validation": 4, "test": 6}
 METHODS = ("dlt", "robust")
 # The tracker as it was before confirmation, split handling and re-linking.
 BEFORE = TrackingConfig(confirm_hits=1, keypoint_ttl_s=float("inf"), split_m=0.0, relink_gap_s=0.0)
 TRACKERS = {"before": BEFORE, "after": TrackingConfig()}
-
-
-def seen_truth(rec) -> Poses3D:
-    """The ground truth of the people at least one camera detected in each frame."""
-    gt = rec.ground_truth
-    ident = np.asarray(rec.identity)
-    seen = (ident[:, :, :, None] == np.arange(gt.valid.shape[1])).any(axis=(1, 2))
-    return Poses3D(np.asarray(gt.xyz), np.asarray(gt.valid) & seen, np.asarray(gt.keypoint_valid))
 
 
 def pipeline_output(
@@ -91,7 +84,7 @@ def track(rig, out: dict, config: TrackingConfig, fps: float) -> tuple[np.ndarra
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--split", choices=[*SPLITS, "both"], default="both")
+    parser.add_argument("--split", choices=[*TRACKING_SPLITS, "both"], default="both")
     parser.add_argument("--people", default="1-8", help="scene sizes, e.g. 1-8 or 6,8")
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--methods", default=",".join(METHODS))
@@ -101,13 +94,16 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     lo, _, hi = args.people.partition("-")
     people = list(range(int(lo), int(hi) + 1)) if hi else [int(p) for p in lo.split(",")]
-    splits = list(SPLITS) if args.split == "both" else [args.split]
+    splits = list(TRACKING_SPLITS) if args.split == "both" else [args.split]
     rig = load_rig("panoptic5")
     rows, seconds, person_frames = [], {k: 0.0 for k in TRACKERS}, 0
     for split in splits:
         for n in people:
             rec = generate_recording(
-                rig, num_people=n, num_frames=args.frames, seed=[0, SPLITS[split], n]
+                rig,
+                num_people=n,
+                num_frames=args.frames,
+                seed=seed_stream(f"tracking/{split}", 0, n),
             )
             fps = 1.0 / float(np.median(np.diff(rec.timestamps)))
             gt = seen_truth(rec)

@@ -77,10 +77,7 @@ def test_default_experiment_smoke(tmp_path, capsys):
 
 def test_synthetic_summary_smoke(tmp_path):
     out = tmp_path / "summary"
-    assert (
-        main(["--experiment", "synthetic-summary", "--smoke", "--out", str(out), "--no-progress"])
-        == 0
-    )
+    assert main(["--only", "synthetic-summary", "--smoke", "--out", str(out), "--no-progress"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert set(m["runs"][0]["variants"]) == {"detected", "projected", "average"}
     assert (out / "recording.json").exists()
@@ -88,7 +85,11 @@ def test_synthetic_summary_smoke(tmp_path):
 
 def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     out = tmp_path / "arp"
-    assert main(["--experiment", "paper-arp", "--smoke", "--out", str(out), "--no-progress"]) == 0
+    # --experiment: the deprecated spelling of --only, still working.
+    with pytest.warns(FutureWarning, match="--experiment is deprecated; use --only paper-arp"):
+        assert (
+            main(["--experiment", "paper-arp", "--smoke", "--out", str(out), "--no-progress"]) == 0
+        )
     text = capsys.readouterr().out
     assert "Table 4" in text and "Table 7" in text
     (res,) = json.loads((out / "metrics.json").read_text())["runs"]
@@ -100,7 +101,7 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     # The tables again, from the saved seeds (a stopped multi-seed run keeps what it finished).
     again = tmp_path / "again"
     argv = [
-        "--experiment",
+        "--only",
         "paper-arp",
         "--out",
         str(again),
@@ -118,7 +119,7 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     part.write_text(json.dumps([run | {"seed": 1}]))
     other.write_text(json.dumps([run | {"seed": 1, "scenes_seed": 1}]))
     joined = tmp_path / "joined"
-    argv = ["--experiment", "paper-arp", "--out", str(joined), "--tables-from"]
+    argv = ["--only", "paper-arp", "--out", str(joined), "--tables-from"]
     assert main([*argv, str(out / "runs_partial.json"), str(part)]) == 0
     text = (joined / "tables.md").read_text()
     assert "over 2 training seeds (0, 1)" in text and "both from seed 0" in text

@@ -18,18 +18,14 @@ SMOKE_SHIFTS = ("none", "part-mixing", "floor+0.6", "calibration")
 
 
 def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
-    from experiments.run import (
-        ADAPT_PIPELINES,
-        SCALES,
-        SHIFT_PIPELINES,
-        make_scenes,
-        make_shifted_scenes,
-    )
+    from experiments.config import SCALES
+    from experiments.data import make_scenes, make_shifted_scenes
+    from experiments.domain_shift import ADAPT_PIPELINES, SHIFT_PIPELINES
     from mvpose_jax.data.calibration import load_rig
     from mvpose_jax.synthetic import SHIFTS
 
     out = tmp_path / "shift"
-    argv = ["--experiment", "domain-shift", "--smoke", "--out", str(out), "--no-progress"]
+    argv = ["--only", "domain-shift", "--smoke", "--out", str(out), "--no-progress"]
     assert main([*argv, "--shifts", ",".join(SMOKE_SHIFTS)]) == 0
     text = capsys.readouterr().out
     assert "Δ ARI" in text and "floor+0.6" in text and "calibration" in text
@@ -76,7 +72,7 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
             np.testing.assert_array_equal(a.detections.score, b.detections.score)
     # Tables again from the saved seed.
     again = tmp_path / "again"
-    argv = ["--experiment", "domain-shift", "--out", str(again)]
+    argv = ["--only", "domain-shift", "--out", str(again)]
     assert main([*argv, "--tables-from", str(out / "runs_partial.json")]) == 0
     first = (out / "tables.md").read_text().split("\n", 3)[3]
     assert (again / "tables.md").read_text().split("\n", 3)[3] == first
@@ -89,5 +85,5 @@ def test_domain_shift_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert "Δ ARI" in "\n".join(printed)
     assert all(line in first for line in printed if line.startswith("|"))
     with pytest.raises(SystemExit):
-        main(["--experiment", "domain-shift", "--smoke", "--shifts", "floor+0.7"])
+        main(["--only", "domain-shift", "--smoke", "--shifts", "floor+0.7"])
     assert "no shift named ['floor+0.7']" in capsys.readouterr().err

@@ -17,7 +17,6 @@ import pytest
 from experiments import mvor
 from experiments.mvor import (
     JOINTS,
-    evaluate,
     load_mvor,
     poses_to_joints,
     reprojection_of_truth,
@@ -25,6 +24,7 @@ from experiments.mvor import (
     to_joints,
     true_identity,
 )
+from experiments.mvor_protocol import evaluate
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D
