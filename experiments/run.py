@@ -246,7 +246,12 @@ def main(argv=None) -> int:
         out / "metrics.json", json.dumps({**meta, "runs": to_jsonable(runs)}, indent=1) + "\n"
     )
     atomic_write_text(out / "tables.md", text)
-    print(text)
+    # The reported (test) tables on the terminal; the validation ones, where settings were
+    # chosen, only in tables.md, so a log of the run stays a page long.
+    shown, _, rest = text.partition("\n## Validation scenes")
+    print(shown.rstrip() + "\n")
+    if rest:
+        print(f"(the validation scenes' tables, where the settings were chosen: {out}/tables.md)")
     print(f"wrote {out}/metrics.json, tables.md and figures/")
     return 0
 

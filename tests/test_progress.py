@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import re
 
-import pytest
 import tqdm
 
 from mvpose_jax.progress import LineProgress, progress_bar
@@ -127,30 +126,3 @@ def test_fast_rates_are_plain_numbers():
     bar.update(3040)
     bar.close()
     assert "1520 frame/s" in stream.getvalue()
-
-
-@pytest.mark.slow
-def test_the_main_job_logged_to_a_file_stays_readable(tmp_path):
-    """`python -m experiments.run --smoke` with its progress shown, written to a file (not a
-    terminal): a line every few seconds, no carriage-return updates, under 200 lines."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1]
-    log = tmp_path / "run.log"
-    env = {**os.environ, "PYTHONPATH": str(root)}
-    with log.open("w") as f:
-        subprocess.run(
-            [sys.executable, "-m", "experiments.run", "--smoke", "--out", str(tmp_path / "r")],
-            cwd=root,
-            env=env,
-            stdout=f,
-            stderr=subprocess.STDOUT,
-            check=True,
-            timeout=900,
-        )
-    text = log.read_text()
-    assert "\r" not in text
-    assert len(text.splitlines()) < 200, len(text.splitlines())
