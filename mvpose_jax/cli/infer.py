@@ -222,8 +222,6 @@ def _infer_session(args: argparse.Namespace, session: str) -> int:
     status = 0
     for t in trials:
         status = _print_result(t.result, args) or status
-        for path in t.trc:
-            print(f"  {path}")
     if trials and not trials[-1].result.interrupted:
         print(f"{len(trials)} trials in {args.out}")
     return status
@@ -275,7 +273,9 @@ def _print_result(res, args: argparse.Namespace) -> int:
     for note in res.read_notes:
         print(f"  read as it was: {note}")
     if res.exported:
-        print(f"exported {len(res.exported)} files: " + ", ".join(p.name for p in res.exported))
+        folder = res.exported[0].parent
+        names = ", ".join(p.name for p in res.exported)
+        print(f"exported {len(res.exported)} files to {folder}: {names}")
     if res.view is not None:
         print(f"wrote {res.view} (rerun {res.view} shows it)")
     return 0

@@ -110,6 +110,8 @@ def run_session(
         infer = trial_config(config, trial)
         result = run_infer(infer, notify=notify)
         trc = _pose2sim_names(result, trial) if result.exported else ()
+        if trc:  # the exports were moved to Pose2Sim's names
+            result = result._replace(exported=trc)
         out.append(TrialResult(trial, result, trc, result.read_notes))
         if result.interrupted:
             break
