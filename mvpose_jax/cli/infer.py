@@ -28,6 +28,7 @@ from mvpose_jax.cli.options import (
 )
 from mvpose_jax.cli.registry import command
 from mvpose_jax.errors import InputError, MvposeWarning
+from mvpose_jax.jobs.common import proposal_mode
 from mvpose_jax.jobs.export import export_formats
 from mvpose_jax.jobs.smooth import smoothing_settings
 
@@ -346,16 +347,7 @@ def pipeline_config(args: argparse.Namespace):
         )
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
-    proposals = args.proposals or ("combined" if args.matcher else "epipolar")
-    if stages.lookup("proposals", proposals).needs_matcher and not args.matcher:
-        raise InputError(f"--proposals {proposals} needs --matcher", field="--proposals")
-    if args.threshold is not None and proposals == "combined":
-        raise InputError(
-            "sets the GAT's or the epipolar matcher's proposals, not the combined matcher's (its "
-            "settings are the --matcher folder's proposal_threshold.json); add --proposals gat "
-            "to group by the GAT alone at this threshold",
-            field="--threshold",
-        )
+    proposal_mode(args.proposals, args.threshold, bool(args.matcher))
     if args.max_gap_s < 0:
         raise InputError("must be >= 0", field="--max-gap-s")
     one_euro, _ = _smoothing(args)

@@ -156,6 +156,30 @@ def recordings_in(path: str, layout: str | None, source_layout: str | None = Non
     return [load(s) for s in sources]
 
 
+def proposal_mode(proposals: str | None, threshold: float | None, has_matcher: bool) -> str:
+    """The proposals to run (`stages.PROPOSALS`; default "combined" with a matcher, else
+    "epipolar"), checked: one that needs a matcher without one, or a threshold given to the
+    combined matcher (whose settings are the matcher folder's, so it would be silently ignored),
+    is refused."""
+    from mvpose_jax import stages
+
+    mode = proposals or ("combined" if has_matcher else "epipolar")
+    try:
+        stage = stages.lookup("proposals", mode, what="--proposals")
+    except ValueError as e:
+        raise InputError(str(e), field="--proposals") from None
+    if stage.needs_matcher and not has_matcher:
+        raise InputError(f"--proposals {mode} needs --matcher", field="--proposals")
+    if threshold is not None and mode == "combined":
+        raise InputError(
+            "sets the GAT's or the epipolar matcher's proposals, not the combined matcher's (its "
+            "settings are the --matcher folder's proposal_threshold.json); add --proposals gat "
+            "to group by the GAT alone at this threshold",
+            field="--threshold",
+        )
+    return mode
+
+
 def proposal_settings(
     options: ProposalOptions, matcher_folder: str | None, matcher: Matcher | None
 ) -> tuple[str, float, CombinedConfig | None]:
@@ -166,19 +190,35 @@ def proposal_settings(
     """
     from mvpose_jax.trained import read_combined_config, read_proposal_threshold
 
-    proposals = options.proposals or ("combined" if matcher is not None else "epipolar")
-    if proposals != "epipolar" and matcher is None:
-        raise InputError(f"--proposals {proposals} needs --matcher", field="--proposals")
-    if options.threshold is not None and proposals == "combined":
-        raise InputError(
-            "sets the GAT's or the epipolar matcher's proposals, not the combined matcher's (its "
-            "settings are the --matcher folder's proposal_threshold.json); add --proposals gat "
-            "to group by the GAT alone at this threshold",
-            field="--threshold",
-        )
+    proposals = proposal_mode(options.proposals, options.threshold, matcher is not None)
     threshold = read_proposal_threshold(matcher_folder, options.threshold)
     combined = read_combined_config(matcher_folder) if proposals == "combined" else None
     return proposals, threshold, combined
+
+
+def poses_on_rig(poses_path: str, rig: RigSource) -> tuple[PoseResults, Rig]:
+    """Poses written by infer and the whole calibration; poses whose cameras are not all in it
+    are an error naming the poses file."""
+    from mvpose_jax.data.poses import load_poses
+
+    poses = load_poses(poses_path)
+    rig_all = rig.load()
+    missing = [c for c in poses.cameras if c not in rig_all.names]
+    if missing:
+        raise InputError(
+            f"the poses' cameras {missing} are not in the calibration's {list(rig_all.names)}",
+            file=poses_path,
+            field="cameras",
+        )
+    return poses, rig_all
+
+
+def detections_of(poses: PoseResults, rig_all: Rig, source: DetectionsSource) -> Recording:
+    """The detections ``poses`` were made from, read on the poses' cameras in their layout."""
+    from mvpose_jax.data import load_recording
+
+    options = {**source.reading_options(), "cameras": list(poses.cameras)}
+    return load_recording(source.path, layout=poses.layout, rig=rig_all, **options)
 
 
 def poses_and_detections(

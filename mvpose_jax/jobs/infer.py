@@ -32,7 +32,7 @@ from mvpose_jax.data.recording import recording_fps
 from mvpose_jax.data.stream import FrameRangeStream
 from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.inference import FilterConfig, PipelineConfig, stream_pipeline
-from mvpose_jax.jobs.common import DetectionsSource, RigSource
+from mvpose_jax.jobs.common import DetectionsSource, RigSource, proposal_mode
 from mvpose_jax.lifting import LiftingConfig
 from mvpose_jax.matching import MatchingConfig
 from mvpose_jax.smoothing import smooth_chunk_files
@@ -139,20 +139,7 @@ def resolve_pipeline(config: PipelineConfig, matcher_folder: str | None, *, esti
         without one or would ignore the one given, or an unknown stage name.
     """
     m, lift = config.matching, config.lifting
-    mode = m.mode(matcher_folder is not None)
-    try:
-        stage = stages.lookup("proposals", mode)
-    except ValueError as e:
-        raise InputError(str(e), field="pipeline.matching.proposals") from None
-    if stage.needs_matcher and matcher_folder is None:
-        raise InputError(f"proposals {mode} need a matcher", field="pipeline.matching.proposals")
-    if m.threshold is not None and mode == "combined":
-        raise InputError(
-            "sets the GAT's or the epipolar matcher's proposals, not the combined matcher's (its "
-            "settings are the matcher folder's proposal_threshold.json); group by the GAT alone "
-            "(proposals gat) at this threshold",
-            field="pipeline.matching.threshold",
-        )
+    mode = proposal_mode(m.proposals, m.threshold, matcher_folder is not None)
     threshold = read_proposal_threshold(matcher_folder, m.threshold)
     combined = m.combined
     if mode == "combined" and combined is None:

@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mvpose_jax.data import load_recording
-from mvpose_jax.data.poses import PoseResults, load_poses
+from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.errors import InputError
-from mvpose_jax.jobs.common import DetectionsSource, RigSource
+from mvpose_jax.jobs.common import DetectionsSource, RigSource, detections_of, poses_on_rig
 from mvpose_jax.label_free import (
     LabelFreeConfig,
     LabelFreeReport,
@@ -65,17 +64,8 @@ def run_score(config: ScoreConfig) -> tuple[LabelFreeReport, tuple[Path, Path]]:
         them, or detections that do not fit the poses (frame count, keypoints, or a skeleton
         the poses use that the detections do not have), naming file, frame, camera and field.
     """
-    poses = load_poses(config.poses)
-    rig_all = config.rig.load()
-    missing = [c for c in poses.cameras if c not in rig_all.names]
-    if missing:
-        raise InputError(
-            f"the poses' cameras {missing} are not in the calibration's {list(rig_all.names)}",
-            file=config.poses,
-            field="cameras",
-        )
-    options = {**config.detections.reading_options(), "cameras": list(poses.cameras)}
-    recording = load_recording(config.detections.path, layout=poses.layout, rig=rig_all, **options)
+    poses, rig_all = poses_on_rig(config.poses, config.rig)
+    recording = detections_of(poses, rig_all, config.detections)
     frames = _checked_frames(poses, recording.detections, config)
     detections = Detections(*(np.asarray(a)[:frames] for a in recording.detections))
     _check_skeletons(poses, detections, config.detections.path)

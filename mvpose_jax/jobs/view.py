@@ -6,10 +6,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from mvpose_jax.data import load_recording
-from mvpose_jax.data.poses import load_poses
 from mvpose_jax.errors import InputError
-from mvpose_jax.jobs.common import DetectionsSource, RigSource
+from mvpose_jax.jobs.common import DetectionsSource, RigSource, detections_of, poses_on_rig
 from mvpose_jax.viewer import write_rerun
 
 
@@ -48,22 +46,11 @@ def run_view(config: ViewConfig) -> Path:
     """
     if Path(config.out).suffix.lower() != ".rrd":
         raise InputError("the output is a rerun recording: name it FILE.rrd", field="out")
-    poses = load_poses(config.poses)
-    rig_all = config.rig.load()
-    missing = [c for c in poses.cameras if c not in rig_all.names]
-    if missing:
-        raise InputError(
-            f"the poses' cameras {missing} are not in the calibration's {list(rig_all.names)}",
-            file=config.poses,
-            field="cameras",
-        )
+    poses, rig_all = poses_on_rig(config.poses, config.rig)
     rig = rig_all.select(list(poses.cameras))
     detections = None
     if config.detections is not None:
-        options = {**config.detections.reading_options(), "cameras": list(poses.cameras)}
-        detections = load_recording(
-            config.detections.path, layout=poses.layout, rig=rig_all, **options
-        )
+        detections = detections_of(poses, rig_all, config.detections)
     return write_rerun(
         config.out,
         poses,
