@@ -38,9 +38,14 @@ from mvpose_jax.proposals import (
     choose_combined_threshold,
     choose_geometric_cutoff,
     choose_proposal_threshold,
+)
+from mvpose_jax.trained import (
+    Estimator,
+    Matcher,
+    load_estimator,
+    load_matcher,
     write_proposal_threshold,
 )
-from mvpose_jax.trained import Estimator, Matcher, load_estimator, load_matcher
 
 
 def fit_matcher(
