@@ -1,7 +1,7 @@
-"""Jobs: what one command runs, for the CLI, the experiments and the benchmarks alike.
+"""Jobs: what one command runs, as one library call (a frozen config in, a result out).
 
-Each job module takes one frozen config (plain values: file names, numbers, names) and returns
-a result the caller prints or measures. The modules import nothing heavy at import time (jax,
-flax, the readers are imported inside the run functions), so that building the command line's
-parser from their configs and constants stays fast.
+The CLI parses options into a job's config, calls the job and prints its result; other callers
+(the Pose2Sim demo benchmark, a batch runner) call the same function. The job configs hold plain
+values (file names, numbers, names); the CLI imports a job module only when its command runs, so
+building the parser stays free of the pipeline's imports.
 """
