@@ -2,6 +2,8 @@
 
 The CLI parses options into a job's config, calls the job and prints its result; other callers
 (the Pose2Sim demo benchmark, a batch runner) call the same function. The job configs hold plain
-values (file names, numbers, names); the CLI imports a job module only when its command runs, so
-building the parser stays free of the pipeline's imports.
+values (file names, numbers, names). Building the parser stays light: the job modules whose
+configs the CLI reads at import (`common`, `adapt`, `smooth`, `train`, ...) import the pipeline
+inside their run functions, and `infer`, `session`, `view` and `score` are imported only when
+their command runs.
 """
