@@ -16,7 +16,6 @@ the report of the robust variant on the first scene (``DIR/report/``).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -24,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
+from experiments.real import corrupted
 from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text
@@ -36,7 +36,6 @@ from mvpose_jax.label_free import (
     write_label_free_report,
 )
 from mvpose_jax.metrics import match_people, pose_metrics
-from mvpose_jax.skeletons import get_layout
 from mvpose_jax.smoothing import OneEuroConfig
 from mvpose_jax.synthetic import SHIFTS, SyntheticConfig, generate_recording
 from mvpose_jax.tracking import TrackingConfig
@@ -137,7 +136,7 @@ def main(argv=None) -> int:
             )
         rng = np.random.default_rng([args.seed, 36, i, 1])
         for name, (base, how) in CORRUPTED.items():
-            results[name] = _corrupted(results[base], how, rng)
+            results[name] = corrupted(results[base], how, rng)
         for name, result in results.items():
             report = label_free_score(result, rig, rec.detections, layout=LAYOUT, noise_floor=floor)
             if i == 0 and name == "robust":
@@ -232,25 +231,6 @@ def _pck3d(pred, gt, radius_mm: float) -> float:
         ok = np.asarray(pred.keypoint_valid)[f, pi] & kv[f, gi] & (d * 1000 <= radius_mm)
         hit += int(ok.sum())
     return 100.0 * hit / max(int(kv.sum()), 1)
-
-
-def _corrupted(result: PoseResults, how: str, rng: np.random.Generator) -> PoseResults:
-    """A result made worse on purpose: "move" 10 % of its keypoints 5 cm in a random direction,
-    "wrists" left out, "drop" a random fifth of its keypoints left out."""
-    poses = result.poses
-    xyz = np.asarray(poses.xyz).copy()
-    kv = np.asarray(poses.keypoint_valid).copy()
-    if how == "move":
-        chosen = kv & (rng.random(kv.shape) < 0.1)
-        direction = rng.normal(size=xyz.shape)
-        direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
-        xyz = np.where(chosen[..., None], xyz + 0.05 * direction, xyz).astype(np.float32)
-    elif how == "wrists":
-        lay = get_layout(result.layout)
-        kv[..., [lay.index("l_wrist"), lay.index("r_wrist")]] = False
-    else:
-        kv &= rng.random(kv.shape) >= 0.2
-    return dataclasses.replace(result, poses=poses._replace(xyz=xyz, keypoint_valid=kv))
 
 
 def _agreement_dict(a) -> dict:

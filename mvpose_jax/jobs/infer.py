@@ -162,11 +162,12 @@ def resolve_pipeline(config: PipelineConfig, matcher_folder: str | None, *, esti
         raise InputError("must be >= 0", field="pipeline.tracking.max_gap_s")
     filt = config.filtering
     stages.lookup("filters", filt.name, what="filter")
-    for name in ("cutoff_hz",):
-        if getattr(filt, name) <= 0:
+    for name, value in (
+        ("cutoff_hz", filt.cutoff_hz),
+        ("one_euro.min_cutoff_hz", filt.one_euro.min_cutoff_hz),
+    ):
+        if value <= 0:
             raise InputError("must be > 0", field=f"pipeline.filtering.{name}")
-    if filt.one_euro.min_cutoff_hz <= 0:
-        raise InputError("must be > 0", field="pipeline.filtering.one_euro.min_cutoff_hz")
     for name, value in (
         ("fill_gap_s", filt.fill_gap_s),
         ("outlier_m", filt.outlier_m or 0),

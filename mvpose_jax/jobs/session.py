@@ -15,11 +15,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
-from mvpose_jax.data.pose2sim import Pose2SimSession, Pose2SimTrial, find_trials, trc_name
+from mvpose_jax.data.pose2sim import Pose2SimTrial, find_trials, trc_name
 from mvpose_jax.inference import PipelineConfig
 from mvpose_jax.jobs.common import DetectionsSource, RigSource
-from mvpose_jax.jobs.infer import INFER_PIPELINE, InferConfig, InferResult
-from mvpose_jax.jobs.infer import run_infer as run_infer
+from mvpose_jax.jobs.infer import INFER_PIPELINE, InferConfig, InferResult, run_infer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,11 +59,6 @@ class TrialResult(NamedTuple):
     read_notes: tuple[str, ...]
 
 
-def find_session(config: SessionConfig) -> Pose2SimSession:
-    """The trials ``config.session`` holds (`data.pose2sim.find_trials`)."""
-    return find_trials(config.session)
-
-
 def trial_config(config: SessionConfig, trial: Pose2SimTrial) -> InferConfig:
     """The ``infer`` run of one trial."""
     detections = DetectionsSource(
@@ -103,7 +97,7 @@ def run_session(
     """Runs every trial (in sorted order); ``on_trial`` is called before each (e.g. to print its
     camera pairing), ``notify`` as `run_infer`'s. An interrupted trial stops the session (its
     result says so, the trials after it are not run)."""
-    session = find_session(config)
+    session = find_trials(config.session)
     out = []
     for trial in session.trials:
         on_trial(trial)
