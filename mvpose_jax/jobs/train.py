@@ -98,17 +98,13 @@ class MatcherTrained(NamedTuple):
 
 def train_matcher_job(job: MatcherJob) -> MatcherTrained:
     """Trains the matcher into ``job.run.out`` and writes its chosen proposal settings there."""
-    from mvpose_jax.data.files import check_writable
     from mvpose_jax.matcher_settings import choose_matcher_settings
     from mvpose_jax.matcher_training import train_matcher
-    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
+    from mvpose_jax.parallel import resolve_num_devices
     from mvpose_jax.trained import MatcherConfig, write_proposal_threshold
 
     run = job.run
-    check_writable(run.out, folder=True)
-    # Before anything touches a device: a multi-host run must join its coordinator first.
-    initialize_distributed(run.coordinator_address, run.num_processes, run.process_id)
-    rig = run.rig.load()
+    rig = _begin(run)
     config = MatcherConfig.quick() if job.quick else MatcherConfig()
     train = dataclasses.replace(
         config.train,
@@ -205,18 +201,14 @@ class EstimatorTrained(NamedTuple):
 
 def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
     """Trains the estimator into ``job.run.out``."""
-    from mvpose_jax.data.files import check_writable
     from mvpose_jax.estimator_training import train_estimator
     from mvpose_jax.features import single_person_samples
     from mvpose_jax.models import MLPConfig
-    from mvpose_jax.parallel import initialize_distributed, resolve_num_devices
+    from mvpose_jax.parallel import resolve_num_devices
     from mvpose_jax.trained import EstimatorConfig, TrainConfig
 
     run = job.run
-    check_writable(run.out, folder=True)
-    # Before anything touches a device: a multi-host run must join its coordinator first.
-    initialize_distributed(run.coordinator_address, run.num_processes, run.process_id)
-    rig = run.rig.load()
+    rig = _begin(run)
     train_cams = tuple(job.train_cameras or rig.names)
     infer_cams = tuple(job.infer_cameras or train_cams)
     for c in train_cams:
@@ -269,3 +261,14 @@ def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
         run.out,
         read_dev_quality(run.out),
     )
+
+
+def _begin(run: TrainingRun):
+    """A training run's start, before anything touches a device: the output folder checked, a
+    multi-host run joined to its coordinator; returns the rig."""
+    from mvpose_jax.data.files import check_writable
+    from mvpose_jax.parallel import initialize_distributed
+
+    check_writable(run.out, folder=True)
+    initialize_distributed(run.coordinator_address, run.num_processes, run.process_id)
+    return run.rig.load()
