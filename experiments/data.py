@@ -101,9 +101,21 @@ def make_tracking_scenes(rig, sc: Scale, scenes_seed: int) -> dict:
     return make_scenes(rig, sc, scenes_seed, tracking=True)
 
 
-def make_data(rig, scenes: dict, sc: Scale, seed: int, progress: bool) -> Data:
-    """Training and dev recordings of training seed ``seed``, with the shared ``scenes``."""
+def make_data(
+    rig,
+    scenes: dict,
+    sc: Scale,
+    seed: int,
+    progress: bool,
+    floor_height: float | None = None,
+    up: tuple[float, float, float] | None = None,
+) -> Data:
+    """Training and dev recordings of training seed ``seed``, with the shared ``scenes``
+    (``floor_height``, ``up``: the floor along up, metres, and up, as measured on a real rig
+    (`floor.estimate_floor_from_detections`); None: the rig's, or guessed from the cameras)."""
     config = SyntheticConfig()
+    if floor_height is not None or up is not None:
+        config = config.with_scene(floor_height=floor_height, up=up)
     if sc.train_floor_jitter_m > 0:
         config = config.with_scene(floor_jitter_m=sc.train_floor_jitter_m)
     if sc.train_floor_offset_m:

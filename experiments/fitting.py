@@ -196,11 +196,21 @@ FIT_FILE = "fit.json"
 
 
 def cached_models(
-    rig: Rig, folder: Path | None, *, seed: int = 0, scale: str = "quick", progress: bool = True
+    rig: Rig,
+    folder: Path | None,
+    *,
+    seed: int = 0,
+    scale: str | Scale = "quick",
+    progress: bool = True,
+    floor_height: float | None = None,
+    up: tuple[float, float, float] | None = None,
+    data: Data | None = None,
 ) -> Models:
-    """The 5-view matcher and estimator of ``rig`` (every camera) trained as the experiments
-    train them (``scale``, training seed ``seed``), loaded from ``folder`` when it holds them, else
-    trained and, with a ``folder``, written there (see the module's docstring for its layout).
+    """The matcher and estimator of ``rig`` (every camera) trained as the experiments train them
+    (``scale``, a name of `SCALES` or a `Scale`; training seed ``seed``), loaded from ``folder``
+    when it holds them, else trained and, with a ``folder``, written there (see the module's
+    docstring for its layout). ``floor_height``, ``up``: the training recordings' (`make_data`);
+    ``data``: train on these recordings instead of generating them (real single-person ones).
 
     Raises:
       InputError: ``folder`` is a file (such as the pickles these caches were before), or a
@@ -208,12 +218,13 @@ def cached_models(
     """
     if folder is not None and folder.exists() and not _empty_folder(folder):
         return load_models(rig, folder)
-    sc = SCALES[scale]
-    data = make_data(rig, {}, sc, seed, progress)
+    sc = SCALES[scale] if isinstance(scale, str) else scale
+    if data is None:
+        data = make_data(rig, {}, sc, seed, progress, floor_height=floor_height, up=up)
     matcher, fit = fit_matcher(
         data, sc, rig.names, seed, progress, None if folder is None else folder / "matcher"
     )
-    estimator, _ = fit_estimator(
+    estimator, estimator_fit = fit_estimator(
         data,
         sc,
         rig.names,
@@ -223,7 +234,14 @@ def cached_models(
         None if folder is None else folder / "estimator",
     )
     if folder is not None:
-        record = {"seed": seed, "scale": scale, "fit": fit}
+        record = {
+            "seed": seed,
+            "scale": scale if isinstance(scale, str) else "custom",
+            "floor_height": floor_height,
+            "up": up,
+            "fit": fit,
+            "estimator_fit": estimator_fit,
+        }
         atomic_write_text(folder / FIT_FILE, json.dumps(to_jsonable(record), indent=1) + "\n")
     return Models(matcher, estimator, fit, seed)
 

@@ -29,6 +29,12 @@ the score: the rows on the 14 keypoints every row has are in a second table). Th
 rotated back to the calibration's world by the one of the 24 axis rotations that reprojects best
 (`trc_axes`; reported).
 
+With models (`run`'s ``models``; `experiments.real` trains them with `demo_models`), the
+`MODEL_ROWS` of the two-person trial on ``pose/``: the ``infer`` default (combined + blend) and
+the paper's GAT + MLP, with models trained on synthetic recordings of the rig (the floor and up
+measured from the trial's people) and with models trained on the session's single-person trials
+(`trial_recordings`, the paper's recipe on real data).
+
 The single-person trials: our geometric default against Pose2Sim's filtered TRC.
 
 Writes ``DIR/pose2sim_demo.md`` and ``DIR/pose2sim_demo.json`` (deterministic), and the wall time
@@ -45,7 +51,7 @@ import json
 import math
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -53,7 +59,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mvpose_jax.cameras import Rig, point_depths, project_points
-from mvpose_jax.data import load_recording
+from mvpose_jax.data import Recording, load_recording, slice_frames
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.pose2sim import Pose2SimTrial, find_trials
@@ -103,6 +109,26 @@ OUR_ROWS = (
     ("ours: epipolar + DLT, pose-associated/", "dlt", "pose-associated"),
 )
 PEER_ROWS = (("Pose2Sim, raw TRC", "raw"), ("Pose2Sim, Butterworth TRC", "filt_butterworth"))
+# With models (`demo_models`; rows only when `run` is given them), on pose/: (label, which model
+# pair, pipeline). "default": ``infer``'s with models (combined + blend); "paper": GAT + MLP.
+MODEL_SOURCES = {
+    "synthetic": "models from synthetic recordings of the rig",
+    "trials": "models from the single-person trials",
+}
+MODEL_ROWS = tuple(
+    (f"ours, {MODEL_SOURCES[source]}: {what}, pose/", source, pipeline)
+    for source in MODEL_SOURCES
+    for what, pipeline in (
+        ("infer default (combined + blend)", "default"),
+        ("paper's method (GAT + MLP)", "paper"),
+    )
+)
+# The single-person trials as the models' training and dev recordings: the balancing trial's
+# last BALANCE_DEV_FRAMES frames and participant 2's static trial are the dev recordings (two
+# recordings, so that dev frames of two people can be composed).
+BALANCE_TRIAL = "S00_P00_T01_BalancingTrial"
+DEV_TRIAL = "S00_P01_T01_StaticTrialParticipant2"
+BALANCE_DEV_FRAMES = 20
 
 
 class Trc(NamedTuple):
@@ -332,12 +358,31 @@ def pose2sim_people(
 
 
 def our_result(
-    trial: Pose2SimTrial, method: str, out: Path, frames: int | None
+    trial: Pose2SimTrial,
+    method: str | None,
+    out: Path,
+    frames: int | None,
+    *,
+    models: Path | None = None,
+    proposals: str | None = None,
 ) -> tuple[PoseResults, float]:
-    """Our pipeline on one trial as ``infer --session`` runs it, with ``--method``; returns the
-    poses and the job's wall time in seconds."""
-    pipeline = dataclasses.replace(INFER_PIPELINE, lifting=LiftingConfig(method))
-    session = SessionConfig(str(trial.folder), str(out), pipeline, trc=False, progress=False)
+    """Our pipeline on one trial as ``infer --session`` runs it, with ``--method`` (None: the
+    job's default) and, with ``models`` (a folder of ``matcher/`` and ``estimator/``), ``--matcher
+    --estimator`` and ``--proposals``; returns the poses and the job's wall time in seconds."""
+    pipeline = dataclasses.replace(
+        INFER_PIPELINE,
+        matching=dataclasses.replace(INFER_PIPELINE.matching, proposals=proposals),
+        lifting=LiftingConfig(method),
+    )
+    session = SessionConfig(
+        str(trial.folder),
+        str(out),
+        pipeline,
+        matcher=None if models is None else str(models / "matcher"),
+        estimator=None if models is None else str(models / "estimator"),
+        trc=False,
+        progress=False,
+    )
     config = trial_config(session, trial)
     if frames is not None:
         config = dataclasses.replace(config, frames=(0, frames))
@@ -355,6 +400,54 @@ def raw_detections(trial: Pose2SimTrial, frames: int | None) -> tuple[Rig, Detec
     recording = load_recording(source.path, layout=LAYOUT, rig=rig, **source.reading_options())
     stop = frames if frames is not None else None
     return rig, Detections(*(np.asarray(a)[:stop] for a in recording.detections))
+
+
+def trial_recordings(data: Path) -> tuple[list[Recording], list[Recording]]:
+    """The single-person trials as (training, dev) recordings (coco18, raw ``pose/``): dev is
+    the balancing trial's last `BALANCE_DEV_FRAMES` frames and `DEV_TRIAL`, training the rest."""
+    trials = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}
+    train, dev = [], []
+    for name in sorted(trials):
+        if name == MULTI_TRIAL:
+            continue
+        rig, det = raw_detections(trials[name], None)
+        rec = Recording(det, tuple(rig.names), LAYOUT)
+        if name == BALANCE_TRIAL:
+            F = int(det.score.shape[0])
+            train.append(slice_frames(rec, 0, F - BALANCE_DEV_FRAMES))
+            dev.append(slice_frames(rec, F - BALANCE_DEV_FRAMES, F))
+        else:
+            (dev if name == DEV_TRIAL else train).append(rec)
+    return train, dev
+
+
+def demo_models(data: Path, folder: Path, smoke: bool) -> dict:
+    """The two model pairs of the demo's rig, trained (or loaded from ``folder``): on synthetic
+    recordings of the rig, the floor measured from the two-person trial's people
+    (`real_models.synthetic_models`), and on the single-person trials (`trial_recordings`,
+    `real_models.trial_models`). Returns {`MODEL_SOURCES` key: (folder, training record)}."""
+    from experiments.real_models import (
+        measured_floor,
+        synthetic_models,
+        training_record,
+        trial_models,
+    )
+
+    trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[MULTI_TRIAL]
+    rig, detections = raw_detections(trial, None)
+    floor = measured_floor(rig, detections, LAYOUT)
+    synthetic = synthetic_models(rig, floor, folder / "synthetic", smoke=smoke)
+    train, dev = trial_recordings(data)
+    trials = trial_models(rig, train, dev, folder / "trials", smoke=smoke)
+    return {
+        "synthetic": (folder / "synthetic", training_record(synthetic, floor)),
+        "trials": (
+            folder / "trials",
+            training_record(trials)
+            | {"train_frames": sum(r.num_frames for r in train)}
+            | {"dev_frames": sum(r.num_frames for r in dev)},
+        ),
+    }
 
 
 def reassigned(result: PoseResults, rig: Rig, detections: Detections) -> PoseResults:
@@ -379,8 +472,14 @@ def score_row(result: PoseResults, rig: Rig, detections: Detections) -> dict:
     return _numbers(report)
 
 
-def run(data: Path, smoke: bool = False, work: Path | None = None) -> dict:
-    """Every row (module docstring); returns the report (JSON-able)."""
+def run(
+    data: Path,
+    smoke: bool = False,
+    work: Path | None = None,
+    models: Mapping[str, Path] | None = None,
+) -> dict:
+    """Every row (module docstring), and with ``models`` ({`MODEL_SOURCES` key: folder of
+    ``matcher/`` and ``estimator/``}) the `MODEL_ROWS` of those; returns the report (JSON-able)."""
     frames = SMOKE_FRAMES if smoke else None
     raw = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}
     associated = {t.name: t for t in find_trials(data, pose_folders=("pose-associated",)).trials}
@@ -388,7 +487,9 @@ def run(data: Path, smoke: bool = False, work: Path | None = None) -> dict:
         raise InputError(f"no trial {MULTI_TRIAL}", file=data)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(work or tmp)
-        multi = _trial_rows(raw[MULTI_TRIAL], associated[MULTI_TRIAL], frames, work, smoke)
+        multi = _trial_rows(
+            raw[MULTI_TRIAL], associated[MULTI_TRIAL], frames, work, smoke, models or {}
+        )
         singles = []
         if not smoke:
             for name in sorted(raw):
@@ -415,7 +516,12 @@ def run(data: Path, smoke: bool = False, work: Path | None = None) -> dict:
 
 
 def _trial_rows(
-    trial: Pose2SimTrial, trial_associated: Pose2SimTrial, frames, work: Path, smoke: bool
+    trial: Pose2SimTrial,
+    trial_associated: Pose2SimTrial,
+    frames,
+    work: Path,
+    smoke: bool,
+    models: Mapping[str, Path],
 ) -> dict:
     rig, detections = raw_detections(trial, frames)
     F = int(detections.score.shape[0])
@@ -427,6 +533,13 @@ def _trial_rows(
         if folder != "pose":
             result = reassigned(result, rig, detections)
         results[label] = result
+    for label, source, pipeline in MODEL_ROWS:
+        if source in models:
+            out = work / f"{trial.name}_{source}_{pipeline}"
+            proposals, method = ("gat", "mlp") if pipeline == "paper" else (None, None)
+            results[label], seconds[label] = our_result(
+                trial, method, out, frames, models=models[source], proposals=proposals
+            )
     axes = {}
     for label, kind in PEER_ROWS:
         results[label], axes[label] = pose2sim_people(trial.folder, kind, F, rig, detections)
@@ -547,11 +660,13 @@ _COLUMNS = (
 )
 
 
-def markdown(report: dict, timings: dict | None = None) -> str:
-    """The report as Markdown tables (``timings``: {row: seconds} adds a column)."""
+def markdown(report: dict, timings: dict | None = None, level: int = 1) -> str:
+    """The report as Markdown tables (``timings``: {row: seconds} adds a column; ``level``: the
+    title's heading level, the sections one below)."""
     multi = report["multi_person"]
+    h = "#" * level
     lines = [
-        "# Pose2Sim's demo session, processed by Pose2Sim and by us, scored without labels",
+        f"{h} Pose2Sim's demo session, processed by Pose2Sim and by us, scored without labels",
         "",
         f"Split: **{report['split']}**. Data: {report['data']}."
         + (" SMOKE RUN: a few frames only." if report["smoke"] else ""),
@@ -559,7 +674,7 @@ def markdown(report: dict, timings: dict | None = None) -> str:
         f"Every row is scored by `label_free.label_free_score` against the same detections: "
         f"{report['detections_scored_against']}. Identity of {report['identity']}.",
         "",
-        f"## {multi['trial']} (two people, {multi['frames']} frames, "
+        f"{h}# {multi['trial']} (two people, {multi['frames']} frames, "
         f"{len(multi['cameras'])} cameras)",
         "",
         "All 18 coco18 keypoints (Pose2Sim's TRC has no eyes or ears: they count as misses):",
@@ -581,17 +696,18 @@ def markdown(report: dict, timings: dict | None = None) -> str:
             f"R = {info['rotation_world_from_trc']} (median {info['axes_median_px']:.1f} px, the "
             f"next best rotation {info['axes_next_best_median_px']:.1f} px)"
         )
+    lines += _models_markdown(report.get("models") or {}, h)
     if report["single_person"]:
-        lines += ["", "## Single-person trials (all 18 keypoints)", ""]
+        lines += ["", f"{h}# Single-person trials (all 18 keypoints)", ""]
         for trial in report["single_person"]:
-            lines += [f"### {trial['trial']} ({trial['frames']} frames)", ""]
+            lines += [f"{h}## {trial['trial']} ({trial['frames']} frames)", ""]
             lines += [
                 *_table(trial["rows"], "all_keypoints", timings and timings.get(trial["trial"])),
                 "",
             ]
     lines += [
         "",
-        "## How to read it",
+        f"{h}# How to read it",
         "",
         "- *within 20 px (all skeletons)*: the share of every visible keypoint of every skeleton "
         "of every camera (false positives included) that the result's projection puts within "
@@ -609,6 +725,31 @@ def markdown(report: dict, timings: dict | None = None) -> str:
         "the 20 px share), keypoints produced (coverage), jitter and bone-length spread.",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _models_markdown(models: dict, h: str) -> list[str]:
+    """How the model rows' models were trained (`demo_models`' records)."""
+    if not models:
+        return []
+    lines = ["", f"{h}# The models of the rows with models", ""]
+    for source, r in models.items():
+        text = (
+            f"- {MODEL_SOURCES[source]}: matcher {r['matcher_steps']} steps, GAT threshold "
+            f"{r['gat_threshold']}, combined threshold {r['combined_threshold']} (best ARI on "
+            f"frames composed from the dev recordings: GAT {_num(r['composed_dev_ari_gat'])}, "
+            f"combined {_num(r['composed_dev_ari_combined'])})"
+        )
+        if "floor" in r:
+            f = r["floor"]
+            text += (
+                f"; training floor {f['height']:.3f} m along up, measured from the "
+                f"{MULTI_TRIAL} people ({f['basis']}, spread {f['spread']:.3f} m over "
+                f"{f['num_samples']} person-frames)"
+            )
+        if "train_frames" in r:
+            text += f"; {r['train_frames']} training frames, {r['dev_frames']} dev frames"
+        lines.append(text + ".")
+    return lines
 
 
 def _table(rows: list[dict], which: str, timings: dict | None) -> list[str]:
@@ -639,7 +780,7 @@ def _num(v) -> str:
     return "-" if v is None or not math.isfinite(v) else f"{v:.2f}"
 
 
-def _timings(report: dict) -> dict:
+def timings_of(report: dict) -> dict:
     """{row: seconds} of the two-person trial, and {trial: {row: seconds}} of the others."""
     out = {r["row"]: r["seconds"] for r in report["multi_person"]["rows"]}
     for trial in report["single_person"]:
@@ -647,11 +788,11 @@ def _timings(report: dict) -> dict:
     return out
 
 
-def _without_timings(value):
+def without_timings(value):
     if isinstance(value, dict):
-        return {k: _without_timings(v) for k, v in value.items() if k != "seconds"}
+        return {k: without_timings(v) for k, v in value.items() if k != "seconds"}
     if isinstance(value, list):
-        return [_without_timings(v) for v in value]
+        return [without_timings(v) for v in value]
     return value
 
 
@@ -666,8 +807,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = run(Path(args.data), smoke=args.smoke)
-    timings = _timings(report)
-    clean = _without_timings(report)
+    timings = timings_of(report)
+    clean = without_timings(report)
     # The tables and numbers are deterministic; the wall times go to their own file.
     atomic_write_text(
         out / "pose2sim_demo.json", json.dumps(_finite(to_jsonable(clean)), indent=1) + "\n"

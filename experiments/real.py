@@ -11,9 +11,18 @@ no tracking, no filter):
 * the ground-truth groupings (`mvor.true_identity`: detections assigned to the annotated people)
   with the same three triangulations (`lifting.poses_of_members`), to separate matching from 3D.
 
-Scored with the MVOR protocol (`mvor.evaluate`). Writes ``DIR/real.md``, ``DIR/real.json`` (the
-table, per day and overall, per joint) and ``DIR/real_joints.png`` (MPJPE per joint and method).
-``--smoke`` runs three frames of each day (CI).
+and with models trained without a label on synthetic recordings of MVOR's rig
+(`real_models.synthetic_models`, the floor measured from the days' own people: their upper body,
+the feet being hidden), `MODEL_PIPELINES`: the ``infer`` default (combined matcher + blend), the
+combined matcher + MLP, the paper's GAT + MLP, and the true groupings with the MLP and the blend.
+
+Scored with the MVOR protocol (`mvor.evaluate`). Then Pose2Sim's demo session without labels
+(`pose2sim_demo.run`, with its two model pairs from `pose2sim_demo.demo_models`). Writes
+``DIR/real.md``, ``DIR/real.json`` (the MVOR table per day and overall, per joint; the Pose2Sim
+demo's table under ``"pose2sim_demo"``; the models' training records under ``"models"``) and
+``DIR/real_joints.png`` (MPJPE per joint and method); the models go to ``DIR/models`` (or
+``--models``) and are reused from there. ``--smoke`` runs three frames of each day and six of the
+demo with smoke-size models (CI); ``--no-models`` the rows without models only.
 
 The label-free score's validation (issue 36, `label_free_validation`, a second table and
 ``real.json``'s ``"label_free_validation"``): `VARIANTS` (those rows and more settings of the
@@ -36,6 +45,8 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
+from experiments import pose2sim_demo as demo
+from experiments.fitting import Models, combined_config
 from experiments.mvor import (
     DEFAULT_ROOT,
     GATE_MM,
@@ -52,9 +63,16 @@ from experiments.mvor import (
     true_identity,
 )
 from experiments.mvor_protocol import evaluate
+from experiments.real_models import (
+    MODELS_RECIPE,
+    measured_floor,
+    synthetic_models,
+    training_record,
+)
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.inference import run_pipeline
+from mvpose_jax.jobs.common import read_dev_quality
 from mvpose_jax.label_free import (
     BLIND_SPOTS,
     Agreement,
@@ -73,6 +91,15 @@ PIPELINES = (
     ("true groups + DLT", "true", "dlt"),
     ("true groups + centroid", "true", "centroid"),
     ("true groups + robust", "true", "robust"),
+)
+# With the models trained on synthetic recordings of MVOR's rig (`real_models.synthetic_models`):
+# (row name, grouping, 3D method); groupings "combined" and "gat" are the matcher's proposals.
+MODEL_PIPELINES = (
+    ("infer default with models (combined + blend)", "combined", "blend"),
+    ("combined + MLP", "combined", "mlp"),
+    ("paper's method (GAT + MLP)", "gat", "mlp"),
+    ("true groups + MLP", "true", "mlp"),
+    ("true groups + blend", "true", "blend"),
 )
 MIN_VIEWS = 2
 # The label-free score's validation: the rows above and more variants of the geometric default,
@@ -123,23 +150,36 @@ SENSITIVITY_GATES_MM = (300.0, 500.0, 1000.0)
 FIRST_LOOK = {"day1": (20, 96, 127.0, 46.0), "day2": (145, 476, 109.0, 48.0)}
 
 
-def run(data: MvorData) -> dict:
-    """Every pipeline of `PIPELINES` on ``data``, scored, and the label-free score's validation
-    (`label_free_validation`). Returns the report (JSON-able)."""
+def run(data: MvorData, models: Models | None = None) -> dict:
+    """Every pipeline of `PIPELINES` on ``data`` (and of `MODEL_PIPELINES` with ``models``),
+    scored, and the label-free score's validation (`label_free_validation`). Returns the report
+    (JSON-able)."""
     identity = true_identity(data)
     H = data.gt.valid.shape[1]
     members = members_from_identity(identity, H)  # (F, H, C)
     views = (members >= 0).sum(-1)  # (F, H) detected views of each true person
     rows, gate_sensitivity, results = {}, {}, {}
-    for name, grouping, settings in VARIANTS:
+    variants = list(VARIANTS)
+    if models is not None:
+        variants += [
+            (name, grouping, model_settings(grouping, method, models))
+            for name, grouping, method in MODEL_PIPELINES
+        ]
+    shown = {n for n, _, _ in PIPELINES} | {n for n, _, _ in MODEL_PIPELINES}
+    for name, grouping, settings in variants:
         start = time.perf_counter()
         results[name] = pipeline_result(data, grouping, settings, identity, members)
         seconds = time.perf_counter() - start
-        if name not in {n for n, _, _ in PIPELINES}:
+        if name not in shown:
             continue
         joints = poses_to_joints(results[name].poses, data.layout)
         scores = evaluate(joints, data, unreachable=views < MIN_VIEWS)
-        rows[name] = {"grouping": grouping, "method": settings["method"], "seconds": seconds}
+        rows[name] = {
+            "grouping": grouping,
+            "method": settings["method"],
+            "models": "estimator" in settings,
+            "seconds": seconds,
+        }
         rows[name].update(scores)
         if name == PIPELINES[0][0]:
             # How much the first row's numbers owe to the protocol's gate.
@@ -183,21 +223,42 @@ def run(data: MvorData) -> dict:
     }
 
 
+def model_settings(grouping: str, method: str, models: Models) -> dict:
+    """`pipeline_result`'s settings of a row with models: the matcher's proposals with the
+    settings chosen on its composed dev frames (the GAT's threshold, the combined matcher's)."""
+    settings = {"method": method, "estimator": models.estimator}
+    if grouping == "combined":
+        settings.update(matcher=models.matcher, combined=combined_config(models.fit))
+    elif grouping == "gat":
+        settings.update(matcher=models.matcher, threshold=models.fit["threshold"])
+    return settings
+
+
 def pipeline_result(
     data: MvorData, grouping: str, settings: dict, identity: np.ndarray, members: np.ndarray
 ) -> PoseResults:
     """One variant's result as `PoseResults` (untracked, no timestamps: MVOR's frames are
     snapshots). ``grouping``: "epipolar" (`run_pipeline` with ``settings``) or "true" (the
-    ground-truth groupings ``identity`` (F, C, P) / ``members`` (F, H, C), `poses_of_members`)."""
-    if grouping == "epipolar":
-        settings = {"min_views": MIN_VIEWS, **settings}
-        r = run_pipeline(data.rig, data.detections, layout=data.layout, **settings)
+    ground-truth groupings ``identity`` (F, C, P) / ``members`` (F, H, C), `poses_of_members`), or
+    with models "combined" or "gat" (the matcher's proposals; `model_settings`)."""
+    settings = {"min_views": MIN_VIEWS, **settings}
+    matcher, estimator = settings.pop("matcher", None), settings.pop("estimator", None)
+    if grouping != "true":
+        if grouping != "epipolar":
+            settings["proposals"] = grouping
+        r = run_pipeline(
+            data.rig,
+            data.detections,
+            matcher=matcher,
+            estimator=estimator,
+            layout=data.layout,
+            **settings,
+        )
         return PoseResults(
             r.poses, r.confidence, r.members, r.identity, r.cameras, data.layout, None, None
         )
-    settings = {"min_views": MIN_VIEWS, **settings}
     poses, confidence = poses_of_members(
-        data.rig, data.detections, members, layout=data.layout, **settings
+        data.rig, data.detections, members, estimator=estimator, layout=data.layout, **settings
     )
     return PoseResults(
         poses, confidence, members, identity, tuple(data.rig.names), data.layout, None, None
@@ -226,13 +287,17 @@ def corrupted(result: PoseResults, how: str, rng: np.random.Generator) -> PoseRe
 
 
 def label_free_validation(
-    data: MvorData, results: dict[str, PoseResults], identity: np.ndarray, views: np.ndarray
+    data: MvorData,
+    results: dict[str, PoseResults],
+    identity: np.ndarray,
+    views: np.ndarray,
 ) -> dict:
     """The label-free score (`label_free.label_free_score`) of every variant against the MVOR
     protocol's scores, their Spearman correlations, the noise floor and the blind spots.
 
     Args:
-      results: {variant: its result}, `VARIANTS` (the corrupted ones are added here).
+      results: {variant: its result}, `VARIANTS` and the rows with models (the corrupted ones
+        are added here).
       identity: (F, C, P) each detection's annotated person (`mvor.true_identity`).
       views: (F, H) views in which each annotated person has a detection.
     """
@@ -254,7 +319,9 @@ def label_free_validation(
             "labelled": {label: float(scores[key]) for label, key, _ in LABELLED},
             "seconds_label_free": time.perf_counter() - start,
         }
-    true_groups = {name for name, grouping, _ in VARIANTS if grouping == "true"}
+    true_groups = {
+        name for name, grouping, _ in (*VARIANTS, *MODEL_PIPELINES) if grouping == "true"
+    }
 
     def correlations(names: list[str]) -> dict:
         return {
@@ -373,6 +440,7 @@ def markdown(report: dict) -> str:
         f"annotation, or their projected 3D truth where a view has none (gate "
         f"{p['true_grouping_gate']} of the diagonal of the reference joints' box).",
         "",
+        *_models_paragraph(report.get("models") or {}),
         "People OpenPose sees in 2+ views (true groups), the most geometry can place: "
         + ", ".join(f"{k} {v}" for k, v in report["data"]["people_detected_in_2_views"].items())
         + ".",
@@ -443,6 +511,32 @@ def markdown(report: dict) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _models_paragraph(models: dict) -> list[str]:
+    """How the rows with models got their models (`real_models`)."""
+    r = models.get("mvor-synthetic")
+    if not r:
+        return []
+    f, dev = r["floor"], r.get("estimator_dev") or {}
+    text = (
+        f"Rows with models: {models['recipe']}. MVOR's floor measured so: {f['height']:.3f} m "
+        f"along up ({f['basis']}, spread {f['spread']:.3f} m over {f['num_samples']} "
+        f"person-frames; MVOR's README estimates -1.0 m). Matcher {r['matcher_steps']} steps "
+        f"in {r['matcher_seconds']} s, GAT threshold {r['gat_threshold']}, combined threshold "
+        f"{r['combined_threshold']} (composed dev ARI: GAT {_num3(r['composed_dev_ari_gat'])}, "
+        f"combined {_num3(r['composed_dev_ari_combined'])})."
+    )
+    if dev:
+        text += (
+            f" Estimator on the dev people: {dev['estimator_px']} px reprojection error per "
+            f"keypoint, DLT {dev['triangulation_px']} px."
+        )
+    return [text, ""]
+
+
+def _num3(v) -> str:
+    return "-" if v is None or not math.isfinite(v) else f"{v:.4f}"
 
 
 def label_free_markdown(v: dict) -> list[str]:
@@ -567,7 +661,9 @@ def joint_figure(report: dict, path: Path) -> None:
     x = np.arange(len(JOINTS))
     for i, name in enumerate(names):
         mm = [report["rows"][name]["overall"]["joint_mm"][j] for j in JOINTS]
-        ax.bar(x + (i - (len(names) - 1) / 2) * width, mm, width, label=name)
+        # tab20: a colour of its own for each of up to 20 rows (the default cycle repeats at 10).
+        colour = plt.cm.tab20(i % 20)
+        ax.bar(x + (i - (len(names) - 1) / 2) * width, mm, width, label=name, color=colour)
         highest = max([highest] + [v for v in mm if math.isfinite(v)])
     ax.set_xticks(x, JOINTS, rotation=30)
     ax.set_ylabel("MPJPE (mm), matched people")
@@ -590,18 +686,54 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True, help="folder for real.md, real.json and the figure")
     p.add_argument("--data", default=str(DEFAULT_ROOT), help="the MVOR days 1-2 folder")
+    p.add_argument(
+        "--pose2sim",
+        default=str(demo.DEFAULT_DATA),
+        help="Pose2Sim's demo session folder (its table is left out when the folder is missing)",
+    )
+    p.add_argument(
+        "--models",
+        help="folder of the trained models (default OUT/models): reused where it holds them, "
+        "trained into it where not",
+    )
+    p.add_argument("--no-models", action="store_true", help="only the rows without models")
     p.add_argument("--smoke", action="store_true", help="a few frames of each day (CI)")
     args = p.parse_args(argv)
     start = time.perf_counter()
+    out = Path(args.out)
+    models_dir = Path(args.models) if args.models else out / "models"
     data = load_mvor(args.data)
+    models, record = None, None
+    if not args.no_models:
+        # The floor from every frame's people (a smoke run's few frames are too few).
+        floor = measured_floor(data.rig, data.detections, data.layout)
+        folder = models_dir / "mvor-synthetic"
+        models = synthetic_models(data.rig, floor, folder, smoke=args.smoke, progress=True)
+        record = training_record(models, floor) | {
+            "estimator_dev": read_dev_quality(str(folder / "estimator"))
+        }
     if args.smoke:
         data = select_frames(data, smoke_frames(data))
-    report = run(data)
+    report = run(data, models)
     report["scale"] = "smoke" if args.smoke else "full"
+    report["models"] = {"mvor-synthetic": record, "recipe": MODELS_RECIPE}
+    timings = None
+    if Path(args.pose2sim).is_dir():
+        pairs = {}
+        if not args.no_models:
+            pairs = demo.demo_models(Path(args.pose2sim), models_dir / "pose2sim-demo", args.smoke)
+        table = demo.run(
+            Path(args.pose2sim), smoke=args.smoke, models={k: f for k, (f, _) in pairs.items()}
+        )
+        timings = demo.timings_of(table)
+        report["pose2sim_demo"] = demo.without_timings(table) | {
+            "models": {k: r for k, (_, r) in pairs.items()}
+        }
     report["seconds"] = time.perf_counter() - start
-    out = Path(args.out)
     atomic_write_text(out / "real.json", json.dumps(_no_nan(to_jsonable(report)), indent=1))
     text = markdown(report)
+    if "pose2sim_demo" in report:
+        text += "\n" + demo.markdown(report["pose2sim_demo"], timings, level=2)
     atomic_write_text(out / "real.md", text)
     joint_figure(report, out / "real_joints.png")
     print(text)

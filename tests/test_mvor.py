@@ -464,13 +464,25 @@ def test_real_counts_and_ground_truth_reprojection():
 @needs_real
 @pytest.mark.slow  # the benchmark's smoke run, twice
 def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
-    from experiments.real import PIPELINES, main
+    from experiments.pose2sim_demo import DEFAULT_DATA, MODEL_ROWS
+    from experiments.real import MODEL_PIPELINES, PIPELINES, main
 
+    # The second run loads the first one's models (smoke-size training: the code path, not
+    # the numbers).
+    models = str(tmp_path / "models")
     for name in ("a", "b"):
-        assert main(["--smoke", "--out", str(tmp_path / name)]) == 0
+        assert main(["--smoke", "--out", str(tmp_path / name), "--models", models]) == 0
     a, b = (json.loads((tmp_path / n / "real.json").read_text()) for n in "ab")
     assert a["scale"] == "smoke" and a["split"].startswith("MVOR days 1-2")
-    assert list(a["rows"]) == [name for name, _, _ in PIPELINES]
+    assert list(a["rows"]) == [name for name, _, _ in PIPELINES + MODEL_PIPELINES]
+    assert [a["rows"][n]["models"] for n in a["rows"]] == [False] * len(PIPELINES) + [True] * len(
+        MODEL_PIPELINES
+    )
+    # The models' floor: MVOR's feet are hidden, so the upright people's shoulders; the README
+    # estimates -1.0 m.
+    floor = a["models"]["mvor-synthetic"]["floor"]
+    assert floor["basis"] == "upper_body" and abs(floor["height"] + 1.0) < 0.1
+    assert (tmp_path / "models" / "mvor-synthetic" / "matcher").is_dir()
     for name in a["rows"]:
         for row in (a, b):
             row["rows"][name].pop("seconds")
@@ -491,3 +503,13 @@ def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
     }
     text = (tmp_path / "a" / "real.md").read_text()
     assert "## The label-free score against the labelled one" in text and "Noise floor" in text
+    # The Pose2Sim demo's table, with the rows of its two model pairs.
+    if not DEFAULT_DATA.is_dir():
+        return
+    demo = a["pose2sim_demo"]
+    assert demo == b["pose2sim_demo"]
+    labels = [r["row"] for r in demo["multi_person"]["rows"]]
+    assert all(label in labels for label, _, _ in MODEL_ROWS)
+    assert set(demo["models"]) == {"synthetic", "trials"}
+    assert demo["models"]["synthetic"]["floor"]["up_source"] == "people"
+    assert "Pose2Sim's demo session" in text and "The models of the rows with models" in text

@@ -126,10 +126,7 @@ def _generate(args: argparse.Namespace) -> int:
     done = generate(config)
     if done.floor is not None:
         measured = done.floor
-        print(
-            f"floor measured from {args.floor_from}: {measured.height:.3f} m along up (spread "
-            f"{measured.spread:.3f} m over {measured.num_samples} person-frames)"
-        )
+        print(f"floor measured from {args.floor_from}: {measured.describe()}")
     if args.single_person_recordings > 0:
         print(
             f"wrote {done.recordings} single-person recordings of {args.frames} frames to {done.out}/"

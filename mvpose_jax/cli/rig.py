@@ -50,9 +50,7 @@ def _rig(args: argparse.Namespace) -> int:
     if d.floor is not None:
         measured, guess = d.floor, d.floor_guess
         print(
-            f"floor along up: {measured.height:.3f} m measured from the people (spread "
-            f"{measured.spread:.3f} m over {measured.num_samples} person-frames of "
-            f"{measured.num_frames} frames); {guess:.3f} m guessed from the cameras; the guess is "
-            f"{guess - measured.height:+.3f} m off"
+            f"floor measured from the people: {measured.describe()}; {guess:.3f} m guessed "
+            f"from the cameras; the guess is {guess - measured.height:+.3f} m off"
         )
     return 0

@@ -96,7 +96,7 @@ def generate(config: GenerateConfig) -> Generated:
     rig = config.rig.load()
     out = check_writable(config.out, folder=config.single_person_recordings > 0)
     measured = measure_floor(rig, config.floor_from) if config.floor_from else None
-    synthetic = synthetic_config(config, None if measured is None else measured.height)
+    synthetic = synthetic_config(config, measured)
     if synthetic.scene.floor_height is None:
         from mvpose_jax.synthetic import scene_geometry
 
@@ -137,9 +137,13 @@ def generate(config: GenerateConfig) -> Generated:
     return Generated(out, 1, rec.num_frames, len(rec.cameras), count, measured)
 
 
-def synthetic_config(config: GenerateConfig, floor_height: float | None = None) -> SyntheticConfig:
-    """The `SyntheticConfig` of ``config`` (``floor_height``: the measured floor, when
-    ``config.floor_height`` is not given)."""
+def synthetic_config(
+    config: GenerateConfig, measured: FloorEstimate | None = None
+) -> SyntheticConfig:
+    """The `SyntheticConfig` of ``config`` (``measured``: the floor measured from the people,
+    its height used when ``config.floor_height`` is not given, its up when measured from the
+    people, the calibration having none)."""
+    floor_height = None if measured is None else measured.height
     from mvpose_jax.synthetic import DetectorConfig, MotionConfig, SceneConfig, SyntheticConfig
 
     detector = DetectorConfig().clean() if config.clean else DetectorConfig()
@@ -151,6 +155,7 @@ def synthetic_config(config: GenerateConfig, floor_height: float | None = None) 
             SceneConfig(),
             floor_height=config.floor_height if config.floor_height is not None else floor_height,
             floor_jitter_m=floor_jitter(config),
+            up=measured.up if measured is not None and measured.up_source == "people" else None,
         ),
     )
 
