@@ -313,8 +313,10 @@ def _markdown(args, floors, means, correlations, seconds) -> list[str]:
     lines += [
         "",
         "Blind spots: a keypoint fewer than two other views show has no leave-one-out check; the "
-        "result's own projection is still compared where the result has it, and a keypoint the "
-        "result lacks is a miss wherever the camera shows it. The result's projection is not "
+        "result's own projection is still compared where the result has it and a second camera "
+        "shows it (a keypoint one camera alone shows is unverifiable: scored as not produced), "
+        "and a keypoint the result lacks is a miss wherever the camera shows it. The result's "
+        "projection is not "
         "held out (a method may have used the camera), so differences below the noise floor "
         "measure agreement with the detector, not with the truth.",
         "",

@@ -22,7 +22,9 @@ matched-people shares cannot see a person the result leaves out (on synthetic sc
 ``experiments/label_free_synthetic.py``, it was the number that ranked variants most as PCP does).
 
 Keypoints seen by fewer than two other views have no held-out re-triangulation (they are
-`Agreement.blind`); see `BLIND_SPOTS`. `reference_reprojection` projects a reference (the ground
+`Agreement.blind` of ``leave_one_out``); a keypoint only one camera shows of a person is
+unverifiable in the result's own projection too (any point on that camera's ray reprojects onto
+it) and is scored as not produced (``result``'s `Agreement.blind`); see `BLIND_SPOTS`. `reference_reprojection` projects a reference (the ground
 truth where one exists) the same way: the detections' own spread around it, the noise floor below
 which differences measure agreement with the detector, not with the truth.
 
@@ -55,9 +57,15 @@ BLIND_SPOTS = (
     "A keypoint that camera c shows but fewer than two OTHER cameras' skeletons of the same "
     "person show has no leave-one-out re-triangulation: it is counted in leave_one_out.blind "
     "and left out of leave_one_out's pixel numbers.",
-    "The result's own projection is compared wherever the result has the keypoint, held-out "
-    "check or not; where the result lacks a keypoint that camera c shows, it is a miss (in the "
-    "denominator of share_within_px, never within), counted only where camera c sees it.",
+    "The result's own projection is compared wherever the result has the keypoint and a second "
+    "camera shows it for the same person; where the result lacks a keypoint that camera c "
+    "shows, it is a miss (in the denominator of share_within_px, never within), counted only "
+    "where camera c sees it.",
+    "A keypoint only one camera shows of a person (and every keypoint of a person one camera "
+    "alone sees) is unverifiable: any point on that camera's ray lands on its skeleton, so a "
+    "result that produces it is scored as one that does not (counted in result.blind, in the "
+    "denominator, never within, left out of the pixel numbers). Geometry cannot produce it, a "
+    "learned 3D stage can; the score neither rewards nor penalises that guess.",
     "The result's projection into c is not held out: the method may have used c's skeleton, so "
     "the score measures agreement with the detections, and a method that copies a detector's "
     "error is not penalised for it. Differences below noise_floor (the detections' own spread "
@@ -99,9 +107,12 @@ class Agreement:
 
     Attributes:
       visible: keypoints the camera shows of the people scored (the denominator).
-      produced: of those, how many have a projection (the result has them; for the
-        leave-one-out reference: two or more other views triangulated them).
-      blind: leave-one-out only: visible keypoints fewer than two other views show (0 else).
+      produced: of those, how many have a projection that can be checked (the result has them
+        and a second camera shows them for the person; for the leave-one-out reference: two or
+        more other views triangulated them).
+      blind: visible keypoints nothing can check: for the result, those only this one camera
+        shows of the person (unverifiable, never produced); for leave-one-out, those fewer
+        than two other views show.
       coverage: produced / visible.
       median_px: median distance over the produced ones (NaN: none).
       share_within_px: {radius: share of ALL visible keypoints projected within it}; a keypoint
@@ -264,7 +275,13 @@ def label_free_score(
     in_front = np.asarray(point_depths(sub, xyz)) > 0
     g_xy, g_score = group_people(xy, score, members)  # (F, G, C, K, 2), (F, G, C, K)
     g_vis = g_score > config.visible_score
-    result_err = _distances(projected, in_front, kv[None], g_xy, g_vis)
+    # A keypoint only camera c shows of a person can be put anywhere on c's ray and still land
+    # on c's skeleton (a one-view lift reprojects at 0 px by construction): unverifiable, so it
+    # is scored as not produced, never within, like a keypoint the result lacks.
+    unverifiable = np.moveaxis(g_vis, 2, 0) & (g_vis.sum(axis=2) == 1)[None]  # (C, F, G, K)
+    result_err = np.where(
+        unverifiable, np.nan, _distances(projected, in_front, kv[None], g_xy, g_vis)
+    )
 
     loo_xyz, loo_ok = _leave_one_out(sub, g_xy, np.where(g_vis, g_score, 0.0), exists, config)
     loo_proj = np.asarray(project_points_per_camera(sub, loo_xyz), np.float64)
@@ -277,7 +294,7 @@ def label_free_score(
 
     scored = np.moveaxis(g_vis, 2, 0)  # (C, F, G, K) visible keypoints of the result's people
     thresholds = config.thresholds_px
-    tables = _tables(result_err, scored, np.zeros_like(scored), cams, lay.keypoints, thresholds)
+    tables = _tables(result_err, scored, unverifiable, cams, lay.keypoints, thresholds)
     loo = _tables(loo_err, scored, blind, cams, lay.keypoints, thresholds)
 
     # Every visible keypoint of every skeleton: the result's people's hits over all of them.
