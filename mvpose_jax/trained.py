@@ -304,6 +304,7 @@ def load_matcher(
 DEV_QUALITY_FILE = "dev_reprojection.json"
 PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
 ADAPT_REPORT_FILE = "adapt_report.json"
+PIPELINE_FILE = "pipeline.json"
 
 
 class ModelFolder:
@@ -316,7 +317,10 @@ class ModelFolder:
       ``dev_reprojection.json``: an estimator against triangulation on its dev people
         (`write_dev_quality`; `load_estimator` warns from it);
       ``proposal_threshold.json``: a matcher's chosen proposal settings (`write_proposal_settings`);
-      ``adapt_report.json``: what an adaptation did (`write_adapt_report`).
+      ``adapt_report.json``: what an adaptation did (`write_adapt_report`);
+      ``pipeline.json``: the pipeline the model was trained and its settings chosen for
+        (`inference.PipelineConfig.to_dict`; `write_pipeline`), what ``infer`` with this model
+        and no other option runs.
 
     Opening one reads nothing; `require` refuses a path that is no model folder before orbax
     could create checkpoint folders in it.
@@ -509,6 +513,16 @@ class ModelFolder:
             return False
         shutil.copyfile(path, self.path / PROPOSAL_THRESHOLD_FILE)
         return True
+
+    # ---------------------------------------------------------------- the pipeline it serves
+
+    def write_pipeline(self, record: dict) -> Path:
+        """Writes the pipeline config (`inference.PipelineConfig.to_dict`) the model serves."""
+        return self._write_json(PIPELINE_FILE, record)
+
+    def read_pipeline(self) -> dict | None:
+        """The record `write_pipeline` wrote (None: a folder from before it was written)."""
+        return self._read_json(PIPELINE_FILE)
 
     # ---------------------------------------------------------------- plumbing
 

@@ -215,3 +215,39 @@ def test_a_path_that_is_no_model_folder_is_refused_before_anything_is_created(tm
     with pytest.raises(InputError, match="no best/ checkpoint folder"):
         load_estimator(tmp_path / "empty", load_preset("panoptic5"))
     assert list((tmp_path / "empty").iterdir()) == []
+
+
+@pytest.mark.slow  # trains a matcher and an estimator for a few steps
+def test_model_folders_record_the_pipeline_infer_runs_with_them(tmp_path):
+    from mvpose_jax.data import save_recording
+    from mvpose_jax.jobs.common import RigSource
+    from mvpose_jax.jobs.infer import INFER_PIPELINE, resolve_pipeline
+    from mvpose_jax.jobs.train import (
+        EstimatorJob,
+        MatcherJob,
+        TrainingRun,
+        model_pipeline,
+        train_estimator_job,
+        train_matcher_job,
+    )
+    from mvpose_jax.synthetic import generate_single_person_recordings
+
+    rig = load_preset("panoptic5")
+    recs = generate_single_person_recordings(rig, num_recordings=6, num_frames=8, seed=3)
+    for split, part in (("train", recs[:4]), ("dev", recs[4:])):
+        for i, rec in enumerate(part):
+            save_recording(rec, tmp_path / split / f"r{i}.npz")
+    run = TrainingRun(
+        RigSource("panoptic5"), str(tmp_path / "train"), str(tmp_path / "dev"), str(tmp_path / "m")
+    )
+    train_matcher_job(MatcherJob(run, quick=True, max_epochs=1))
+    est_run = dataclasses.replace(run, out=str(tmp_path / "e"))
+    train_estimator_job(EstimatorJob(est_run, steps=2, batch_size=8))
+    matcher = model_pipeline(str(tmp_path / "m"))
+    # The matcher's: the combined matcher with the settings chosen and written beside it.
+    assert matcher == resolve_pipeline(INFER_PIPELINE, str(tmp_path / "m"), estimator=False)
+    assert matcher.matching.proposals == "combined"
+    assert matcher.matching.combined == ModelFolder(tmp_path / "m").read_combined_config()
+    estimator = model_pipeline(str(tmp_path / "e"))
+    assert estimator.lifting.method == "blend" and estimator.tracking == INFER_PIPELINE.tracking
+    assert model_pipeline(str(tmp_path / "nowhere")) is None

@@ -8,6 +8,7 @@ triangulation on the dev people there (`train.compare_with_triangulation`).
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from mvpose_jax.errors import InputError
@@ -153,6 +154,7 @@ def train_matcher_job(job: MatcherJob) -> MatcherTrained:
             chosen.combined,
             chosen.ari_by_combined_threshold,
         )
+        write_model_pipeline(run.out, matcher=True)
     return MatcherTrained(fit.best_val_loss, fit.steps, fit.seconds, run.out, choice)
 
 
@@ -252,6 +254,7 @@ def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
         checkpoint_dir=run.out,
         resume=run.resume,
     )
+    write_model_pipeline(run.out, matcher=False)
     best = min(fit.history, key=lambda h: h["val_loss"]) if fit.history else {}
     return EstimatorTrained(
         len(xy),
@@ -261,6 +264,34 @@ def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
         run.out,
         read_dev_quality(run.out),
     )
+
+
+def write_model_pipeline(folder: str, *, matcher: bool) -> None:
+    """Writes into a model folder the `PipelineConfig` ``infer`` runs with it and no other
+    option (`jobs.infer.resolve_pipeline` of `jobs.infer.INFER_PIPELINE`): a matcher's with the
+    proposal settings chosen and written there (the combined matcher); an estimator's with the
+    3D method it serves (blend, robust triangulation where it reconstructs)."""
+    from mvpose_jax.jobs.infer import INFER_PIPELINE, resolve_pipeline
+    from mvpose_jax.trained import ModelFolder
+
+    config = resolve_pipeline(INFER_PIPELINE, folder if matcher else None, estimator=not matcher)
+    ModelFolder(folder).write_pipeline(config.to_dict())
+
+
+def model_pipeline(folder: str):
+    """The `PipelineConfig` a model folder serves (`write_model_pipeline`), or None."""
+    from mvpose_jax.inference import PipelineConfig
+    from mvpose_jax.trained import ModelFolder
+
+    record = ModelFolder(folder).read_pipeline()
+    if record is None:
+        return None
+    try:
+        return PipelineConfig.from_dict(record)
+    except (TypeError, ValueError) as e:
+        raise InputError(
+            f"unreadable pipeline ({e})", file=Path(folder) / "pipeline.json"
+        ) from None
 
 
 def _begin(run: TrainingRun):
