@@ -4,18 +4,18 @@ Four pipelines (`PIPELINES`), each through `inference.stream_pipeline` / `infere
 with a `PipelineConfig`, as ``mvpose-jax infer`` builds them:
 
 * ``default``: `jobs.infer.INFER_PIPELINE` with a matcher and an estimator, as `infer`
-  resolves it (`jobs.infer.resolve_pipeline`): the combined matcher (`CombinedConfig()`, the
-  settings a matcher folder without chosen ones gives), the blend, tracking and the Butterworth
-  filter;
-* ``paper``: the GAT's proposals (threshold 0.5) and the MLP, untracked;
+  resolves it (`jobs.infer.resolve_pipeline`) for a matcher folder: the combined matcher at the
+  folder's settings (chosen as ``train-matcher`` chooses them, `train_models`), the blend,
+  tracking and the Butterworth filter;
+* ``paper``: the GAT's proposals (at the folder's threshold) and the MLP, untracked;
 * ``geometric``: ``infer --method robust`` without models: epipolar proposals, robust
   triangulation, tracking and the Butterworth filter;
 * ``dlt``: epipolar proposals and DLT, untracked.
 
-Models are the CLI's default sizes (`GATConfig()`, `MLPConfig.quick()`), trained for a few steps
-on synthetic single-person recordings of the scene's rig (the timing does not depend on how well
-they are trained; their proposals do, a little, through the people they find: each record says
-how many).
+Models are the CLI's default sizes (`GATConfig()`, `MLPConfig.quick()`), per rig: trained for a
+few steps on synthetic single-person recordings of the scene's rig in the full tier, random
+weights in ``--quick`` and ``--smoke`` (the timing does not depend on the weights; the
+proposals' people do, a little: each record says how many were found, ``people_found``).
 
 Each pipeline runs in two modes (`MODES`):
 
@@ -43,11 +43,12 @@ How the rest is measured (the same in every record's ``how``):
 * ``jit_calls_per_frame``: XLA executable launches (``...LoadedExecutable::ExecuteHelper...``
   events) in a `jax.profiler` trace of one extra, untimed run; eager jnp operations count too
   (each is its own executable).
-* ``host_round_trips_per_frame``: device-to-host fetches in the same trace: the
-  ``np.asarray(jax.Array)`` annotation JAX puts on every `jax.Array` -> numpy conversion
-  (`np.asarray`, `jax.device_get`, ``.tolist()``), plus scalar conversions (``float``, ``int``,
-  ``bool``, ``.item()`` of a `jax.Array`, counted by wrapping those methods during that run).
-  ``host_to_device_per_frame``: ``DevicePut`` events (numpy arguments of jitted calls).
+* ``host_round_trips_per_frame``: device-to-host fetches in the same run: `jax.Array`s given to
+  numpy's converters (``np.asarray``, ``np.array``, ...) or converted to Python scalars, counted
+  by wrapping those functions during that run (`_host_fetches`; on the CPU such a fetch is a
+  zero-copy read that no profiler event shows, but the host waits for the device there).
+  ``host_to_device_per_frame``: ``DevicePut`` events in the trace (numpy arguments of jitted
+  calls).
 * ``compilations``: XLA backend compilations (`jax.monitoring`'s
   ``/jax/core/compile/backend_compile_duration`` events) during the timed runs and the counting
   run, i.e. after the warm-up: 0 means nothing recompiled; ``compilations_warmup`` those of the
@@ -93,6 +94,7 @@ from mvpose_jax.inference import PipelineConfig, PipelineResult, run_pipeline, s
 from mvpose_jax.jobs.infer import INFER_PIPELINE
 from mvpose_jax.jobs.session import SessionConfig, trial_config
 from mvpose_jax.lifting import LiftingConfig
+from mvpose_jax.matcher_settings import MatcherSettings, choose_matcher_settings
 from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.matching import MatchingConfig
 from mvpose_jax.models import GATConfig, MLPConfig
@@ -108,14 +110,14 @@ STAGES = ("matching", "proposals", "3d", "tracking", "filtering", "other")
 CHUNK_FRAMES = 256
 FPS = 30.0
 LAYOUT = "coco18"
+NUM_KEYPOINTS = 18  # coco18
 REPO = Path(__file__).resolve().parents[1]
 REAL_DATA = REPO.parent / "shared" / "real" / "pose2sim-demo-s00"  # experiments' ../shared/real
 REAL_TRIAL = "S00_P01_T02_Participants1-2"
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 # Profiler event names: an XLA executable launch (CPU's PjRt client; the pattern also takes the
-# other clients' ExecuteHelper events) and a jax.Array -> numpy fetch.
+# other clients' ExecuteHelper events) and a host-to-device transfer.
 EXECUTE_EVENT = re.compile(r"LoadedExecutable::ExecuteHelper")
-FETCH_EVENT = "np.asarray(jax.Array)"
 PUT_EVENT = "DevicePut"
 
 
@@ -129,9 +131,9 @@ HOW = {
     "PipelineResult.seconds['poses'], ['tracking']; filtering = smooth_poses; other = the rest",
     "jit_calls_per_frame": "XLA executable launches (profiler host events matching "
     "'LoadedExecutable::ExecuteHelper') in one extra untimed run, per frame",
-    "host_round_trips_per_frame": "device-to-host fetches in that run: profiler "
-    "'np.asarray(jax.Array)' events + scalar conversions of jax.Arrays (float/int/bool/item, "
-    "counted by wrapping them), per frame",
+    "host_round_trips_per_frame": "device-to-host fetches in that run: jax.Arrays given to "
+    "numpy.asarray/array/asanyarray/ascontiguousarray or converted to Python scalars "
+    "(float/int/bool/item), counted by wrapping those during that run, per frame",
     "host_to_device_per_frame": "profiler 'DevicePut' events in that run, per frame",
     "compilations": "jax.monitoring backend_compile_duration events after the warm-up run",
 }
@@ -165,8 +167,10 @@ class PipelineTier:
 
 PIPELINE_TIERS = {
     "full": PipelineTier((1, 2, 4, 8), 200, 1024, None, None, 3, 32, 100),
-    "quick": PipelineTier((1, 2, 4, 8), 24, 256, 24, 256, 3, 8, 3),
-    "smoke": PipelineTier((2,), 3, 8, 3, 8, 1, 2, 1, gat=GATConfig.quick()),
+    # The acceptance scenes only (4 people and the real trial), untrained models: compiling
+    # every pipeline for every scene's shapes, and training, are most of a run's time.
+    "quick": PipelineTier((4,), 24, 256, 24, 256, 3, 8, 0),
+    "smoke": PipelineTier((2,), 3, 8, 3, 8, 1, 2, 0, gat=GATConfig.quick()),
 }
 
 
@@ -222,57 +226,70 @@ def _matching_clock(clock: dict[str, float]) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _scalar_fetches(counter: Counter) -> Iterator[None]:
-    """Counts scalar conversions of `jax.Array`s (each a device-to-host fetch that the
-    profiler's ``np.asarray(jax.Array)`` annotation does not see) in ``counter["scalar"]``."""
-    cls = type(jax.numpy.zeros(()))
-    names = [n for n in ("__float__", "__int__", "__bool__", "__index__", "item") if n in vars(cls)]
-    saved = {n: vars(cls)[n] for n in names}
+def _host_fetches(counter: Counter) -> Iterator[None]:
+    """Counts `jax.Array` -> host conversions in ``counter["fetches"]`` while the context lasts:
+    numpy's converters (``np.asarray``, ``np.array``, ``np.asanyarray``,
+    ``np.ascontiguousarray``, called through the numpy module as the library and jax call them)
+    given a `jax.Array`, and scalar conversions of one (``float``, ``int``, ``bool``,
+    ``.item()``). On the CPU a fetch is a zero-copy read through the buffer protocol, which no
+    profiler event shows, but it still waits for the device: each is a host round trip."""
+    array_type = type(jax.device_put(np.float32(0)))  # jax.Array's concrete class; no compile
+    converters = ("asarray", "array", "asanyarray", "ascontiguousarray")
+    scalars = [
+        n
+        for n in ("__float__", "__int__", "__bool__", "__index__", "item")
+        if n in vars(array_type)
+    ]
+    saved_np = {n: getattr(np, n) for n in converters}
+    saved_scalar = {n: vars(array_type)[n] for n in scalars}
 
-    def wrapped(fn):
+    def converter(fn):
+        def counted(a, *args, **kwargs):
+            if isinstance(a, jax.Array):
+                counter["fetches"] += 1
+            return fn(a, *args, **kwargs)
+
+        return counted
+
+    def scalar(fn):
         def counted(self, *args, **kwargs):
-            counter["scalar"] += 1
+            counter["fetches"] += 1
             return fn(self, *args, **kwargs)
 
         return counted
 
     try:
-        for n, fn in saved.items():
-            setattr(cls, n, wrapped(fn))
+        for n, fn in saved_np.items():
+            setattr(np, n, converter(fn))
+        for n, fn in saved_scalar.items():
+            setattr(array_type, n, scalar(fn))
         yield
     finally:
-        for n, fn in saved.items():
-            setattr(cls, n, fn)
+        for n, fn in saved_np.items():
+            setattr(np, n, fn)
+        for n, fn in saved_scalar.items():
+            setattr(array_type, n, fn)
 
 
 def _profile_counts(run: Callable[[], None]) -> dict[str, int]:
-    """Executable launches, device-to-host fetches and host-to-device puts while ``run()`` runs
-    (a `jax.profiler` trace, host events only, no Python tracer)."""
+    """Executable launches and host-to-device puts (a `jax.profiler` trace, host events only, no
+    Python tracer) and device-to-host fetches (`_host_fetches`) while ``run()`` runs."""
     options = jax.profiler.ProfileOptions()
     options.python_tracer_level = 0
-    scalars: Counter = Counter()
+    counts: Counter = Counter()
     with tempfile.TemporaryDirectory() as tmp:
-        with jax.profiler.trace(tmp, profiler_options=options), _scalar_fetches(scalars):
+        with _host_fetches(counts), jax.profiler.trace(tmp, profiler_options=options):
             run()
-        files = glob.glob(os.path.join(tmp, "**", "*.xplane.pb"), recursive=True)
-        counts = Counter()
-        for path in files:
+        for path in glob.glob(os.path.join(tmp, "**", "*.xplane.pb"), recursive=True):
             data = jax.profiler.ProfileData.from_file(path)
             for plane in data.planes:
                 for line in plane.lines:
                     for event in line.events:
-                        name = event.name
-                        if EXECUTE_EVENT.search(name):
+                        if EXECUTE_EVENT.search(event.name):
                             counts["launches"] += 1
-                        elif name == FETCH_EVENT:
-                            counts["fetches"] += 1
-                        elif name == PUT_EVENT:
+                        elif event.name == PUT_EVENT:
                             counts["puts"] += 1
-    return {
-        "launches": counts["launches"],
-        "fetches": counts["fetches"] + scalars["scalar"],
-        "puts": counts["puts"],
-    }
+    return {k: counts[k] for k in ("launches", "fetches", "puts")}
 
 
 # --------------------------------------------------------------------------- pipelines
@@ -284,57 +301,74 @@ class RigModels:
 
     matcher: Matcher
     estimator: Estimator
+    settings: MatcherSettings  # the proposal settings chosen for the matcher, as train-matcher does
     seconds: float
     steps: int
 
 
 def train_models(rig: Rig, tier: PipelineTier, seed: int = 0) -> RigModels:
     """A matcher (``tier.gat``) and an estimator (``tier.mlp``) for ``rig``'s cameras, trained for
-    ``tier.train_steps`` steps on synthetic single-person recordings of that rig (no labels)."""
+    ``tier.train_steps`` steps on synthetic single-person recordings of that rig (no labels; 0
+    steps: random weights, `scenes.matcher_for` and `scenes.estimator_for`), and the matcher's
+    proposal settings chosen on frames composed from held-out recordings as ``mvpose-jax
+    train-matcher`` chooses them (`matcher_settings.choose_matcher_settings`): what ``infer
+    --matcher`` then reads. Chosen settings keep the proposals' people near the scene's however
+    briefly the GAT was trained (at the paper's 0.5 a 3-step GAT proposes nobody)."""
     t0 = time.perf_counter()
     recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=40, seed=seed)
     train, dev = recs[:3], recs[3:]
     names = tuple(rig.names)
     steps = tier.train_steps
-    quick = MatcherConfig.quick()
-    matcher_config = dataclasses.replace(
-        quick,
-        cameras=names,
-        gat=tier.gat,
-        train=dataclasses.replace(
-            quick.train, batch_size=4, max_steps=steps, max_epochs=10**6, seed=seed
-        ),
-        samples_per_epoch=4 * steps,
-        num_dev_samples=4,
-    )
-    matcher, _ = train_matcher(rig, train, dev, matcher_config, progress=False)
-    xy, score = single_person_samples(train, names)
-    dev_xy, dev_score = single_person_samples(dev, names)
-    estimator_config = EstimatorConfig(
-        train_cameras=names,
-        infer_cameras=names,
-        mlp=tier.mlp,
-        train=TrainConfig(
-            learning_rate=1e-3, batch_size=32, max_steps=steps, max_epochs=10**6, seed=seed
-        ),
-    )
-    estimator, _ = train_estimator(
-        rig, xy, score, dev_xy, dev_score, estimator_config, progress=False
-    )
-    return RigModels(matcher, estimator, time.perf_counter() - t0, steps)
+    if steps == 0:
+        matcher = scenes.matcher_for(rig, NUM_KEYPOINTS, tier.gat)
+        estimator = scenes.estimator_for(rig, NUM_KEYPOINTS, tier.mlp)
+    else:
+        quick = MatcherConfig.quick()
+        matcher_config = dataclasses.replace(
+            quick,
+            cameras=names,
+            gat=tier.gat,
+            train=dataclasses.replace(
+                quick.train, batch_size=4, max_steps=steps, max_epochs=10**6, seed=seed
+            ),
+            samples_per_epoch=4 * steps,
+            num_dev_samples=4,
+        )
+        matcher, _ = train_matcher(rig, train, dev, matcher_config, progress=False)
+        xy, score = single_person_samples(train, names)
+        dev_xy, dev_score = single_person_samples(dev, names)
+        estimator_config = EstimatorConfig(
+            train_cameras=names,
+            infer_cameras=names,
+            mlp=tier.mlp,
+            train=TrainConfig(
+                learning_rate=1e-3, batch_size=32, max_steps=steps, max_epochs=10**6, seed=seed
+            ),
+        )
+        estimator, _ = train_estimator(
+            rig, xy, score, dev_xy, dev_score, estimator_config, progress=False
+        )
+    settings = choose_matcher_settings(matcher, dev, num_samples=64, seed=seed)
+    return RigModels(matcher, estimator, settings, time.perf_counter() - t0, steps)
 
 
-def pipeline_configs() -> dict[str, tuple[PipelineConfig, bool]]:
-    """{name: (config, needs the models)} of `PIPELINES`, each as `infer` resolves it."""
+def pipeline_configs(
+    settings: MatcherSettings | None = None,
+) -> dict[str, tuple[PipelineConfig, bool]]:
+    """{name: (config, needs the models)} of `PIPELINES`, each as `infer` resolves it for a
+    matcher folder holding ``settings`` (None: a folder without chosen settings: the GAT at the
+    paper's 0.5, `CombinedConfig()`)."""
     infer_matching = INFER_PIPELINE.matching
+    threshold = settings.threshold if settings is not None else 0.5
+    combined = settings.combined if settings is not None else CombinedConfig()
     return {
-        # `resolve_pipeline(INFER_PIPELINE, matcher_folder, estimator=True)` for a matcher folder
-        # without chosen settings: combined proposals at CombinedConfig(), the blend.
+        # `resolve_pipeline(INFER_PIPELINE, matcher_folder, estimator=True)`: combined proposals
+        # at the folder's settings, the blend.
         "default": (
             dataclasses.replace(
                 INFER_PIPELINE,
                 matching=dataclasses.replace(
-                    infer_matching, proposals="combined", threshold=0.5, combined=CombinedConfig()
+                    infer_matching, proposals="combined", threshold=0.5, combined=combined
                 ),
                 lifting=dataclasses.replace(INFER_PIPELINE.lifting, method="blend"),
             ),
@@ -342,7 +376,7 @@ def pipeline_configs() -> dict[str, tuple[PipelineConfig, bool]]:
         ),
         "paper": (
             PipelineConfig(
-                MatchingConfig("gat", 0.5), LiftingConfig("mlp"), chunk_frames=CHUNK_FRAMES
+                MatchingConfig("gat", threshold), LiftingConfig("mlp"), chunk_frames=CHUNK_FRAMES
             ),
             True,
         ),
@@ -525,7 +559,7 @@ def _scene_records(
         det = live if mode == "live" else offline
         by_name = {}
         for name in PIPELINES:
-            config, needs_models = pipeline_configs()[name]
+            config, needs_models = pipeline_configs(models.settings)[name]
             by_name[name] = time_pipeline(
                 mode,
                 rig,
@@ -540,7 +574,7 @@ def _scene_records(
         scene_people = people if people is not None else by_name["geometric"]["people_found"]
         for name in PIPELINES:
             r = by_name[name]
-            config = pipeline_configs()[name][0]
+            config = pipeline_configs(models.settings)[name][0]
             records.append(
                 {
                     "group": "pipeline",
@@ -560,6 +594,16 @@ def _scene_records(
     return records
 
 
+def _training_record(models: RigModels) -> dict:
+    return {
+        "seconds": models.seconds,
+        "steps": models.steps,
+        "gat_threshold": models.settings.threshold,
+        "combined_threshold": models.settings.combined.threshold,
+        "epipolar_cutoff_px": models.settings.combined.epipolar_cutoff_px,
+    }
+
+
 def _true_people(rec) -> float:
     return float(np.asarray(rec.ground_truth.valid).sum(axis=1).mean())
 
@@ -575,7 +619,7 @@ def pipeline_group(tier_name: str) -> dict:
         rig, rec = scenes.recording(5, n, max(tier.live_frames, tier.offline_frames), seed=n)
         if models is None:
             models = train_models(rig, tier)
-            training["panoptic5"] = {"seconds": models.seconds, "steps": models.steps}
+            training["panoptic5"] = _training_record(models)
         det = Detections(*(np.asarray(a) for a in rec.detections))
         records += _scene_records(
             f"panoptic5-{n}p",
@@ -595,7 +639,7 @@ def pipeline_group(tier_name: str) -> dict:
     else:
         real_rig, real_det, real_fps = real
         real_models = train_models(real_rig, tier)
-        training["pose2sim-demo"] = {"seconds": real_models.seconds, "steps": real_models.steps}
+        training["pose2sim-demo"] = _training_record(real_models)
         records += _scene_records(
             "pose2sim-demo-2p",
             real_rig,
