@@ -422,11 +422,16 @@ def _pose_results(res: PipelineResult) -> PoseResults:
     )
 
 
-def _filter(config: PipelineConfig, res: PipelineResult, fps: float) -> None:
-    """`infer`'s assembly filter on the whole result (tracked, non-streaming filters only)."""
+def _filters(config: PipelineConfig) -> bool:
+    """Whether `infer` filters the pipeline's results while assembling them (tracked, with a
+    filter that does not run in the stream)."""
     filt = config.filtering
-    if config.tracking is None or filt.streaming or filt.name == "none":
-        return
+    return config.tracking is not None and not filt.streaming and filt.name != "none"
+
+
+def _filter(config: PipelineConfig, res: PipelineResult, fps: float) -> None:
+    """`infer`'s assembly filter on the whole result (`_filters` pipelines)."""
+    filt = config.filtering
     smooth_poses(
         _pose_results(res),
         fps=fps,
@@ -465,14 +470,15 @@ def _run_once(
             seconds.update(res.seconds)
             people = int(np.asarray(res.poses.valid).sum())
             t_filter = time.perf_counter()
-            _filter(config, res, fps)
+            if _filters(config):
+                _filter(config, res, fps)
         t1 = time.perf_counter()
     stages = {
         "matching": clock["matching"],
         "proposals": seconds["proposals"] - clock["matching"],
         "3d": seconds["poses"],
         "tracking": seconds.get("tracking", 0.0),
-        "filtering": t1 - t_filter,
+        "filtering": t1 - t_filter if mode == "offline" and _filters(config) else 0.0,
     }
     stages["other"] = max(0.0, (t1 - t0) - sum(stages.values()))
     return {"seconds": t1 - t0, "stages": stages, "people": people}
@@ -613,7 +619,6 @@ def pipeline_group(tier_name: str) -> dict:
     real trial's note and Pose2Sim's timing (or why not)."""
     tier = PIPELINE_TIERS[tier_name]
     records, training, notes = [], {}, []
-    rig = None
     models = None
     for n in tier.people:
         rig, rec = scenes.recording(5, n, max(tier.live_frames, tier.offline_frames), seed=n)
@@ -651,7 +656,8 @@ def pipeline_group(tier_name: str) -> dict:
             real_fps,
         )
         if pose2sim["installed"]:
-            pose2sim.update(pose2sim_timing(REAL_DATA, len(real_det.count)))
+            whole = real_scene()  # Pose2Sim runs the whole trial: its frames are the divisor
+            pose2sim.update(pose2sim_timing(REAL_DATA, len(whole[1].count)))
             ours = next(
                 r
                 for r in records
