@@ -8,6 +8,8 @@
 * `training`: samples/s and compile time of the estimator's and the matcher's train steps.
 * `tracking`: the streaming path's host work per frame (tracker update and One-Euro filter) per
   person, at 1, 4, 8 and 16 people.
+* `pipeline`: what users run (`infer`'s default with models, the paper's method, the geometric
+  default, epipolar + DLT), live and offline, with the time per stage (`benchmarks.pipeline`).
 * `adapt`: `adapt.adapt_estimator` (quick-size MLP, 5 views, 4 people, epipolar proposals, every
   step run) in seconds per 1,000 frames, against the issue's bound.
 
@@ -977,6 +979,13 @@ def adapt(tier: Tier) -> dict:
     }
 
 
+def pipeline_group(tier: Tier) -> dict:
+    """What users run, timed through the public API (`benchmarks.pipeline`)."""
+    from benchmarks import pipeline
+
+    return pipeline.pipeline_group(tier.name)
+
+
 def adapt_matcher_group(tier: Tier) -> dict:
     """`adapt_matcher` on the ``adapt`` group's recording (``tier.adapt_frames`` frames, 5 views,
     4 people) with the paper's GAT, which the experiments' quick scale trains (random weights),
@@ -1023,4 +1032,5 @@ GROUPS: dict[str, Callable[[Tier], dict]] = {
     "infer_memory": infer_memory,
     "adapt": adapt,
     "adapt_matcher": adapt_matcher_group,
+    "pipeline": pipeline_group,
 }

@@ -386,6 +386,11 @@ def markdown(run: dict) -> str:
         if run.get("profile"):
             lines += ["", "Where the time goes:", ""] + [f"- {p}" for p in run["profile"]]
 
+    if run.get("pipeline"):
+        from benchmarks.pipeline import markdown as pipeline_markdown
+
+        lines += pipeline_markdown(run["pipeline"])
+
     if run.get("errors"):
         lines += ["", "## Errors", ""] + [f"- {g}: {e}" for g, e in run["errors"].items()]
     return "\n".join(lines) + "\n"

@@ -9,7 +9,9 @@ configuration), ``offline`` (a long recording in batches), ``training`` (train-s
 throughput, compile times), ``tracking`` (the tracker and One-Euro filter per frame) and
 ``infer_memory`` (peak RSS of ``mvpose-jax infer`` against the recording's length,
 `benchmarks.memory`) and ``adapt`` and ``adapt_matcher`` (seconds per 1,000 frames of `adapt.adapt_estimator` and
-`adapt.adapt_matcher`). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
+`adapt.adapt_matcher`) and ``pipeline`` (what users run: `infer`'s default with models, the
+paper's method, the geometric default and epipolar + DLT, live and offline, per stage;
+`benchmarks.pipeline`). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
 the git commit, every measurement, the targets with pass/miss, and where the time goes.
 
 ``--quick`` (under 3 minutes on 2 cores) shrinks the grid and the frame counts but keeps every
@@ -59,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--groups",
-        default="peaks,latency,offline,training,tracking,infer_memory,adapt,adapt_matcher",
+        default="peaks,latency,offline,training,tracking,infer_memory,adapt,adapt_matcher,pipeline",
         help="comma-separated groups to run",
     )
     parser.add_argument(

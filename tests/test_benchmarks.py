@@ -3,6 +3,7 @@ OpenCV comparison row agrees with the library's pairwise centroid."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -12,8 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks import report, scenes
+from benchmarks import pipeline, report, scenes
+from mvpose_jax import matching
 from mvpose_jax.cameras import project_points
+from mvpose_jax.inference import run_pipeline
 from mvpose_jax.triangulate import triangulate_pairwise_centroid
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,6 +58,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "infer_memory",
         "adapt",
         "adapt_matcher",
+        "pipeline",
         "memory",
         "targets",
         "profile",
@@ -102,6 +106,7 @@ def test_smoke_run_has_every_section(smoke_run):
         "infer_memory",
         "adapt",
         "adapt_matcher",
+        "pipeline",
     }
     assert all(r["maxrss_mb"] > 0 for r in run["memory"].values())
 
@@ -130,8 +135,74 @@ def test_smoke_run_has_every_section(smoke_run):
         "## Breakdown",
         "## Tracking",
         "## Adapting the estimator",
+        "## Pipelines as users run them",
     ):
         assert heading in md
+
+
+@pytest.mark.slow  # the harness smoke run (a minute)
+def test_smoke_run_times_every_pipeline(smoke_run):
+    run, _ = smoke_run
+    result = run["pipeline"]
+    records = result["records"]
+    scenes_run = {r["scene"] for r in records}
+    assert "panoptic5-2p" in scenes_run
+    real = pipeline.REAL_DATA.is_dir()
+    assert ("pose2sim-demo-2p" in scenes_run) == real
+    assert real or any("missing" in n for n in result["notes"])
+    for scene in scenes_run:
+        got = {(r["pipeline"], r["mode"]) for r in records if r["scene"] == scene}
+        assert got == {(p, m) for p in pipeline.PIPELINES for m in pipeline.MODES}
+    for r in records:
+        assert r["group"] == "pipeline"
+        assert r["views"] == (5 if r["scene"].startswith("panoptic5") else 4)
+        assert r["people"] > 0 and r["people_found"] >= 0
+        assert r["ms_per_frame"] > 0
+        stages = r["stages_ms"]
+        assert set(stages) == set(pipeline.STAGES)
+        assert all(v >= 0 for k, v in stages.items() if k != "proposals")
+        assert stages["proposals"] >= -1e-3  # its clock includes matching's (rounding only)
+        assert sum(stages.values()) <= r["ms_per_frame"] * 1.001 + 1e-3
+        assert stages["3d"] > 0
+        assert (stages["tracking"] > 0) == r["tracked"]
+        # Only the offline runs of the Butterworth-filtered pipelines filter.
+        filtered = r["mode"] == "offline" and r["filter"] == "butterworth"
+        assert (stages["filtering"] > 0) == filtered
+        assert stages["matching"] > 0  # every pipeline matches skeletons
+        assert r["jit_calls_per_frame"] > 0 and r["host_round_trips_per_frame"] > 0
+        assert r["compilations"] >= 0 and r["compilations_warmup"] >= 0
+        if r["pipeline"] == "geometric":
+            assert r["ratio_to_geometric"] == 1.0
+        geo = next(
+            g
+            for g in records
+            if (g["scene"], g["mode"], g["pipeline"]) == (r["scene"], r["mode"], "geometric")
+        )
+        assert r["ratio_to_geometric"] == pytest.approx(r["ms_per_frame"] / geo["ms_per_frame"])
+    assert {r["tracked"] for r in records if r["pipeline"] in ("default", "geometric")} == {True}
+    assert {r["tracked"] for r in records if r["pipeline"] in ("paper", "dlt")} == {False}
+    p2s = result["pose2sim"]
+    assert p2s["installed"] == (importlib.util.find_spec("Pose2Sim") is not None)
+    assert p2s["installed"] or "not installed" in p2s["note"]
+
+
+def test_pipeline_group_stage_clock_leaves_results_unchanged():
+    """The matching clock wraps library functions while the group runs: the pipeline's results
+    are the same with it, and the functions are restored after it."""
+    rig, rec = scenes.recording(5, 2, 4, seed=3)
+    det = rec.detections
+    config, _ = pipeline.pipeline_configs()["dlt"]
+    before = matching.geometric_match_table
+    plain = run_pipeline(rig, det, config)
+    clock = {"matching": 0.0}
+    with pipeline._matching_clock(clock):
+        assert matching.geometric_match_table is not before
+        timed = run_pipeline(rig, det, config)
+    assert matching.geometric_match_table is before
+    assert clock["matching"] > 0
+    np.testing.assert_array_equal(plain.members, timed.members)
+    np.testing.assert_array_equal(plain.poses.xyz, timed.poses.xyz)
+    np.testing.assert_array_equal(plain.poses.valid, timed.poses.valid)
 
 
 def _stats(ms: float) -> dict:
