@@ -65,6 +65,7 @@ from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.pose2sim import Pose2SimTrial, find_trials
 from mvpose_jax.data.poses import PoseResults, load_poses
 from mvpose_jax.errors import InputError
+from mvpose_jax.jobs.common import read_dev_quality
 from mvpose_jax.jobs.infer import INFER_PIPELINE, run_infer
 from mvpose_jax.jobs.score import summary_lines
 from mvpose_jax.jobs.session import SessionConfig, trial_config
@@ -114,6 +115,7 @@ PEER_ROWS = (("Pose2Sim, raw TRC", "raw"), ("Pose2Sim, Butterworth TRC", "filt_b
 MODEL_SOURCES = {
     "synthetic": "models from synthetic recordings of the rig",
     "trials": "models from the single-person trials",
+    "mixed": "models from both, mixed",
 }
 MODEL_ROWS = tuple(
     (f"ours, {MODEL_SOURCES[source]}: {what}, pose/", source, pipeline)
@@ -422,12 +424,15 @@ def trial_recordings(data: Path) -> tuple[list[Recording], list[Recording]]:
 
 
 def demo_models(data: Path, folder: Path, smoke: bool) -> dict:
-    """The two model pairs of the demo's rig, trained (or loaded from ``folder``): on synthetic
-    recordings of the rig, the floor measured from the two-person trial's people
-    (`real_models.synthetic_models`), and on the single-person trials (`trial_recordings`,
-    `real_models.trial_models`). Returns {`MODEL_SOURCES` key: (folder, training record)}."""
+    """The three model pairs of the demo's rig, trained (or loaded from ``folder``): on synthetic
+    recordings of the rig, the floor (and up) measured from the two-person trial's people
+    (`real_models.synthetic_models`); on the single-person trials (`trial_recordings`,
+    `real_models.trial_models`); on both mixed (`real_models.mixed_models`). Returns
+    {`MODEL_SOURCES` key: (folder, training record)}; ``smoke``: the synthetic pair only, at
+    smoke size."""
     from experiments.real_models import (
         measured_floor,
+        mixed_models,
         synthetic_models,
         training_record,
         trial_models,
@@ -436,18 +441,25 @@ def demo_models(data: Path, folder: Path, smoke: bool) -> dict:
     trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[MULTI_TRIAL]
     rig, detections = raw_detections(trial, None)
     floor = measured_floor(rig, detections, LAYOUT)
-    synthetic = synthetic_models(rig, floor, folder / "synthetic", smoke=smoke)
     train, dev = trial_recordings(data)
-    trials = trial_models(rig, train, dev, folder / "trials", smoke=smoke)
-    return {
-        "synthetic": (folder / "synthetic", training_record(synthetic, floor)),
-        "trials": (
-            folder / "trials",
-            training_record(trials)
-            | {"train_frames": sum(r.num_frames for r in train)}
-            | {"dev_frames": sum(r.num_frames for r in dev)},
-        ),
+    frames = {
+        "train_frames": sum(r.num_frames for r in train),
+        "dev_frames": sum(r.num_frames for r in dev),
     }
+    models = {"synthetic": synthetic_models(rig, floor, folder / "synthetic", smoke=smoke)}
+    # A smoke run (CI) trains the one pair: the other two differ only in their recordings
+    # (`trial_recordings` is tested on its own), and each pair costs a training and two runs.
+    if not smoke:
+        models["trials"] = trial_models(rig, train, dev, folder / "trials", smoke=smoke)
+        models["mixed"] = mixed_models(rig, floor, train, dev, folder / "mixed", smoke=smoke)
+    out = {}
+    for source, pair in models.items():
+        record = training_record(pair, None if source == "trials" else floor)
+        if source != "synthetic":
+            record |= frames
+        record["estimator_dev"] = read_dev_quality(str(folder / source / "estimator"))
+        out[source] = (folder / source, record)
+    return out
 
 
 def reassigned(result: PoseResults, rig: Rig, detections: Detections) -> PoseResults:
@@ -747,7 +759,13 @@ def _models_markdown(models: dict, h: str) -> list[str]:
                 f"{f['num_samples']} person-frames)"
             )
         if "train_frames" in r:
-            text += f"; {r['train_frames']} training frames, {r['dev_frames']} dev frames"
+            text += f"; {r['train_frames']} real training frames, {r['dev_frames']} real dev frames"
+        dev = r.get("estimator_dev") or {}
+        if dev:
+            text += (
+                f"; estimator on its dev people {dev['estimator_px']} px per keypoint, "
+                f"triangulation {dev['triangulation_px']} px"
+            )
         lines.append(text + ".")
     return lines
 

@@ -11,7 +11,8 @@ DIR/estimator`` runs them):
   standing-height prior; up from their torsos where the calibration has none) and jittered by
   generate's training jitter (0.3 m);
 * **a session's own single-person trials** (`trial_models`, the paper's recipe on real data): the
-  estimator on their frames, the matcher on multi-person frames composed from them.
+  estimator on their frames, the matcher on multi-person frames composed from them;
+* **both mixed** (`mixed_models`): the synthetic recordings and the real trials together.
 
 The budget (`REAL_SCALE`) is the experiments' quick recipe (300 x 20 training frames, the
 paper's GAT, the small residual MLP) with fewer steps, so that ``python -m experiments.real``
@@ -24,7 +25,7 @@ import dataclasses
 from pathlib import Path
 
 from experiments.config import SCALES, Scale, estimator_config
-from experiments.data import Data
+from experiments.data import Data, make_data
 from experiments.fitting import Models, cached_models
 from mvpose_jax.cameras import Rig
 from mvpose_jax.floor import FloorEstimate, estimate_floor_from_detections
@@ -47,6 +48,9 @@ SMOKE_SCALE = dataclasses.replace(
     train_floor_jitter_m=TRAINING_FLOOR_JITTER_M,
 )
 SEED = 0
+# Real recordings among synthetic ones (`mixed_models`): repeated so that they weigh (the demo's
+# 104 real frames x 10 against 6000 synthetic ones: about 15 % of the training frames).
+REAL_REPEATS = 10
 MODELS_RECIPE = (
     "matcher (the paper's GAT) and estimator (small residual MLP) trained without labels on 300 "
     "synthetic single-person recordings of 20 frames on the rig (10 x 50 dev frames), the floor "
@@ -91,6 +95,27 @@ def trial_models(
     (settings chosen on ``dev``, multi-person frames composed from them)."""
     data = Data(rig, list(train), list(dev), {})
     return cached_models(rig, folder, seed=SEED, scale=scale(smoke), progress=progress, data=data)
+
+
+def mixed_models(
+    rig: Rig,
+    floor: FloorEstimate,
+    train: list,
+    dev: list,
+    folder: Path,
+    *,
+    smoke: bool,
+    progress: bool = False,
+) -> Models:
+    """The matcher and estimator of ``rig`` trained on synthetic recordings of it (as
+    `synthetic_models` makes them) mixed with real single-person recordings ``train`` (each
+    repeated `REAL_REPEATS` times, so that the few real frames weigh) and chosen on both dev
+    sets."""
+    sc = scale(smoke)
+    up = floor.up if floor.up_source == "people" else None
+    synthetic = make_data(rig, {}, sc, SEED, progress, floor_height=floor.height, up=up)
+    data = Data(rig, synthetic.train + list(train) * REAL_REPEATS, synthetic.dev + list(dev), {})
+    return cached_models(rig, folder, seed=SEED, scale=sc, progress=progress, data=data)
 
 
 def training_record(models: Models, floor: FloorEstimate | None = None) -> dict:

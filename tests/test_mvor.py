@@ -462,19 +462,19 @@ def test_real_counts_and_ground_truth_reprojection():
 
 
 @needs_real
-@pytest.mark.slow  # the benchmark's smoke run, twice
+@pytest.mark.slow  # the benchmark's smoke run, with models, then again without them
 def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
-    from experiments.pose2sim_demo import DEFAULT_DATA, MODEL_ROWS
+    from experiments.pose2sim_demo import DEFAULT_DATA, MODEL_ROWS, OUR_ROWS, PEER_ROWS
     from experiments.real import MODEL_PIPELINES, PIPELINES, main
 
-    # The second run loads the first one's models (smoke-size training: the code path, not
-    # the numbers).
-    models = str(tmp_path / "models")
-    for name in ("a", "b"):
-        assert main(["--smoke", "--out", str(tmp_path / name), "--models", models]) == 0
+    # Smoke-size training: the code path, not the numbers. The second run, without models,
+    # must give the rows without models as the first did.
+    assert main(["--smoke", "--out", str(tmp_path / "a"), "--models", str(tmp_path / "m")]) == 0
+    assert main(["--smoke", "--out", str(tmp_path / "b"), "--no-models"]) == 0
     a, b = (json.loads((tmp_path / n / "real.json").read_text()) for n in "ab")
     assert a["scale"] == "smoke" and a["split"].startswith("MVOR days 1-2")
     assert list(a["rows"]) == [row[0] for row in PIPELINES + MODEL_PIPELINES]
+    assert list(b["rows"]) == [row[0] for row in PIPELINES]
     for row in a["rows"].values():
         one, more = row["by_views"]["1"], row["by_views"]["2+"]
         # Geometry and min_views 2 never build a person from one view.
@@ -487,8 +487,8 @@ def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
     # estimates -1.0 m.
     floor = a["models"]["mvor-synthetic"]["floor"]
     assert floor["basis"] == "upper_body" and abs(floor["height"] + 1.0) < 0.1
-    assert (tmp_path / "models" / "mvor-synthetic" / "matcher").is_dir()
-    for name in a["rows"]:
+    assert (tmp_path / "m" / "mvor-synthetic" / "matcher").is_dir()
+    for name in b["rows"]:
         for row in (a, b):
             row["rows"][name].pop("seconds")
         assert a["rows"][name] == b["rows"][name]
@@ -499,7 +499,9 @@ def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
     for v in (va, vb):
         for row in v["variants"].values():
             row.pop("seconds_label_free")
-    assert va == vb and len(va["variants"]) >= 8
+    assert len(va["variants"]) == len(vb["variants"]) + len(MODEL_PIPELINES) >= 8
+    for name, row in vb["variants"].items():
+        assert va["variants"][name] == row
     assert set(va["spearman"]["all skeletons within 20 px"]) == {
         "PCK3D@150",
         "PCP upper",
@@ -508,13 +510,15 @@ def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
     }
     text = (tmp_path / "a" / "real.md").read_text()
     assert "## The label-free score against the labelled one" in text and "Noise floor" in text
-    # The Pose2Sim demo's table, with the rows of its two model pairs.
+    # The Pose2Sim demo's table, with the rows of its three model pairs.
     if not DEFAULT_DATA.is_dir():
         return
-    demo = a["pose2sim_demo"]
-    assert demo == b["pose2sim_demo"]
-    labels = [r["row"] for r in demo["multi_person"]["rows"]]
-    assert all(label in labels for label, _, _ in MODEL_ROWS)
-    assert set(demo["models"]) == {"synthetic", "trials"}
+    demo, plain = a["pose2sim_demo"], b["pose2sim_demo"]
+    rows = {r["row"]: r for r in demo["multi_person"]["rows"]}
+    assert [r["row"] for r in plain["multi_person"]["rows"]] == [r[0] for r in OUR_ROWS + PEER_ROWS]
+    for row in plain["multi_person"]["rows"]:
+        assert rows[row["row"]] == row
+    assert all(label in rows for label, source, _ in MODEL_ROWS if source == "synthetic")
+    assert set(demo["models"]) == {"synthetic"}  # a smoke run's one pair
     assert demo["models"]["synthetic"]["floor"]["up_source"] == "people"
     assert "Pose2Sim's demo session" in text and "The models of the rows with models" in text

@@ -195,3 +195,15 @@ def test_smoke_run(tmp_path):
     assert all(timings[r[0]] > 0 for r in demo.OUR_ROWS)
     assert "seconds" not in json.dumps(report)
     assert "| Pose2Sim, Butterworth TRC |" in (tmp_path / "pose2sim_demo.md").read_text()
+
+
+@pytest.mark.skipif(not demo.DEFAULT_DATA.is_dir(), reason="the Pose2Sim demo is not here")
+def test_the_single_person_trials_split_into_training_and_dev_recordings():
+    train, dev = demo.trial_recordings(demo.DEFAULT_DATA)
+    # 3 training recordings (two static trials, the balancing trial's first 80 frames) and 2 dev
+    # ones (its last 20 frames, participant 2's static trial): 104 and 32 frames.
+    assert sorted(r.num_frames for r in train) == [12, 12, 100 - demo.BALANCE_DEV_FRAMES]
+    assert sorted(r.num_frames for r in dev) == [12, demo.BALANCE_DEV_FRAMES]
+    for rec in train + dev:
+        assert rec.cameras == ("cam_01", "cam_02", "cam_03", "cam_04") and rec.layout == "coco18"
+        assert (np.asarray(rec.detections.count) >= 1).mean() > 0.9  # the participant, seen
