@@ -203,7 +203,8 @@ def fit_detector(
     # Swapped, mixed or noisy views are often left out of their person's group: an ungrouped
     # skeleton lying on a person the camera has none of is taken as that person's.
     v = _Views.build(rig, *group_people(xy, score, members), members, valid, person_height_m)
-    members, attached = _attach(v, members, xy, score, ungrouped)
+    flip = np.asarray(lay.flip)
+    members, attached = _attach(v, members, xy, score, ungrouped, flip)
     ungrouped &= ~attached
     v = _Views.build(rig, *group_people(xy, score, members), members, valid, person_height_m)
     if not (v.has.sum(0) >= 3).any():
@@ -211,15 +212,16 @@ def fit_detector(
             "no person is seen by three or more cameras: nothing to compare each view with",
             field="detections",
         )
-    on_person, explained = _ungrouped_on_people(v, xy, score, ungrouped)
+    on_person, explained = _ungrouped_on_people(v, xy, score, ungrouped, flip)
     g_score = group_people(xy, score, members)[1]
 
     defaults = DetectorConfig()
     fitted: dict[str, FittedField] = {}
-    noise, kp_scale = _noise(v, lay, defaults)
+    fitted["swap_rate"], swapped = _swaps(v, lay)
+    fitted["limb_mix_rate"], mixed = _limb_mixes(v, lay, defaults.mix_distance)
+    noise, kp_scale = _noise(v, lay, defaults, swapped | mixed)
     fitted["noise_relative"] = noise
     fitted["keypoint_noise_scale"] = kp_scale
-    fitted["swap_rate"] = _swaps(v, lay)
     drop, occluded_note = _keypoint_drops(v, lay)
     fitted["keypoint_drop_rate"] = drop
     fitted["occluded_drop_rate"] = _kept("occluded_drop_rate", occluded_note)
@@ -235,7 +237,6 @@ def fit_detector(
         f"{fp} skeletons in no person and on no person's reprojection, per camera and frame "
         f"({int((ungrouped & explained).sum())} more ungrouped ones lie on a person)",
     )
-    fitted["limb_mix_rate"] = _limb_mixes(v, lay, defaults.mix_distance)
     fitted["border_margin"] = _border(v)
     beta, smax = _scores(g_score[valid])
     fitted["score_beta"] = beta
@@ -244,9 +245,7 @@ def fit_detector(
     for name, field in fitted.items():
         if field.default != getattr(defaults, name):
             fitted[name] = dataclasses.replace(field, default=getattr(defaults, name))
-    config = dataclasses.replace(
-        defaults, **{n: f.value for n, f in fitted.items() if f.fitted}
-    )
+    config = dataclasses.replace(defaults, **{n: f.value for n, f in fitted.items() if f.fitted})
     return DetectorFit(config, tuple(fitted.values()), len(frames), int(valid.sum()))
 
 
@@ -308,8 +307,10 @@ class _Views:
         fy = np.asarray(rig.K, np.float64)[:, 1, 1][:, None, None]
         h = np.where(centre_depth > 0.1, fy * person_height_m / np.maximum(centre_depth, 0.1), 0.0)
         size = np.asarray(rig.size, np.float64)
-        floor = DetectorConfig().noise_floor_px * np.hypot(size[:, 0], size[:, 1]) / np.hypot(
-            1920, 1080
+        floor = (
+            DetectorConfig().noise_floor_px
+            * np.hypot(size[:, 0], size[:, 1])
+            / np.hypot(1920, 1080)
         )
         usable = (n >= 4)[None] & (h > 0)
         return _Views(
@@ -338,11 +339,14 @@ class _Views:
         return (x >= m) & (x < w - m) & (y >= m) & (y < h - m)
 
 
-def _noise(v: _Views, lay: Layout, defaults: DetectorConfig) -> tuple[FittedField, FittedField]:
-    """noise_relative and keypoint_noise_scale from the leave-one-out residuals."""
+def _noise(
+    v: _Views, lay: Layout, defaults: DetectorConfig, wrong: np.ndarray
+) -> tuple[FittedField, FittedField]:
+    """noise_relative and keypoint_noise_scale from the leave-one-out residuals (``wrong``:
+    (C, F, G, K) keypoints of swapped or mixed parts, left out)."""
     # Occluded keypoints are noisier (the simulator's occluded_noise_factor): keypoints that
     # may be hidden are left out.
-    use = v.seen & v.has[..., None] & v.loo_ok & _unhidden(v, lay)  # (C, F, G, K)
+    use = v.seen & v.has[..., None] & v.loo_ok & _unhidden(v, lay) & ~wrong  # (C, F, G, K)
     r = np.abs(v.det - v.loo)[use]  # (M, 2)
     h = np.broadcast_to(v.h[..., None], use.shape)[use]
     floor = np.broadcast_to(v.floor_px[:, None, None, None], use.shape)[use]
@@ -405,9 +409,11 @@ def _pairs(lay: Layout, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]
     return np.array([lay.index(k) for k in left]), np.array([lay.index(k) for k in right])
 
 
-def _swaps(v: _Views, lay: Layout) -> FittedField:
-    """swap_rate: arms and legs that fit the consensus better exchanged left for right."""
+def _swaps(v: _Views, lay: Layout) -> tuple[FittedField, np.ndarray]:
+    """swap_rate: arms and legs that fit the consensus better exchanged left for right; and
+    their keypoints (C, F, G, K)."""
     rates, told, swapped = [], 0, 0
+    wrong = np.zeros(v.seen.shape, bool)
     for parts in (_ARMS, _LEGS):
         pair = _pairs(lay, parts)
         if pair is None:
@@ -423,13 +429,15 @@ def _swaps(v: _Views, lay: Layout) -> FittedField:
         separation = mean(dist(qL, qR))
         can = v.has & (n >= 2) & (separation > MIN_SIDE_SEPARATION * v.h)
         is_swapped = can & (exchanged < SWAP_ERROR_RATIO * direct)
+        wrong[..., L] |= is_swapped[..., None]
+        wrong[..., R] |= is_swapped[..., None]
         if can.sum() >= MIN_SAMPLES:
             rates.append(is_swapped.sum() / can.sum())
         told += int(can.sum())
         swapped += int(is_swapped.sum())
     if not rates:
-        return _kept("swap_rate", "too few arms and legs with both sides seen apart")
-    return FittedField(
+        return _kept("swap_rate", "too few arms and legs with both sides seen apart"), wrong
+    field = FittedField(
         "swap_rate",
         round(float(np.mean(rates) / SWAP_PART_SHARE), 4),
         None,
@@ -438,6 +446,7 @@ def _swaps(v: _Views, lay: Layout) -> FittedField:
         f"{swapped} of {told} arm and leg pairs fit better exchanged; the simulator exchanges "
         f"a given pair in {SWAP_PART_SHARE:g} of its swaps",
     )
+    return field, wrong
 
 
 def _in_front_of_others(v: _Views, points: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -466,7 +475,9 @@ def _unhidden(v: _Views, lay: Layout) -> np.ndarray:
 
 def _keypoint_drops(v: _Views, lay: Layout) -> tuple[FittedField, str]:
     """keypoint_drop_rate from keypoints no one may hide; the note on the others' misses."""
-    limbs = [k for k, n in enumerate(lay.keypoints) if n[2:] in _ARMS + _LEGS and n[:2] in ("l_", "r_")]
+    limbs = [
+        k for k, n in enumerate(lay.keypoints) if n[2:] in _ARMS + _LEGS and n[:2] in ("l_", "r_")
+    ]
     if not limbs:
         return _kept("keypoint_drop_rate", "the layout has no limb keypoints"), "not measured"
     use = v.has[..., None] & v.loo_ok & v.full_ok & v.inside(v.loo, MISS_BORDER)
@@ -514,7 +525,7 @@ def _misses(v: _Views, on_person: np.ndarray) -> FittedField:
 
 
 def _ungrouped_on_people(
-    v: _Views, xy: np.ndarray, score: np.ndarray, ungrouped: np.ndarray
+    v: _Views, xy: np.ndarray, score: np.ndarray, ungrouped: np.ndarray, flip: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """(C, F, G): a person has an ungrouped skeleton on its reprojection; (F, C, P): an ungrouped
     skeleton lies on a person's reprojection."""
@@ -523,14 +534,14 @@ def _ungrouped_on_people(
     f, c, p = np.nonzero(ungrouped)
     if not len(f):
         return on_person, explained
-    near = _median_distances(v, xy, score, f, c, p) < ON_PERSON
+    near = _median_distances(v, xy, score, f, c, p, flip) < ON_PERSON
     explained[f, c, p] = near.any(-1)
     m, g = np.nonzero(near)
     on_person[c[m], f[m], g] = True
     return on_person, explained
 
 
-def _attach(v: _Views, members, xy, score, ungrouped) -> tuple[np.ndarray, np.ndarray]:
+def _attach(v: _Views, members, xy, score, ungrouped, flip) -> tuple[np.ndarray, np.ndarray]:
     """members (F, G, C) with each ungrouped skeleton that lies on a person the camera has no
     skeleton of added (the nearest person; the nearest skeleton of several), and which
     skeletons (F, C, P) were added."""
@@ -539,7 +550,7 @@ def _attach(v: _Views, members, xy, score, ungrouped) -> tuple[np.ndarray, np.nd
     f, c, p = np.nonzero(ungrouped)
     if not len(f):
         return members, attached
-    med = _median_distances(v, xy, score, f, c, p)  # (M, G) image heights
+    med = _median_distances(v, xy, score, f, c, p, flip)  # (M, G) image heights
     med = np.where(v.has[c, f], np.inf, med)  # only people the camera has none of
     g = np.argmin(med, -1)
     best = med[np.arange(len(f)), g]
@@ -551,21 +562,27 @@ def _attach(v: _Views, members, xy, score, ungrouped) -> tuple[np.ndarray, np.nd
     return members, attached
 
 
-def _median_distances(v: _Views, xy, score, f, c, p) -> np.ndarray:
+def _median_distances(v: _Views, xy, score, f, c, p, flip) -> np.ndarray:
     """Median keypoint distance (M, G) of skeletons (f, c, p) to each person's reprojection in
-    their camera, in the person's image heights (inf: fewer than 3 keypoints in common, or no
+    their camera, as they are or mirrored (``flip``: the layout's), in the person's image heights (inf: fewer than 3 keypoints in common, or no
     person)."""
-    d = np.linalg.norm(xy[f, c, p][:, None] - v.full[c, f], axis=-1)  # (M, G, K)
-    both = (score[f, c, p] > 0)[:, None] & v.full_ok[c, f]
-    with warnings.catch_warnings():  # all-NaN rows (nothing in common) are not near
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(np.where(both, d, np.nan), axis=-1)
+    both = (score[f, c, p] > 0)[:, None] & v.full_ok[c, f]  # (M, G, K)
+    meds = []
+    for order in (np.arange(len(flip)), flip):  # as is, and left for right (a whole-body swap)
+        d = np.linalg.norm(xy[f, c, p][:, None, order] - v.full[c, f], axis=-1)  # (M, G, K)
+        ok = both & (score[f, c, p][:, None, order] > 0)
+        with warnings.catch_warnings():  # all-NaN rows (nothing in common) are not near
+            warnings.simplefilter("ignore", RuntimeWarning)
+            meds.append(np.nanmedian(np.where(ok, d, np.nan), axis=-1))
+    med = np.fmin(*meds)
     ok = (both.sum(-1) >= 3) & v.valid[f] & (v.h[c, f] > 0)
     return np.where(ok, med / np.maximum(v.h[c, f], 1e-9), np.inf)
 
 
-def _limb_mixes(v: _Views, lay: Layout, mix_distance: float) -> FittedField:
-    """limb_mix_rate: lower limbs far from their own consensus and on another person's."""
+def _limb_mixes(v: _Views, lay: Layout, mix_distance: float) -> tuple[FittedField, np.ndarray]:
+    """limb_mix_rate: lower limbs far from their own consensus and on another person's; and
+    their keypoints (C, F, G, K)."""
+    wrong = np.zeros(v.seen.shape, bool)
     centre = (v.full * v.full_ok[..., None]).sum(-2) / np.maximum(v.full_ok.sum(-1), 1)[..., None]
     gap = np.linalg.norm(centre[:, :, :, None] - centre[:, :, None], axis=-1)  # (C, F, G, G')
     other = v.valid[:, :, None] & v.valid[:, None] & ~np.eye(v.valid.shape[1], dtype=bool)
@@ -590,11 +607,12 @@ def _limb_mixes(v: _Views, lay: Layout, mix_distance: float) -> FittedField:
             eligible = seen & near & apart
             own, to_other = dist(v.det[..., k, :], mine), dist(v.det[..., k, :], theirs)
             mixed = eligible & (own > MIX_MIN_ERROR * v.h) & (to_other < 0.5 * own)
+            wrong[..., k] |= mixed[..., None]
             eligible_limbs += int(eligible.sum())
             mixed_limbs += int(mixed.sum())
     if eligible_limbs < MIN_SAMPLES:
-        return _kept("limb_mix_rate", "too few lower limbs with another person near")
-    return FittedField(
+        return _kept("limb_mix_rate", "too few lower limbs with another person near"), wrong
+    field = FittedField(
         "limb_mix_rate",
         round(mixed_limbs / eligible_limbs, 4),
         None,
@@ -604,6 +622,7 @@ def _limb_mixes(v: _Views, lay: Layout, mix_distance: float) -> FittedField:
         f"person within {mix_distance:g} image heights (and their limb apart) lie on its "
         "consensus",
     )
+    return field, wrong
 
 
 def _border(v: _Views) -> FittedField:
