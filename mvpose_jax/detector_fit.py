@@ -17,12 +17,13 @@ value, the default, how many samples support it and how it was measured):
   ``keypoint_noise_scale``: the same per keypoint, relative to it.
 * ``swap_rate``: detections whose arms or legs fit the consensus much better exchanged left for
   right, among those whose left and right limb lie apart enough in the image to tell.
-* ``keypoint_drop_rate``: keypoints of a detected person that the consensus puts inside the
-  image, in front of their own mirror keypoint and in front of everyone else, that the view
-  lacks; ``miss_rate``: people whose consensus shows `MIN_KEYPOINTS_IN_VIEW` keypoints inside a
+* ``keypoint_drop_rate``: limb keypoints of a detected person that the consensus puts inside
+  the image, in front of their own mirror keypoint, of the rest of their body and of everyone
+  else, that the view lacks; ``miss_rate``: people whose consensus shows `MIN_KEYPOINTS_IN_VIEW` keypoints inside a
   camera's image with no skeleton there (nor an ungrouped one on them).
-* ``false_positive_rate``: skeletons per camera and frame grouped into no person and lying on
-  no person's reprojection (a skeleton the grouping missed is not one).
+* ``false_positive_rate``: partial skeletons per camera and frame grouped into no person and
+  lying on no person's reprojection (a skeleton the grouping missed is not one, nor a whole body
+  alone: a person one camera sees).
 * ``limb_mix_rate``: lower limbs (elbow and wrist, knee and ankle) far from their own person's
   consensus and on another nearby person's, among limbs with another detected person within
   ``mix_distance`` image heights.
@@ -74,6 +75,7 @@ SWAP_PART_SHARE = 0.6
 # a mirror keypoint this much nearer the camera (metres) may hide its partner.
 MISS_BORDER = 0.03
 SELF_OCCLUSION_M = 0.1
+OWN_BODY_RADIUS = 0.07
 # A person is in view of a camera with this many consensus keypoints inside its image.
 MIN_KEYPOINTS_IN_VIEW = 6
 # An ungrouped skeleton lies on a person when its median keypoint distance to the person's
@@ -89,6 +91,11 @@ BORDER_BINS = np.linspace(0.0, 0.1, 21)
 MIN_SAMPLES = 50
 MIN_KEYPOINT_SAMPLES = 30
 
+# A skeleton alone with this many keypoints over the head or shoulders and the hips or legs is
+# a person one camera sees, not a false skeleton.
+WHOLE_BODY_KEYPOINTS = 10
+_UPPER = ("nose", "neck", "l_eye", "r_eye", "l_ear", "r_ear", "l_shoulder", "r_shoulder")
+_LOWER = ("l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle")
 _ARMS = ("shoulder", "elbow", "wrist")
 _LEGS = ("hip", "knee", "ankle")
 _LOWER_LIMBS = (("elbow", "wrist"), ("knee", "ankle"))
@@ -226,16 +233,19 @@ def fit_detector(
     fitted["keypoint_drop_rate"] = drop
     fitted["occluded_drop_rate"] = _kept("occluded_drop_rate", occluded_note)
     fitted["miss_rate"] = _misses(v, on_person)
-    fp = int((ungrouped & ~explained).sum())
+    alone = ungrouped & ~explained
+    one_view = alone & _whole_body(score, lay)
+    fp = int((alone & ~one_view).sum())
     views = int(np.prod(ungrouped.shape[:2]))
     fitted["false_positive_rate"] = FittedField(
         "false_positive_rate",
-        fp / max(views, 1),
+        round(fp / max(views, 1), 4),
         defaults.false_positive_rate,
         views,
         True,
-        f"{fp} skeletons in no person and on no person's reprojection, per camera and frame "
-        f"({int((ungrouped & explained).sum())} more ungrouped ones lie on a person)",
+        f"{fp} partial skeletons in no person and on no person's reprojection, per camera and "
+        f"frame ({int(one_view.sum())} whole bodies alone, people one camera sees, and "
+        f"{int((ungrouped & explained).sum())} ungrouped skeletons on a person not counted)",
     )
     fitted["border_margin"] = _border(v)
     beta, smax = _scores(g_score[valid])
@@ -460,17 +470,50 @@ def _in_front_of_others(v: _Views, points: np.ndarray, depth: np.ndarray) -> np.
     p = points[:, :, :, None]  # (C, F, G, 1, K, 2) against the others (C, F, 1, G', 1, 2)
     inside = ((p >= lo[:, :, None, :, None]) & (p <= hi[:, :, None, :, None])).all(-1)
     nearer = v.centre_depth[:, :, None, :, None] < depth[:, :, :, None]  # (C, F, G, G', K)
+    # The other person need not be detected in the view: being hidden is why one is missed.
     other = v.valid[:, :, None] & ~np.eye(v.valid.shape[1], dtype=bool)  # (F, G, G')
-    covered = inside & nearer & other[None, ..., None] & v.has[:, :, None, :, None]
+    covered = inside & nearer & other[None, ..., None]
     return ~covered.any(3)
 
 
 def _unhidden(v: _Views, lay: Layout) -> np.ndarray:
     """(C, F, G, K) keypoints no one may hide: not `SELF_OCCLUSION_M` behind their mirror
-    keypoint, and covered by no nearer person."""
+    keypoint, covered by no nearer part of their own body, and by no nearer person."""
     flip = np.asarray(lay.flip)
     self_hidden = v.depth[..., flip] < v.depth - SELF_OCCLUSION_M
-    return ~self_hidden & _in_front_of_others(v, v.loo, v.depth)
+    return ~self_hidden & ~_behind_own_body(v, lay) & _in_front_of_others(v, v.loo, v.depth)
+
+
+def _behind_own_body(v: _Views, lay: Layout) -> np.ndarray:
+    """(C, F, G, K) keypoints within `OWN_BODY_RADIUS` image heights of a part of their own body
+    (another keypoint, a bone's midpoint, the torso's centre) `SELF_OCCLUSION_M` nearer the
+    camera: the body's volume around its skeleton, coarsely."""
+    K = lay.num_keypoints
+    bones = np.array([b for b in lay.bones], int).reshape(-1, 2)
+    torso = [
+        lay.index(k) for k in ("l_shoulder", "r_shoulder", "l_hip", "r_hip") if k in lay.keypoints
+    ]
+    # Sample points as weights over keypoints (S, K): keypoints, bone midpoints, torso centre.
+    w = [np.eye(K)]
+    if len(bones):
+        mid = np.zeros((len(bones), K))
+        mid[np.arange(len(bones)), bones[:, 0]] += 0.5
+        mid[np.arange(len(bones)), bones[:, 1]] += 0.5
+        w.append(mid)
+    if len(torso) == 4:
+        centre = np.zeros((1, K))
+        centre[0, torso] = 0.25
+        w.append(centre)
+    weights = np.concatenate(w)  # (S, K)
+    # A sample exists where all its keypoints do; it cannot hide a keypoint it is made of.
+    parts = weights > 0
+    exists = (v.full_ok[..., None, :] | ~parts).all(-1)  # (C, F, G, S)
+    pts = np.einsum("sk,cfgkd->cfgsd", weights, v.full)
+    depth = np.einsum("sk,cfgk->cfgs", weights, v.depth)
+    near = np.linalg.norm(v.full[..., :, None, :] - pts[..., None, :, :], axis=-1)  # (C,F,G,K,S)
+    near = near < OWN_BODY_RADIUS * v.h[..., None, None]
+    front = depth[..., None, :] < v.depth[..., :, None] - SELF_OCCLUSION_M
+    return (near & front & exists[..., None, :] & ~parts.T[None, None, None]).any(-1)
 
 
 def _keypoint_drops(v: _Views, lay: Layout) -> tuple[FittedField, str]:
@@ -487,8 +530,8 @@ def _keypoint_drops(v: _Views, lay: Layout) -> tuple[FittedField, str]:
     missing = ~v.seen
     n, m = int(clear.sum()), int((clear & missing).sum())
     note = (
-        f"keypoints that may be hidden (behind their mirror keypoint, another person, or the "
-        f"face) miss in {(rest & missing).sum() / max(rest.sum(), 1):.3f} of {int(rest.sum())}; "
+        f"keypoints that may be hidden (behind their mirror keypoint, their own body or another "
+        f"person, and the face) miss in {(rest & missing).sum() / max(rest.sum(), 1):.3f} of {int(rest.sum())}; "
         "an occluded keypoint cannot be told from a visible one without a body model"
     )
     if n < MIN_SAMPLES:
@@ -500,7 +543,7 @@ def _keypoint_drops(v: _Views, lay: Layout) -> tuple[FittedField, str]:
         n,
         True,
         f"{m} of {n} limb keypoints the consensus puts inside the image, in front of their "
-        "mirror keypoint and of everyone else, missing",
+        "mirror keypoint, their own body and everyone else, missing",
     )
     return field, note
 
@@ -521,6 +564,19 @@ def _misses(v: _Views, on_person: np.ndarray) -> FittedField:
         True,
         f"{int(missed.sum())} of {n} person-views with {MIN_KEYPOINTS_IN_VIEW}+ consensus "
         "keypoints inside the image have no skeleton there",
+    )
+
+
+def _whole_body(score: np.ndarray, lay: Layout) -> np.ndarray:
+    """(F, C, P) skeletons with `WHOLE_BODY_KEYPOINTS`+ keypoints, the head or shoulders and the
+    hips or legs among them: a person (one camera alone may see), not a detector's false
+    skeleton, which shows a part of a body (the simulator's: an upper body, legs, a limb, or
+    scattered keypoints)."""
+    seen = score > 0
+    upper = [k for k, n in enumerate(lay.keypoints) if n in _UPPER]
+    lower = [k for k, n in enumerate(lay.keypoints) if n in _LOWER]
+    return (
+        (seen.sum(-1) >= WHOLE_BODY_KEYPOINTS) & seen[..., upper].any(-1) & seen[..., lower].any(-1)
     )
 
 

@@ -27,15 +27,16 @@ TRUTH = DetectorConfig(
     score_beta=(5.0, 2.0),
     occluded_score_factor=1.0,
 )
-# Stated tolerances (absolute unless relative), from what the residuals can tell: occluded keypoints
-# (noisier, dropped more often) are only partly recognised, and swaps of a pair seen edge-on
-# or mixed limbs of people side by side cannot be told.
+# Stated tolerances (absolute unless relative), from what the residuals can tell: occluded
+# keypoints (noisier, dropped more often) are only partly recognised, and swaps of a pair seen
+# edge-on or mixed limbs of people side by side cannot be told.
 TOLERANCE = {
-    "noise_relative": 0.35,  # relative
+    "noise_relative": 0.4,  # relative: 0.013 for 0.01, where 0.011 with noise alone (swaps
+    # and mixes the fit cannot single out widen the residuals)
     "swap_rate": 0.04,
     "keypoint_drop_rate": 0.04,
     "miss_rate": 0.03,
-    "false_positive_rate": 0.15,
+    "false_positive_rate": 0.08,
     "limb_mix_rate": 0.04,
     "border_margin": 0.01,
 }
