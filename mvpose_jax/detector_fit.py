@@ -34,7 +34,9 @@ value, the default, how many samples support it and how it was measured):
 
 Not fitted (the default is kept, and `DetectorFit` says so): ``occluded_drop_rate`` (without a body
 model an occluded keypoint cannot be told from a visible one; the miss rate of keypoints that may
-be occluded is given as a note), ``noise_tail_dof``, the offsets and the noise floor.
+be occluded is given as a note), ``noise_tail_dof`` (swaps and mixed limbs the fit misses widen
+the residuals' tails as much as a Student-t's; their shape is given as a note), the offsets and
+the noise floor.
 
 Person image height: ``fy x PERSON_HEIGHT_M / depth`` of the person's consensus centre, as the
 simulator computes it from the pelvis depth and the person's height.
@@ -47,6 +49,7 @@ import warnings
 from collections.abc import Mapping
 
 import numpy as np
+from scipy.stats import t as student_t
 
 from mvpose_jax.cameras import Rig, project_points_per_camera
 from mvpose_jax.errors import InputError
@@ -226,9 +229,10 @@ def fit_detector(
     fitted: dict[str, FittedField] = {}
     fitted["swap_rate"], swapped = _swaps(v, lay)
     fitted["limb_mix_rate"], mixed = _limb_mixes(v, lay, defaults.mix_distance)
-    noise, kp_scale = _noise(v, lay, defaults, swapped | mixed)
+    noise, kp_scale, tail = _noise(v, lay, defaults, swapped | mixed)
     fitted["noise_relative"] = noise
     fitted["keypoint_noise_scale"] = kp_scale
+    fitted["noise_tail_dof"] = tail
     drop, occluded_note = _keypoint_drops(v, lay)
     fitted["keypoint_drop_rate"] = drop
     fitted["occluded_drop_rate"] = _kept("occluded_drop_rate", occluded_note)
@@ -251,7 +255,6 @@ def fit_detector(
     beta, smax = _scores(g_score[valid])
     fitted["score_beta"] = beta
     fitted["score_max"] = smax
-    fitted["noise_tail_dof"] = _kept("noise_tail_dof", "not measured")
     for name, field in fitted.items():
         if field.default != getattr(defaults, name):
             fitted[name] = dataclasses.replace(field, default=getattr(defaults, name))
@@ -351,9 +354,9 @@ class _Views:
 
 def _noise(
     v: _Views, lay: Layout, defaults: DetectorConfig, wrong: np.ndarray
-) -> tuple[FittedField, FittedField]:
-    """noise_relative and keypoint_noise_scale from the leave-one-out residuals (``wrong``:
-    (C, F, G, K) keypoints of swapped or mixed parts, left out)."""
+) -> tuple[FittedField, FittedField, FittedField]:
+    """noise_relative, keypoint_noise_scale and noise_tail_dof's note from the leave-one-out residuals
+    (``wrong``: (C, F, G, K) keypoints of swapped or mixed parts, left out)."""
     # Occluded keypoints are noisier (the simulator's occluded_noise_factor): keypoints that
     # may be hidden are left out.
     use = v.seen & v.has[..., None] & v.loo_ok & _unhidden(v, lay) & ~wrong  # (C, F, G, K)
@@ -366,6 +369,7 @@ def _noise(
         return (
             _kept("noise_relative", "too few keypoints seen by a camera and 2+ others"),
             _kept("keypoint_noise_scale", "too few samples"),
+            _kept("noise_tail_dof", "too few samples"),
         )
 
     def z(a: float) -> np.ndarray:
@@ -378,6 +382,7 @@ def _noise(
     a = 0.5 * (lo + hi)
     zs = z(a)
     inlier = (zs < OUTLIER_SIGMAS).all(-1)
+    tail = _tail(zs)
     noise = FittedField(
         "noise_relative",
         round(float(a), 5),
@@ -399,15 +404,36 @@ def _noise(
         measured += 1
     samples = int(sum(counts[k] for k, n in enumerate(lay.keypoints) if n in coco.keypoints))
     if not measured:
-        return noise, _kept("keypoint_noise_scale", "no coco18 keypoint with enough samples")
-    return noise, FittedField(
-        "keypoint_noise_scale",
-        tuple(round(float(s), 3) for s in scale),
-        defaults.keypoint_noise_scale,
-        samples,
-        True,
-        f"per coco18 keypoint, robust std / the overall ({measured} of "
-        f"{coco.num_keypoints} keypoints measured, 1 for the rest)",
+        return noise, _kept("keypoint_noise_scale", "no coco18 keypoint with enough samples"), tail
+    return (
+        noise,
+        FittedField(
+            "keypoint_noise_scale",
+            tuple(round(float(s), 3) for s in scale),
+            defaults.keypoint_noise_scale,
+            samples,
+            True,
+            f"per coco18 keypoint, robust std / the overall ({measured} of "
+            f"{coco.num_keypoints} keypoints measured, 1 for the rest)",
+        ),
+        tail,
+    )
+
+
+def _tail(z: np.ndarray) -> FittedField:
+    """noise_tail_dof, not fitted: the shape of the normalised residuals |z| (M, 2) as a note,
+    their 90th percentile over their median (a normal's 2.44) and the Student-t it matches.
+    Swaps and mixed limbs the fit does not single out widen the tails as much as a Student-t of
+    3 degrees does (a simulated normal detector with the rates of `tests/test_detector_fit.py`
+    matches 2.5 degrees, one of 3 degrees without them 3.5), so the tails are not fitted."""
+    ratio = float(np.quantile(z, 0.9) / np.median(z))
+    dofs = np.arange(2.0, 30.5, 0.5)
+    ratios = student_t.ppf(0.95, dofs) / student_t.ppf(0.75, dofs)
+    match = f"a Student-t of {dofs[np.argmin(np.abs(ratios - ratio))]:g} degrees"
+    return _kept(
+        "noise_tail_dof",
+        f"90th percentile / median of |residual| {ratio:.2f} (a normal's 2.44; {match}): swaps "
+        "and mixed limbs the fit misses widen the tails as much as a Student-t's",
     )
 
 
