@@ -536,10 +536,13 @@ def _behind_own_body(v: _Views, lay: Layout) -> np.ndarray:
     exists = (v.full_ok[..., None, :] | ~parts).all(-1)  # (C, F, G, S)
     pts = np.einsum("sk,cfgkd->cfgsd", weights, v.full)
     depth = np.einsum("sk,cfgk->cfgs", weights, v.depth)
-    near = np.linalg.norm(v.full[..., :, None, :] - pts[..., None, :, :], axis=-1)  # (C,F,G,K,S)
-    near = near < OWN_BODY_RADIUS * v.h[..., None, None]
-    front = depth[..., None, :] < v.depth[..., :, None] - SELF_OCCLUSION_M
-    return (near & front & exists[..., None, :] & ~parts.T[None, None, None]).any(-1)
+    hidden = np.zeros(v.depth.shape, bool)
+    for c in range(len(hidden)):  # one camera at a time: (F, G, K, S) pairs, not C times that
+        near = np.linalg.norm(v.full[c, ..., :, None, :] - pts[c, ..., None, :, :], axis=-1)
+        near = near < OWN_BODY_RADIUS * v.h[c, ..., None, None]
+        front = depth[c, ..., None, :] < v.depth[c, ..., :, None] - SELF_OCCLUSION_M
+        hidden[c] = (near & front & exists[c, ..., None, :] & ~parts.T).any(-1)
+    return hidden
 
 
 def _keypoint_drops(v: _Views, lay: Layout) -> tuple[FittedField, str]:

@@ -130,3 +130,21 @@ def test_generate_detector_like_end_to_end(fitted, tmp_path, capsys):
     clean = ["--clean", "--detector-like", str(mine), "--out", str(tmp_path / "c.npz")]
     assert main([*argv, "--floor-height", "0", *clean]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+def test_experiment_tables_show_each_field_beside_the_default():
+    from experiments.detector_fit import SYNTHETIC_TRUTH, TABLE_FIELDS, tables
+    from mvpose_jax.detector_fit import DetectorFit, FittedField
+
+    defaults = DetectorConfig()
+    fields = tuple(
+        FittedField(n, getattr(defaults, n), getattr(defaults, n), 0, False, "kept")
+        for n in TABLE_FIELDS
+    )
+    swap = FittedField("swap_rate", 0.123, defaults.swap_rate, 77, True, "measured")
+    fields = tuple(swap if f.name == "swap_rate" else f for f in fields)
+    fit = DetectorFit(dataclasses.replace(defaults, swap_rate=0.123), fields, 5, 9)
+    lines = tables({"mine": fit}, SYNTHETIC_TRUTH, fit)
+    assert "| swap_rate | 0.02 | 0.123 (77) |" in lines
+    assert "| swap_rate | 0.1 | 0.123 (77) | 0.02 |" in lines
+    assert "| noise_relative | 0.004 | 0.004 (not fitted) |" in lines
