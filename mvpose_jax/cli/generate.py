@@ -71,7 +71,16 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
         "original JSON, .npz or an OpenPose folder): the triangulated feet of people seen by 3+ "
         "cameras",
     )
-    add_detection_options(p, what="--floor-from")
+    p.add_argument(
+        "--detector-like",
+        metavar="DETECTIONS",
+        default=None,
+        help="simulate a detector that behaves like yours: its noise, left/right swaps, missed "
+        "keypoints and people, false skeletons, limb mixes, border losses and scores, fitted "
+        "without labels to your own detections on this rig (native JSON, original JSON, .npz or "
+        "an OpenPose folder) by comparing each camera with the other cameras' triangulation",
+    )
+    add_detection_options(p, what="--floor-from, --detector-like")
     p.add_argument(
         "--floor-jitter",
         type=float,
@@ -121,12 +130,15 @@ def _generate(args: argparse.Namespace) -> int:
         floor_from=detections_source(args, args.floor_from) if args.floor_from else None,
         floor_jitter=args.floor_jitter,
         clean=args.clean,
+        detector_like=(detections_source(args, args.detector_like) if args.detector_like else None),
         rates=rates,
     )
     done = generate(config)
     if done.floor is not None:
         measured = done.floor
         print(f"floor measured from {args.floor_from}: {measured.describe()}")
+    if done.detector is not None:
+        print(f"{args.detector_like}: " + "\n".join(done.detector.describe()))
     if args.single_person_recordings > 0:
         print(
             f"wrote {done.recordings} single-person recordings of {args.frames} frames to {done.out}/"

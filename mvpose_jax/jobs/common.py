@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from mvpose_jax.cameras import Rig
     from mvpose_jax.data.poses import PoseResults
     from mvpose_jax.data.recording import Recording
+    from mvpose_jax.detector_fit import DetectorFit
     from mvpose_jax.floor import FloorEstimate
     from mvpose_jax.proposals import CombinedConfig
     from mvpose_jax.trained import Matcher
@@ -106,8 +107,26 @@ def load_detections(source: DetectionsSource, rig: Rig) -> tuple[Recording, Rig]
 def measure_floor(rig: Rig, source: DetectionsSource) -> FloorEstimate:
     """`floor.estimate_floor_from_detections` on the recording of ``source`` (its OpenPose
     options only: every camera of the rig it holds, in its own layout)."""
-    from mvpose_jax.data import load_recording
     from mvpose_jax.floor import estimate_floor_from_detections
+
+    rec = _own_recording(rig, source)
+    return estimate_floor_from_detections(
+        rig.select(list(rec.cameras)), rec.detections, layout=rec.layout
+    )
+
+
+def fit_detector_to(rig: Rig, source: DetectionsSource) -> DetectorFit:
+    """`detector_fit.fit_detector` on the recording of ``source`` (its OpenPose options only:
+    every camera of the rig it holds, in its own layout)."""
+    from mvpose_jax.detector_fit import fit_detector
+
+    rec = _own_recording(rig, source)
+    return fit_detector(rig.select(list(rec.cameras)), rec.detections, layout=rec.layout)
+
+
+def _own_recording(rig: Rig, source: DetectionsSource) -> Recording:
+    """The user's recording of ``source`` on ``rig``, read with its OpenPose options."""
+    from mvpose_jax.data import load_recording
 
     kwargs = {
         k: v
@@ -118,10 +137,7 @@ def measure_floor(rig: Rig, source: DetectionsSource) -> FloorEstimate:
         )
         if v
     }
-    rec = load_recording(source.path, rig=rig, **kwargs)
-    return estimate_floor_from_detections(
-        rig.select(list(rec.cameras)), rec.detections, layout=rec.layout
-    )
+    return load_recording(source.path, rig=rig, **kwargs)
 
 
 def recordings_in(path: str, layout: str | None, source_layout: str | None = None) -> list:

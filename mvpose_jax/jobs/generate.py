@@ -10,9 +10,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from mvpose_jax.errors import InputError, MvposeWarning
-from mvpose_jax.jobs.common import DetectionsSource, RigSource, measure_floor
+from mvpose_jax.jobs.common import DetectionsSource, RigSource, fit_detector_to, measure_floor
 
 if TYPE_CHECKING:
+    from mvpose_jax.detector_fit import DetectorFit
     from mvpose_jax.floor import FloorEstimate
     from mvpose_jax.synthetic import SyntheticConfig
 
@@ -49,7 +50,9 @@ class GenerateConfig:
       floor_jitter: each recording's floor within this distance (metres) of the floor height;
         None: `TRAINING_FLOOR_JITTER_M` for single-person recordings, 0 for a scene.
       clean: a perfect detector.
-      rates: `DetectorConfig` field -> value, over the (clean or default) detector.
+      detector_like: the user's own detections on this rig: the simulated detector is fitted to
+        them (`detector_fit.fit_detector`) instead of the default one.
+      rates: `DetectorConfig` field -> value, over the (clean, fitted or default) detector.
     """
 
     rig: RigSource
@@ -64,6 +67,7 @@ class GenerateConfig:
     floor_from: DetectionsSource | None = None
     floor_jitter: float | None = None
     clean: bool = False
+    detector_like: DetectionsSource | None = None
     rates: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
@@ -77,6 +81,7 @@ class Generated(NamedTuple):
       cameras: cameras per recording.
       detections: detections in the scene (single-person recordings: 0).
       floor: the floor measured from ``floor_from``, or None.
+      detector: the detector fitted to ``detector_like``, or None.
     """
 
     out: Path
@@ -85,6 +90,7 @@ class Generated(NamedTuple):
     cameras: int
     detections: int
     floor: FloorEstimate | None
+    detector: DetectorFit | None = None
 
 
 def generate(config: GenerateConfig) -> Generated:
@@ -95,8 +101,11 @@ def generate(config: GenerateConfig) -> Generated:
 
     rig = config.rig.load()
     out = check_writable(config.out, folder=config.single_person_recordings > 0)
+    if config.clean and config.detector_like is not None:
+        raise InputError("a clean detector or one fitted to a recording, not both", field="--clean")
     measured = measure_floor(rig, config.floor_from) if config.floor_from else None
-    synthetic = synthetic_config(config, measured)
+    fitted = fit_detector_to(rig, config.detector_like) if config.detector_like else None
+    synthetic = synthetic_config(config, measured, fitted)
     if synthetic.scene.floor_height is None:
         from mvpose_jax.synthetic import scene_geometry
 
@@ -122,7 +131,7 @@ def generate(config: GenerateConfig) -> Generated:
         for i, rec in enumerate(recordings):
             path = out / f"person_{i:0{width}d}{suffix}"
             save_recording(rec, path, rig=rig if suffix == ".json" else None)
-        return Generated(out, len(recordings), config.frames, rig.num_cameras, 0, measured)
+        return Generated(out, len(recordings), config.frames, rig.num_cameras, 0, measured, fitted)
     rec = generate_recording(
         rig,
         num_people=config.people,
@@ -134,19 +143,24 @@ def generate(config: GenerateConfig) -> Generated:
     native = out.suffix.lower() != ".npz"
     save_recording(rec, out, rig=rig if native else None)
     count = int(rec.detections.count.sum())
-    return Generated(out, 1, rec.num_frames, len(rec.cameras), count, measured)
+    return Generated(out, 1, rec.num_frames, len(rec.cameras), count, measured, fitted)
 
 
 def synthetic_config(
-    config: GenerateConfig, measured: FloorEstimate | None = None
+    config: GenerateConfig,
+    measured: FloorEstimate | None = None,
+    fitted: DetectorFit | None = None,
 ) -> SyntheticConfig:
     """The `SyntheticConfig` of ``config`` (``measured``: the floor measured from the people,
     its height used when ``config.floor_height`` is not given, its up when measured from the
-    people, the calibration having none)."""
+    people, the calibration having none; ``fitted``: the detector fitted to the user's
+    recording, used instead of the default one)."""
     floor_height = None if measured is None else measured.height
     from mvpose_jax.synthetic import DetectorConfig, MotionConfig, SceneConfig, SyntheticConfig
 
     detector = DetectorConfig().clean() if config.clean else DetectorConfig()
+    if fitted is not None:
+        detector = fitted.config
     motion = MotionConfig()
     return SyntheticConfig(
         detector=dataclasses.replace(detector, **config.rates),
