@@ -710,7 +710,7 @@ def joint_figure(report: dict, path: Path) -> None:
     ax.set_xticks(x, JOINTS, rotation=30)
     ax.set_ylabel("MPJPE (mm), matched people")
     ax.set_title("MVOR days 1-2: error per joint")
-    ax.set_ylim(0, 1.35 * highest if highest > 0 else 1.0)  # room for the legend above the bars
+    ax.set_ylim(0, 1.6 * highest if highest > 0 else 1.0)  # room for the legend above the bars
     ax.legend(fontsize=7, ncol=3, loc="upper center")
     ax.grid(axis="y", alpha=0.3)
     save_figure(fig, path)
