@@ -65,6 +65,7 @@ from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.pose2sim import Pose2SimTrial, find_trials
 from mvpose_jax.data.poses import PoseResults, load_poses
 from mvpose_jax.errors import InputError
+from mvpose_jax.floor import estimate_floor_from_detections
 from mvpose_jax.jobs.common import read_dev_quality
 from mvpose_jax.jobs.infer import INFER_PIPELINE, run_infer
 from mvpose_jax.jobs.score import summary_lines
@@ -431,7 +432,6 @@ def demo_models(data: Path, folder: Path, smoke: bool) -> dict:
     {`MODEL_SOURCES` key: (folder, training record)}; ``smoke``: the synthetic pair only, at
     smoke size."""
     from experiments.real_models import (
-        measured_floor,
         mixed_models,
         synthetic_models,
         training_record,
@@ -440,7 +440,7 @@ def demo_models(data: Path, folder: Path, smoke: bool) -> dict:
 
     trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[MULTI_TRIAL]
     rig, detections = raw_detections(trial, None)
-    floor = measured_floor(rig, detections, LAYOUT)
+    floor = estimate_floor_from_detections(rig, detections, layout=LAYOUT)
     train, dev = trial_recordings(data)
     frames = {
         "train_frames": sum(r.num_frames for r in train),

@@ -65,12 +65,12 @@ from experiments.mvor import (
 from experiments.mvor_protocol import evaluate
 from experiments.real_models import (
     MODELS_RECIPE,
-    measured_floor,
     synthetic_models,
     training_record,
 )
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.poses import PoseResults
+from mvpose_jax.floor import estimate_floor_from_detections
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.jobs.common import read_dev_quality
 from mvpose_jax.label_free import (
@@ -748,7 +748,7 @@ def main(argv=None) -> int:
     models, record = None, None
     if not args.no_models:
         # The floor from every frame's people (a smoke run's few frames are too few).
-        floor = measured_floor(data.rig, data.detections, data.layout)
+        floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
         folder = models_dir / "mvor-synthetic"
         models = synthetic_models(data.rig, floor, folder, smoke=args.smoke, progress=True)
         record = training_record(models, floor) | {

@@ -28,10 +28,9 @@ from experiments.config import SCALES, Scale, estimator_config
 from experiments.data import Data, make_data
 from experiments.fitting import Models, cached_models
 from mvpose_jax.cameras import Rig
-from mvpose_jax.floor import FloorEstimate, estimate_floor_from_detections
+from mvpose_jax.floor import FloorEstimate
 from mvpose_jax.jobs.generate import TRAINING_FLOOR_JITTER_M
 from mvpose_jax.models import MLPConfig
-from mvpose_jax.skeletons import Detections
 
 # Steps by number of views: the quick scale's (3 views 20000, 5-6 views 6000) cut to fit the
 # benchmark's budget (about 3 minutes per model pair on 2 cores).
@@ -67,11 +66,6 @@ def scale(smoke: bool) -> Scale:
     return SMOKE_SCALE if smoke else REAL_SCALE
 
 
-def measured_floor(rig: Rig, detections: Detections, layout: str) -> FloorEstimate:
-    """The floor of the recording's people (`floor.estimate_floor_from_detections`, basis auto)."""
-    return estimate_floor_from_detections(rig, detections, layout=layout)
-
-
 def synthetic_models(
     rig: Rig, floor: FloorEstimate, folder: Path, *, smoke: bool, progress: bool = False
 ) -> Models:
@@ -84,7 +78,7 @@ def synthetic_models(
         scale=scale(smoke),
         progress=progress,
         floor_height=floor.height,
-        up=floor.up if floor.up_source == "people" else None,
+        up=floor.measured_up,
     )
 
 
@@ -112,8 +106,9 @@ def mixed_models(
     repeated `REAL_REPEATS` times, so that the few real frames weigh) and chosen on both dev
     sets."""
     sc = scale(smoke)
-    up = floor.up if floor.up_source == "people" else None
-    synthetic = make_data(rig, {}, sc, SEED, progress, floor_height=floor.height, up=up)
+    synthetic = make_data(
+        rig, {}, sc, SEED, progress, floor_height=floor.height, up=floor.measured_up
+    )
     data = Data(rig, synthetic.train + list(train) * REAL_REPEATS, synthetic.dev + list(dev), {})
     return cached_models(rig, folder, seed=SEED, scale=sc, progress=progress, data=data)
 

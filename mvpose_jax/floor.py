@@ -112,6 +112,12 @@ class FloorEstimate:
     up_source: str = "calibration"
     camera_up_deg: float | None = None
 
+    @property
+    def measured_up(self) -> tuple[float, float, float] | None:
+        """``up`` where it was measured from the people (the one to simulate along), else None:
+        the calibration's or the cameras' guess, which the rig already gives."""
+        return self.up if self.up_source == "people" else None
+
     def describe(self) -> str:
         """One line: height, spread, samples and basis."""
         basis = (

@@ -169,7 +169,7 @@ def synthetic_config(
             SceneConfig(),
             floor_height=config.floor_height if config.floor_height is not None else floor_height,
             floor_jitter_m=floor_jitter(config),
-            up=measured.up if measured is not None and measured.up_source == "people" else None,
+            up=None if measured is None else measured.measured_up,
         ),
     )
 

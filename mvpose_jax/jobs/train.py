@@ -281,7 +281,7 @@ def write_model_pipeline(folder: str, *, matcher: bool) -> None:
 def model_pipeline(folder: str):
     """The `PipelineConfig` a model folder serves (`write_model_pipeline`), or None."""
     from mvpose_jax.inference import PipelineConfig
-    from mvpose_jax.trained import ModelFolder
+    from mvpose_jax.trained import PIPELINE_FILE, ModelFolder
 
     record = ModelFolder(folder).read_pipeline()
     if record is None:
@@ -289,9 +289,7 @@ def model_pipeline(folder: str):
     try:
         return PipelineConfig.from_dict(record)
     except (TypeError, ValueError) as e:
-        raise InputError(
-            f"unreadable pipeline ({e})", file=Path(folder) / "pipeline.json"
-        ) from None
+        raise InputError(f"unreadable pipeline ({e})", file=Path(folder) / PIPELINE_FILE) from None
 
 
 def _begin(run: TrainingRun):
