@@ -57,7 +57,7 @@ from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import group_people
 from mvpose_jax.skeletons import Detections, Layout, get_layout
 from mvpose_jax.synthetic import DetectorConfig
-from mvpose_jax.triangulate import triangulate_skeletons_robust
+from mvpose_jax.triangulate import leave_one_view_out, triangulate_skeletons_robust
 
 # The simulator's mean standing height (its people: 1.50-1.95 m), for the person's image height.
 PERSON_HEIGHT_M = 1.72
@@ -299,15 +299,9 @@ class _Views:
         w = np.where(has[..., None], w, 0.0)
         xyz, ok, _ = (np.array(a) for a in triangulate_skeletons_robust(rig, px, w))
         ok &= valid[..., None]
-        loo_xyz = np.zeros((C, *xyz.shape))
-        loo_ok = np.zeros((C, *ok.shape), bool)
-        loo_views = np.zeros(loo_ok.shape, np.int32)
-        for c in range(C):  # one camera left out at a time: C calls of one compiled shape
-            wc = w.copy()
-            wc[c] = 0.0
-            p, o, kept = (np.array(a) for a in triangulate_skeletons_robust(rig, px, wc))
-            loo_xyz[c], loo_views[c] = p, kept.sum(0)
-            loo_ok[c] = o & (loo_views[c] >= 2) & valid[..., None]
+        loo_xyz, loo_ok, loo_views = (np.array(a) for a in leave_one_view_out(rig, px, w))
+        loo_xyz = loo_xyz.astype(np.float64)
+        loo_ok = loo_ok & (loo_views >= 2) & valid[None, ..., None]
         R, t = np.asarray(rig.R, np.float64), np.asarray(rig.t, np.float64)
         cam_full = np.einsum("cij,fgkj->cfgki", R, xyz) + t[:, None, None, None]
         cam_loo = np.einsum("cij,cfgkj->cfgki", R, loo_xyz) + t[:, None, None, None]

@@ -422,6 +422,38 @@ def triangulate_skeletons_robust(
     return _finish(m, b, kept, centre, radius, batch)
 
 
+def leave_one_view_out(
+    rig: Rig,
+    px: jax.Array,
+    weight: jax.Array,
+    *,
+    outlier_px: float = OUTLIER_PX,
+    view_outlier_px: float = VIEW_OUTLIER_PX,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`triangulate_skeletons_robust` of each skeleton without each camera in turn: the consensus
+    of the OTHER views, against which a view is judged (`detector_fit`, `view_confidence`).
+
+    One compiled shape for all C calls (the left-out camera's weights are zeroed).
+
+    Args:
+      rig: the C cameras.
+      px: (C, ..., K, 2) distorted pixels; weight: (C, ..., K) scores, 0 = not seen.
+    Returns:
+      xyz (C, ..., K, 3) metres (row c: without camera c; 0 where invalid), valid (C, ..., K),
+      views (C, ..., K) int: how many views the row's consensus kept.
+    """
+    weight = jnp.asarray(weight)
+    C = weight.shape[0]
+    out = []
+    for c in range(C):
+        w_c = weight.at[c].set(0.0)
+        xyz, ok, kept = triangulate_skeletons_robust(
+            rig, px, w_c, outlier_px=outlier_px, view_outlier_px=view_outlier_px
+        )
+        out.append((xyz, ok, kept.sum(axis=0)))
+    return tuple(jnp.stack(a) for a in zip(*out, strict=True))
+
+
 def _finish(m, b, kept, centre, radius, batch):
     """DLT on the kept views, back to world metres, reshaped to the batch."""
     xyz, ok = _solve_normals(*_masked_sums(kept, m, b), kept.sum(-1))
