@@ -123,6 +123,7 @@ class PipelineConfig:
         outlier_px: float | None = None,
         view_outlier_px: float | None = None,
         max_spread_m: float | None = None,
+        confidence: str | None = None,
         tracking: TrackingConfig | None = None,
         one_euro: OneEuroConfig | None = None,
         chunk_frames: int = 256,
@@ -136,6 +137,7 @@ class PipelineConfig:
                 ("outlier_px", outlier_px),
                 ("view_outlier_px", view_outlier_px),
                 ("max_spread_m", max_spread_m),
+                ("confidence", confidence),
             )
             if v is not None
         }
@@ -284,6 +286,7 @@ def stream_pipeline(
                 view_outlier_px=config.lifting.view_outlier_px,
                 layout=layout,
                 max_spread_m=config.lifting.max_spread_m,
+                confidence=config.lifting.confidence,
             )
             t2 = time.perf_counter()
             # A person is kept only where the 3D stage produced one; its members say so too.

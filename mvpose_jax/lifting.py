@@ -37,6 +37,11 @@ from mvpose_jax.triangulate import (
     triangulate_points,
     triangulate_skeletons_robust,
 )
+from mvpose_jax.view_confidence import (
+    cached_view_confidence,
+    inlier_probability,
+    triangulate_confident,
+)
 
 # The triangulation methods of the 3D stage without an estimator, and those with one: its own
 # output, or robust triangulation where it reconstructs a keypoint and the estimator elsewhere
@@ -57,12 +62,15 @@ class LiftingConfig:
       max_spread_m: methods "robust" and "blend": a person whose robustly triangulated keypoints
         lie farther than this (median, metres) from their median point is not one
         (`triangulate.human_sized`); inf: no such check.
+      confidence: method "confident": the folder of a trained view-confidence model
+        (`view_confidence.save_view_confidence`).
     """
 
     method: str | None = None
     outlier_px: float = OUTLIER_PX
     view_outlier_px: float = VIEW_OUTLIER_PX
     max_spread_m: float = MAX_SPREAD_M
+    confidence: str | None = None
 
 
 def _predict_fn(graphdef, rest, params, rig: Rig, normalisation, xy, score):
@@ -390,6 +398,7 @@ def poses_of_members(
     view_outlier_px: float = VIEW_OUTLIER_PX,
     layout: str = "coco18",
     max_spread_m: float = MAX_SPREAD_M,
+    confidence: str | None = None,
 ) -> tuple[Poses3D, np.ndarray]:
     """The 3D stage on given person groupings (proposals, or any other).
 
@@ -412,6 +421,7 @@ def poses_of_members(
         lie farther than this (median, metres) from their median point is not one
         (`triangulate.human_sized`; a group of two people's views, often metres large); inf: no
         such check.
+      confidence: method "confident": a view-confidence model folder.
     Returns:
       (`Poses3D` (F, G, ...), confidence (F, G)).
     Raises:
@@ -419,7 +429,7 @@ def poses_of_members(
     """
     method = check_method(method, estimator)
     p_xy, p_score = group_people(detections.xy, detections.score, members)
-    config = LiftingConfig(method, outlier_px, view_outlier_px, max_spread_m)
+    config = LiftingConfig(method, outlier_px, view_outlier_px, max_spread_m, confidence)
     lift = stages.lookup("lifting", method).function()
     return lift(rig, p_xy, p_score, config, estimator=estimator, min_views=min_views, layout=layout)
 
@@ -523,3 +533,39 @@ def lift_blend(rig, xy, score, config: LiftingConfig, *, estimator, min_views=2,
         layout=layout,
         max_spread_m=config.max_spread_m,
     )
+
+
+def lift_confident(
+    rig, xy, score, config: LiftingConfig, *, estimator=None, min_views=2, layout="coco18"
+):
+    """Registered lifting method "confident": triangulation weighted by a learned p(inlier) of
+    each view (`view_confidence.triangulate_confident`, the model of ``config.confidence``), views
+    below the model's threshold dropped, then robust triangulation; a person larger than a body
+    is not one (as method "robust")."""
+    del estimator
+    if config.confidence is None:
+        raise ValueError('method "confident" needs a view-confidence model (--confidence)')
+    model = cached_view_confidence(str(config.confidence))
+    F, G, C, K = score.shape
+    exists = _present(score, min_views)
+    out = np.zeros((F, G, K, 3), np.float32)
+    kv = np.zeros((F, G, K), bool)
+    if exists.any():
+        xy_p, score_p = _pad_people(xy[exists], score[exists])
+        p = inlier_probability(model, rig, xy_p, score_p, layout or "coco18")
+        px, w = np.moveaxis(xy_p, 1, 0), np.moveaxis(score_p, 1, 0)
+        xyz, ok = triangulate_confident(
+            rig,
+            px,
+            w,
+            np.moveaxis(p, 1, 0),
+            threshold=model.config.threshold,
+            then=model.config.then,
+            outlier_px=config.outlier_px,
+            view_outlier_px=config.view_outlier_px,
+        )
+        n = int(exists.sum())
+        out[exists], kv[exists] = np.asarray(xyz)[:n], np.asarray(ok)[:n]
+    exists = exists & kv.any(axis=-1)
+    exists[exists] = _body_sized(out[exists], kv[exists], config.max_spread_m)
+    return poses_from_people(out, kv, exists), _confidence(score)

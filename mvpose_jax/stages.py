@@ -140,6 +140,11 @@ for _stage in (
         "mvpose_jax.lifting:lift_robust",
         "DLT that rejects a person's wrong views, then each keypoint's outlier views",
     ),
+    Stage(
+        "confident",
+        "mvpose_jax.lifting:lift_confident",
+        "views weighted by a learned p(inlier) (--confidence), unlikely ones dropped, then robust",
+    ),
 ):
     register("lifting", _stage)
 

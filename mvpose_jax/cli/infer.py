@@ -83,6 +83,11 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         help="--method robust or blend: median keypoint reprojection error (px) that marks a "
         "whole view as not the person's (default 30)",
     )
+    p.add_argument(
+        "--confidence",
+        metavar="MODEL",
+        help="--method confident: a view-confidence model folder (docs/view_confidence.md)",
+    )
     add_proposal_arguments(p)
     p.add_argument(
         "--chunk-frames",
@@ -310,6 +315,7 @@ _OPTION_OF_SETTING = {
     "pipeline.lifting.method": "--method",
     "pipeline.lifting.outlier_px": "--outlier-px",
     "pipeline.lifting.view_outlier_px": "--view-outlier-px",
+    "pipeline.lifting.confidence": "--confidence",
     "pipeline.tracked": "--no-track",
     "pipeline.tracking.max_gap_s": "--max-gap-s",
     "pipeline.filtering.name": "--filter",
@@ -345,6 +351,10 @@ def pipeline_config(args: argparse.Namespace):
             f"--method {args.method} triangulates: it would not use --estimator (mlp or blend do)",
             field="--method",
         )
+    if (args.method == "confident") != bool(args.confidence):
+        raise InputError(
+            "--method confident and --confidence MODEL go together", field="--confidence"
+        )
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
     proposal_mode(args.proposals, args.threshold, bool(args.matcher))
@@ -358,7 +368,7 @@ def pipeline_config(args: argparse.Namespace):
     }
     return PipelineConfig(
         matching=MatchingConfig(args.proposals, args.threshold, args.min_views, args.half_score_px),
-        lifting=LiftingConfig(args.method, **lifting),
+        lifting=LiftingConfig(args.method, **lifting, confidence=args.confidence),
         tracking=None if args.no_track else TrackingConfig(max_gap_s=args.max_gap_s),
         filtering=FilterConfig(
             args.filter, one_euro, args.cutoff_hz, args.fill_gap_s, args.outlier_m or None

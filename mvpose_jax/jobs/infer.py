@@ -213,6 +213,8 @@ def resume_record(config: PipelineConfig, inputs: dict[str, Any]) -> dict[str, A
         lift.pop("outlier_px")
         lift.pop("view_outlier_px")
         lift.pop("max_spread_m")
+    if lift["method"] != "confident":
+        lift.pop("confidence")
     filt = d.pop("filtering")
     if d["tracking"] is not None and config.filtering.streaming:
         d["filtering"] = {"name": filt["name"], "one_euro": filt["one_euro"]}
