@@ -79,7 +79,12 @@ def test_unknown_names_list_the_known_ones():
 
 def test_names_filter_by_what_a_stage_needs():
     assert stages.names("lifting", needs_estimator=True) == ("mlp", "blend")
-    assert stages.names("lifting", needs_estimator=False) == ("dlt", "centroid", "robust")
+    assert stages.names("lifting", needs_estimator=False) == (
+        "dlt",
+        "centroid",
+        "robust",
+        "confident",
+    )
     assert stages.names("proposals", needs_matcher=False) == ("epipolar",)
     assert stages.names("filters", streaming=True) == ("one-euro",)
 
