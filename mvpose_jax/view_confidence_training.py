@@ -68,18 +68,24 @@ class Examples:
         return len(self.score)
 
 
-def outlier_labels(xy: np.ndarray, projected: np.ndarray, score: np.ndarray) -> np.ndarray:
-    """(N, C, K) bool inlier labels of detections against their true projections (module doc)."""
+def outlier_labels(
+    xy: np.ndarray, projected: np.ndarray, score: np.ndarray, fraction: float = INLIER_FRACTION
+) -> np.ndarray:
+    """(N, C, K) bool inlier labels of detections against their true projections: within
+    ``fraction`` of the person's image size, or `MIN_INLIER_PX` (module doc)."""
     seen = score > 0
     lo = np.min(np.where(seen[..., None], projected, np.inf), axis=-2)
     hi = np.max(np.where(seen[..., None], projected, -np.inf), axis=-2)
     diag = np.where(np.isfinite(hi - lo).all(-1), np.linalg.norm(hi - lo, axis=-1), 0.0)
-    tol = np.maximum(INLIER_FRACTION * diag, MIN_INLIER_PX)[..., None]  # (N, C, 1)
+    tol = np.maximum(fraction * diag, MIN_INLIER_PX)[..., None]  # (N, C, 1)
     return seen & (np.linalg.norm(xy - projected, axis=-1) <= tol)
 
 
-def examples_from_recordings(recordings: Sequence[Recording]) -> Examples:
-    """Every true person seen by two or more views of the recordings (true groupings)."""
+def examples_from_recordings(
+    recordings: Sequence[Recording], fraction: float = INLIER_FRACTION
+) -> Examples:
+    """Every true person seen by two or more views of the recordings (true groupings), labelled
+    by `outlier_labels` with ``fraction``."""
     parts = []
     for rec in recordings:
         if rec.identity is None or rec.projected is None or rec.ground_truth is None:
@@ -101,7 +107,7 @@ def examples_from_recordings(recordings: Sequence[Recording]) -> Examples:
             )
         )
     xy, score, proj, truth, tv = (np.concatenate(a) for a in zip(*parts, strict=True))
-    return Examples(xy, score, proj, truth, tv, outlier_labels(xy, proj, score))
+    return Examples(xy, score, proj, truth, tv, outlier_labels(xy, proj, score, fraction))
 
 
 def features_of(rig: Rig, ex: Examples, layout: str = "coco18", chunk: int = 256):
