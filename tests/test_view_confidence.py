@@ -42,12 +42,12 @@ def rig():
 def trained(rig):
     """A model trained on one small synthetic scene with many swaps, and a second scene."""
     config = SyntheticConfig().with_detector(swap_rate=0.2)
-    scenes = simulate(rig, num_people=3, num_frames=30, num_scenes=2, config=config, seed=3)
+    scenes = simulate(rig, num_people=3, num_frames=20, num_scenes=2, config=config, seed=3)
     train = examples_from_recordings([scenes[0].recording])
     dev = examples_from_recordings([scenes[1].recording])
     x, y, _ = features_of(rig, train)
     dx, dy, _ = features_of(rig, dev)
-    model, record = fit_view_confidence((x, y), (dx, dy), steps=400, batch_size=512, seed=0)
+    model, record = fit_view_confidence((x, y), (dx, dy), steps=300, batch_size=512, seed=0)
     return model, record, dev
 
 
