@@ -136,3 +136,20 @@ def test_save_load_round_trip_and_stage(rig, trained, tmp_path):
     assert kv.sum() > 50 and np.median(err) < 0.05
     with pytest.raises(ValueError, match="confidence"):
         lift_confident(rig, xy, score, LiftingConfig("confident"))
+
+
+def test_infer_options_pair_method_and_model():
+    import argparse
+
+    from mvpose_jax.cli.infer import _infer_arguments, pipeline_config
+    from mvpose_jax.errors import InputError
+
+    p = argparse.ArgumentParser()
+    _infer_arguments(p)
+    base = ["--detections", "d.json", "--rig", "r.json", "--out", "o"]
+    args = p.parse_args(base + ["--method", "confident", "--confidence", "m"])
+    config = pipeline_config(args)
+    assert (config.lifting.method, config.lifting.confidence) == ("confident", "m")
+    for extra in (["--method", "confident"], ["--method", "robust", "--confidence", "m"]):
+        with pytest.raises(InputError, match="--confidence"):
+            pipeline_config(p.parse_args(base + extra))
