@@ -27,7 +27,7 @@ from mvpose_jax.graphs import GraphBatch, build_graphs, match_table, next_power_
 from mvpose_jax.proposals import CombinedConfig, Proposals, propose_combined, propose_people
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.trained import Matcher
-from mvpose_jax.triangulate import camera_pairs
+from mvpose_jax.triangulate import camera_pairs, nanmedian_by_rank
 
 
 @dataclasses.dataclass(frozen=True)
@@ -284,7 +284,7 @@ def _epipolar_distances(
         d = jnp.where(shared, 0.5 * (d_i + d_j), 0.0).sum(-1) / jnp.maximum(n, 1)
         means.append(jnp.where(n >= min_shared, d, jnp.inf))
         if median:
-            med = jnp.nanmedian(jnp.where(shared, 0.5 * (d_i + d_j), jnp.nan), axis=-1)
+            med = nanmedian_by_rank(jnp.where(shared, 0.5 * (d_i + d_j), jnp.nan), axis=-1)
             medians.append(jnp.where(n >= min_shared, med, jnp.inf))
     return jnp.stack(means), jnp.stack(medians) if median else None
 
