@@ -395,6 +395,7 @@ def nanmedian_by_rank(a: jax.Array, axis: int = -1) -> jax.Array:
     ok = ~jnp.isnan(a)
     v_i, v_j = a[..., :, None], a[..., None, :]
     earlier = jnp.arange(n_axis)[None, :] < jnp.arange(n_axis)[:, None]  # j < i: ties in order
+    earlier = earlier.reshape((1,) * (a.ndim - 1) + earlier.shape)
     below = ok[..., :, None] & ok[..., None, :] & ((v_j < v_i) | ((v_j == v_i) & earlier))
     rank = jnp.sum(below, axis=-1)  # (..., n): 0..count-1 over the numbers
     count = jnp.sum(ok, axis=-1, keepdims=True)
