@@ -353,7 +353,14 @@ def _where_needed(need: jax.Array, fn, fill: float, *rows: jax.Array) -> jax.Arr
         return jnp.where(_expand(need, out), out, fill)
 
     if B < _MIN_ROWS_TO_COMPACT:
-        return whole(None)
+        # Usually no row needs them (a live frame's people agree with their views): skipped.
+        out_shape = jax.eval_shape(fn, *rows)
+        return jax.lax.cond(
+            jnp.any(need),
+            whole,
+            lambda _: jnp.full(out_shape.shape, fill, out_shape.dtype),
+            None,
+        )
 
     def gathered(size):
         def run(_):
