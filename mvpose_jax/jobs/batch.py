@@ -8,6 +8,9 @@ hand them to `run_pool`:
   the cluster), a spawned process that imports JAX once, keeps its compiled functions and the
   models it loaded (`jobs.infer.load_models`) for every recording it runs, and has one XLA thread
   pool sized to its CPUs (``XLA_FLAGS`` in its ``runtime_env``);
+- a batch run in a process that started Ray itself (`ray.init`: a notebook, an experiment) leaves
+  its workers idle and warm for the process's next batch; otherwise the job starts Ray and stops
+  it at the end;
 - each worker is given one recording at a time, the next one as soon as it is done, so a long
   recording holds no other back;
 - a worker runs `run_task`, the very code ``infer`` / ``infer --session`` / ``generate`` run, and
@@ -28,6 +31,7 @@ Ray is imported here only, when a pool starts: the package installs and imports 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -162,14 +166,16 @@ class RecordingStatus(NamedTuple):
 
 class BatchResult(NamedTuple):
     """What a batch did: every recording's `RecordingStatus` (in the batch's order), the run
-    manifest written, the workers used, the wall time (s) and whether the driver was
-    interrupted (Ctrl-C)."""
+    manifest written, the workers used, the wall time (s), whether the driver was interrupted
+    (Ctrl-C), and the seconds from the pool's start until its last new worker had started and
+    imported JAX (None: no new worker, all taken warm from an earlier batch)."""
 
     recordings: tuple[RecordingStatus, ...]
     manifest: Path
     workers: int
     seconds: float
     interrupted: bool = False
+    startup_s: float | None = None
 
     @property
     def failed(self) -> tuple[RecordingStatus, ...]:
@@ -394,7 +400,9 @@ def run_task(task: BatchTask, models: dict | None = None) -> dict[str, Any]:
     from mvpose_jax.jobs.session import run_trial
 
     if task.kill_marker is not None and not os.path.exists(task.kill_marker):
-        Path(task.kill_marker).write_text(f"{os.getpid()}\n")
+        # A marker that cannot be written makes a worker that dies every time.
+        with contextlib.suppress(OSError):
+            Path(task.kill_marker).write_text(f"{os.getpid()}\n")
         os.kill(os.getpid(), signal.SIGKILL)
     start = time.perf_counter()
     worker = f"{socket.gethostname()}:{os.getpid()}"
@@ -436,11 +444,13 @@ class _Worker:
     def __init__(self) -> None:
         self.models: dict = {}
 
-    def ready(self) -> str:
-        import jax  # the start-up cost is paid here, before the first recording
+    def ready(self) -> float:
+        """When (``time.time()``) this worker had started and imported JAX: the start-up cost,
+        paid before its first recording."""
+        import jax
 
         jax.devices()
-        return f"{socket.gethostname()}:{os.getpid()}"
+        return time.time()
 
     def run(self, task: BatchTask) -> dict[str, Any]:
         return run_task(task, self.models)
@@ -540,6 +550,8 @@ def run_pool(
         atomic_write_text(manifest, json.dumps(to_jsonable(doc), indent=1) + "\n")
 
     write_manifest()
+    if not todo:
+        return BatchResult(tuple(status[t.name] for t in tasks), manifest, 0, 0.0)
     ours = not ray.is_initialized()
     if ours:
         with warnings.catch_warnings():
@@ -554,13 +566,33 @@ def run_pool(
             )
     interrupted = False
     workers = 0
+    wall_start = time.time()
+    ready: list = []
     try:
         cpus = int(ray.cluster_resources().get("CPU", 1))
         workers = pool.workers or max(1, cpus // pool.cpus_per_worker)
         workers = max(1, min(workers, len(todo)))
+        env = xla_env(pool.cpus_per_worker)
         actor = ray.remote(num_cpus=pool.cpus_per_worker, max_restarts=0, max_task_retries=0)(
             _Worker
-        ).options(runtime_env={"env_vars": xla_env(pool.cpus_per_worker)})
+        ).options(runtime_env={"env_vars": env})
+        context = ray.get_runtime_context()
+        key = (context.get_node_id(), context.get_job_id(), tuple(sorted(env.items())))
+        idle = [] if ours else _IDLE.setdefault(key, [])
+
+        def new_worker():
+            if idle:
+                return idle.pop()
+            worker = actor.remote()
+            ready.append(worker.ready.remote())
+            return worker
+
+        def release(worker) -> None:
+            if ours:
+                ray.kill(worker, no_restart=True)
+            else:  # kept for this process's next batch, warm
+                idle.append(worker)
+
         bar = progress_bar(
             total=len(tasks),
             initial=len(tasks) - len(todo),
@@ -583,7 +615,7 @@ def run_pool(
 
         for _ in range(workers):
             if queue:
-                submit(actor.remote())
+                submit(new_worker())
         write_manifest()
         try:
             while running:
@@ -593,9 +625,7 @@ def run_pool(
                     got = ray.get(ref)
                 except ray.exceptions.RayActorError as e:  # the worker died: a fresh one
                     ray.kill(worker, no_restart=True)
-                    worker = (
-                        actor.remote() if queue or attempts[task.name] <= pool.retries else None
-                    )
+                    worker = new_worker() if queue or attempts[task.name] <= pool.retries else None
                     if attempts[task.name] <= pool.retries:
                         queue.insert(0, _from_start(task))
                         status[task.name] = status[task.name]._replace(status="pending")
@@ -608,6 +638,12 @@ def run_pool(
                         status[task.name] = done
                         bar.update(1)
                         on_done(done)
+                except ray.exceptions.RayError as e:  # not the recording's: Ray's own error
+                    got = {"status": "failed", "error": f"{type(e).__name__}: {e}"}
+                    done = status[task.name]._replace(**got)
+                    status[task.name] = done
+                    bar.update(1)
+                    on_done(done)
                 else:
                     done = status[task.name]._replace(**got)
                     status[task.name] = done
@@ -620,7 +656,7 @@ def run_pool(
                 if queue:
                     submit(worker)
                 elif worker is not None:
-                    ray.kill(worker, no_restart=True)
+                    release(worker)
         except KeyboardInterrupt:
             interrupted = True
             for worker, task in running.values():
@@ -629,6 +665,13 @@ def run_pool(
             write_manifest()
         finally:
             bar.close()
+        started_at = []
+        for ref in ready:
+            try:
+                started_at.append(ray.get(ref, timeout=0))
+            except Exception:  # a worker that died or never started: no time to take
+                continue
+        startup = max(started_at) - wall_start if started_at else None
     finally:
         if ours:
             ray.shutdown()
@@ -638,6 +681,7 @@ def run_pool(
         workers,
         time.perf_counter() - started,
         interrupted,
+        startup,
     )
 
 
@@ -650,6 +694,11 @@ def _from_start(task: BatchTask) -> BatchTask:
     elif isinstance(job, TrialJob):
         job = TrialJob(dataclasses.replace(job.session, resume=False), job.trial)
     return dataclasses.replace(task, job=job)
+
+
+# Workers of a Ray this process did not start itself, kept between its batches with their JAX,
+# compiled functions and models warm: (driver's node, job, worker environment) -> idle actors.
+_IDLE: dict[tuple, list] = {}
 
 
 def _failed(status: dict[str, RecordingStatus]) -> int:
