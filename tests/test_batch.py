@@ -183,6 +183,7 @@ def test_an_interrupted_batch_resumed_runs_only_what_was_not_done(
 def test_generate_recordings_seeds_each_recording_whatever_the_workers(local_ray, tmp_path):
     base = GenerateConfig(RIG, str(tmp_path / "pool"), people=2, frames=6, seed=7, floor_height=0.0)
     res = run_generate_batch(base, 3, PoolConfig(workers=2), progress=False)
+    assert (tmp_path / "pool" / MANIFEST).exists()
     assert [r.status for r in res.recordings] == ["done"] * 3
     for i in range(3):
         alone = tmp_path / f"alone_{i}.json"

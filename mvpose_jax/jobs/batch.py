@@ -215,21 +215,34 @@ def run_generate_batch(
     recordings: int,
     pool: PoolConfig = PoolConfig(),
     *,
+    single_person: bool = False,
     resume: bool = False,
     progress: bool = True,
     on_done: Callable[[RecordingStatus], None] = lambda status: None,
 ) -> BatchResult:
     """``generate --recordings N``: N recordings written into the folder ``config.out`` as
     ``recording_<i>.<json|npz>`` (``config.format``), recording i exactly what `generate` writes
-    with ``seed = config.seed + i`` (a scene of ``config.people``, or with
-    ``single_person_recordings`` one person), whatever the number of workers.
+    with ``seed = config.seed + i``: a scene of ``config.people``, or with ``single_person`` a
+    training recording of one person (the floor jittered as `generate`'s single-person
+    recordings are), whatever the number of workers. The run manifest is ``out/batch.json``.
     """
     from mvpose_jax.data.files import check_writable
 
     if recordings < 1:
         raise InputError(f"must be at least 1, not {recordings}", field="--recordings")
+    if config.single_person_recordings:
+        raise InputError(
+            "one scene per recording: give --recordings N (with --single-person for training "
+            "recordings), not --single-person-recordings too",
+            field="--single-person-recordings",
+        )
     out = check_writable(config.out, folder=True)
     suffix = ".npz" if config.format == "npz" else ".json"
+    jitter = config.floor_jitter
+    if single_person and jitter is None:
+        from mvpose_jax.jobs.generate import TRAINING_FLOOR_JITTER_M
+
+        jitter = TRAINING_FLOOR_JITTER_M
     width = len(str(recordings - 1))
     tasks = []
     for i in range(recordings):
@@ -238,24 +251,13 @@ def run_generate_batch(
             config,
             out=str(path),
             seed=config.seed + i,
-            single_person_recordings=0,
-            people=1 if config.single_person_recordings else config.people,
-            floor_jitter=_generated_jitter(config),
+            people=1 if single_person else config.people,
+            floor_jitter=jitter,
         )
         tasks.append(BatchTask(path.stem, str(path), job))
     return run_pool(
         tasks, out, pool, resume=resume, progress=progress, on_done=on_done, source="generate"
     )
-
-
-def _generated_jitter(config: GenerateConfig) -> float | None:
-    """The floor jitter of each generated recording: single-person training recordings keep
-    their jitter (one floor each) although each is generated as a one-person scene."""
-    if config.floor_jitter is not None or not config.single_person_recordings:
-        return config.floor_jitter
-    from mvpose_jax.jobs.generate import TRAINING_FLOOR_JITTER_M
-
-    return TRAINING_FLOOR_JITTER_M
 
 
 # ------------------------------------------------------------------------------ the recordings
