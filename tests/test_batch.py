@@ -27,7 +27,7 @@ from mvpose_jax.jobs.batch import (
 )
 from mvpose_jax.jobs.common import DetectionsSource, RigSource
 from mvpose_jax.jobs.generate import GenerateConfig, generate
-from mvpose_jax.jobs.infer import InferConfig, run_infer
+from mvpose_jax.jobs.infer import INFER_PIPELINE, InferConfig, run_infer
 from mvpose_jax.synthetic import generate_recording
 
 pytestmark = pytest.mark.slow
@@ -99,14 +99,22 @@ def test_batch_equals_sequential_runs(local_ray, recordings, sequential, tmp_pat
     assert recorded["rec_c"]["out"] == str(tmp_path / "rec_c")
 
 
-def test_a_killed_worker_is_replaced_and_its_recording_run_again(
-    local_ray, recordings, sequential, tmp_path, monkeypatch
+def test_a_worker_killed_mid_recording_is_replaced_and_its_recording_run_again(
+    local_ray, recordings, tmp_path, monkeypatch
 ):
+    # Chunks of 3 frames: the worker of rec_b kills itself (SIGKILL) once its first chunk is
+    # written; the retry must start over, not continue those chunks.
+    pipeline = dataclasses.replace(INFER_PIPELINE, chunk_frames=3)
+    sequential = tmp_path / "sequential"
+    for name in NAMES:
+        detections = DetectionsSource(str(recordings / f"{name}.json"))
+        run_infer(InferConfig(RIG, detections, str(sequential / name), pipeline, progress=False))
     marker = tmp_path / "killed"
     monkeypatch.setenv(KILL_ONCE_ENV, f"rec_b={marker}")
-    res = run_batch(_config(recordings, tmp_path / "out", pool=PoolConfig(workers=2)))
-    assert marker.exists()  # the worker did kill itself (SIGKILL) once
-    killed_pid = int(marker.read_text())
+    config = _config(recordings, tmp_path / "out", pool=PoolConfig(workers=2), pipeline=pipeline)
+    res = run_batch(config)
+    killed_pid, when = marker.read_text().split(maxsplit=1)  # the worker did kill itself once
+    assert when.strip() == "mid-recording"  # with a chunk of rec_b on disk
     assert [r.status for r in res.recordings] == ["done"] * 4
     by_name = {r.name: r for r in res.recordings}
     assert by_name["rec_b"].attempts == 2 and by_name["rec_a"].attempts == 1

@@ -38,6 +38,7 @@ import json
 import os
 import signal
 import socket
+import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -60,8 +61,9 @@ INSTALL_HINT = (
 )
 
 # Test hook, read by the driver and handed to the one task it names: "NAME=MARKER" makes the
-# worker running recording NAME kill itself (SIGKILL) the first time, creating MARKER so that
-# the retry runs. It stands for a machine that dies mid-recording.
+# worker running recording NAME kill itself (SIGKILL) the first time, once the recording's first
+# chunk is written, creating MARKER so that the retry runs. It stands for a machine that dies
+# mid-recording.
 KILL_ONCE_ENV = "MVPOSE_JAX_TEST_KILL_WORKER"
 
 
@@ -401,11 +403,9 @@ def run_task(task: BatchTask, models: dict | None = None) -> dict[str, Any]:
     from mvpose_jax.jobs.infer import run_infer
     from mvpose_jax.jobs.session import run_trial
 
+    die = None
     if task.kill_marker is not None and not os.path.exists(task.kill_marker):
-        # A marker that cannot be written makes a worker that dies every time.
-        with contextlib.suppress(OSError):
-            Path(task.kill_marker).write_text(f"{os.getpid()}\n")
-        os.kill(os.getpid(), signal.SIGKILL)
+        die = _die_mid_recording(task)
     start = time.perf_counter()
     worker = f"{socket.gethostname()}:{os.getpid()}"
     try:
@@ -421,11 +421,37 @@ def run_task(task: BatchTask, models: dict | None = None) -> dict[str, Any]:
             frames = made.frames * made.recordings
         if not isinstance(job, GenerateConfig) and result.interrupted:
             raise MvposeError("interrupted")
+        if die is not None:  # the recording ended before the hook saw a chunk: die now
+            die()
     except MvposeError as e:
         return _status("failed", str(e), 0, start, worker)
     except Exception as e:  # a bug, named: it must not stop the other recordings
         return _status("failed", f"{type(e).__name__}: {e}", 0, start, worker)
     return _status("done", None, frames, start, worker)
+
+
+def _die_mid_recording(task: BatchTask) -> Callable[[], None]:
+    """Test hook (`KILL_ONCE_ENV`): this process SIGKILLs itself once the recording's first chunk
+    is on disk (a generated recording: at once), the marker written first (one that cannot be
+    written makes a worker that dies every time). Returns the kill, for a recording that ends
+    before its watcher sees a chunk. The marker holds the pid and when it died."""
+
+    def die(when: str = "at its end") -> None:
+        with contextlib.suppress(OSError):
+            Path(task.kill_marker).write_text(f"{os.getpid()} {when}\n")
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    if isinstance(task.job, GenerateConfig):
+        die("at its start")
+
+    def watch() -> None:
+        chunks = Path(task.out) / "chunks"
+        while not any(chunks.glob("chunk_*.npz")):
+            time.sleep(0.002)
+        die("mid-recording")
+
+    threading.Thread(target=watch, daemon=True).start()
+    return die
 
 
 def _status(status: str, error: str | None, frames: int, start: float, worker: str) -> dict:
