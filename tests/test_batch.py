@@ -5,10 +5,14 @@ non-zero; an interrupted batch resumed runs only what was not done."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
+import signal
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +37,10 @@ from mvpose_jax.synthetic import generate_recording
 pytestmark = pytest.mark.slow
 ray = pytest.importorskip("ray")
 
+REPO = Path(__file__).resolve().parents[1]
 RIG = RigSource("panoptic5")
+# infer's pipeline in chunks of 3 frames (4 chunks a recording): a worker can die mid-recording.
+PIPELINE = dataclasses.replace(INFER_PIPELINE, chunk_frames=3)
 NAMES = ("rec_a", "rec_b", "rec_c", "rec_d")
 
 
@@ -63,12 +70,12 @@ def sequential(recordings, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("sequential")
     for name in NAMES:
         detections = DetectionsSource(str(recordings / f"{name}.json"))
-        run_infer(InferConfig(RIG, detections, str(out / name), progress=False))
+        run_infer(InferConfig(RIG, detections, str(out / name), PIPELINE, progress=False))
     return out
 
 
 def _config(source: Path, out: Path, **kwargs) -> BatchConfig:
-    return BatchConfig(str(source), str(out), rig=RIG, progress=False, **kwargs)
+    return BatchConfig(str(source), str(out), rig=RIG, pipeline=PIPELINE, progress=False, **kwargs)
 
 
 def _assert_same_results(out: Path, reference: Path, names=NAMES) -> None:
@@ -100,19 +107,13 @@ def test_batch_equals_sequential_runs(local_ray, recordings, sequential, tmp_pat
 
 
 def test_a_worker_killed_mid_recording_is_replaced_and_its_recording_run_again(
-    local_ray, recordings, tmp_path, monkeypatch
+    local_ray, recordings, sequential, tmp_path, monkeypatch
 ):
-    # Chunks of 3 frames: the worker of rec_b kills itself (SIGKILL) once its first chunk is
-    # written; the retry must start over, not continue those chunks.
-    pipeline = dataclasses.replace(INFER_PIPELINE, chunk_frames=3)
-    sequential = tmp_path / "sequential"
-    for name in NAMES:
-        detections = DetectionsSource(str(recordings / f"{name}.json"))
-        run_infer(InferConfig(RIG, detections, str(sequential / name), pipeline, progress=False))
+    # The worker of rec_b kills itself (SIGKILL) once its first chunk is written; the retry must
+    # start over, not continue those chunks.
     marker = tmp_path / "killed"
     monkeypatch.setenv(KILL_ONCE_ENV, f"rec_b={marker}")
-    config = _config(recordings, tmp_path / "out", pool=PoolConfig(workers=2), pipeline=pipeline)
-    res = run_batch(config)
+    res = run_batch(_config(recordings, tmp_path / "out", pool=PoolConfig(workers=2)))
     killed_pid, when = marker.read_text().split(maxsplit=1)  # the worker did kill itself once
     assert when.strip() == "mid-recording"  # with a chunk of rec_b on disk
     assert [r.status for r in res.recordings] == ["done"] * 4
@@ -148,7 +149,8 @@ def test_a_bad_recording_fails_alone_named_and_the_exit_status_says_so(
     (folder / "unknown_camera.json").write_text(text)
     (folder / "truncated.json").write_text((recordings / "rec_d.json").read_text()[:300])
     out = tmp_path / "out"
-    status = main(["batch", str(folder), "--out", str(out), "--rig", RIG.rig, "--workers", "2"])
+    command = ["batch", str(folder), "--out", str(out), "--rig", RIG.rig, "--chunk-frames", "3"]
+    status = main([*command, "--workers", "2"])
     err = capsys.readouterr().err
     assert status == 1
     _assert_same_results(out, sequential, NAMES[:2])
@@ -186,6 +188,39 @@ def test_an_interrupted_batch_resumed_runs_only_what_was_not_done(
     # Changed settings are not "done": the recording runs again.
     changed = BatchConfig(**{**config.__dict__, "resume": True, "fps": 25.0})
     assert {r.status for r in run_batch(changed).recordings} == {"done"}
+
+
+def test_a_killed_driver_on_the_cluster_is_resumed_without_recomputing(
+    local_ray, recordings, tmp_path
+):
+    """``batch --address`` joins the module's Ray from another process, which is SIGKILLed once
+    a recording is done; ``--resume`` then runs only the rest."""
+    out = tmp_path / "out"
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+    }
+    address = ray.get_runtime_context().gcs_address
+    command = [sys.executable, "-m", "mvpose_jax.cli", "batch", str(recordings), "--out", str(out)]
+    command += ["--rig", RIG.rig, "--address", address, "--workers", "1", "--chunk-frames", "3"]
+    driver = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    done: list[str] = []
+    deadline = time.monotonic() + 120
+    while not done and driver.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+        with contextlib.suppress(OSError, ValueError, KeyError):  # not written yet / mid-rename
+            done = [n for n, r in _manifest(out).items() if r["status"] == "done"]
+    driver.send_signal(signal.SIGKILL)
+    err = driver.communicate()[1].decode()
+    assert done and len(done) < len(NAMES), err
+    written = {n: (out / n / "poses.npz").stat().st_mtime_ns for n in done}
+
+    res = run_batch(_config(recordings, out, resume=True, pool=PoolConfig(workers=2)))
+    status = {r.name: r.status for r in res.recordings}
+    assert {n for n, s in status.items() if s == "skipped"} >= set(done)
+    assert set(status.values()) <= {"skipped", "done"}
+    for n in done:
+        assert (out / n / "poses.npz").stat().st_mtime_ns == written[n]
 
 
 def test_generate_recordings_seeds_each_recording_whatever_the_workers(local_ray, tmp_path):
