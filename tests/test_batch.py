@@ -26,6 +26,7 @@ from mvpose_jax.jobs.batch import (
     MANIFEST,
     BatchConfig,
     PoolConfig,
+    release_workers,
     run_batch,
     run_generate_batch,
 )
@@ -74,8 +75,12 @@ def sequential(recordings, tmp_path_factory) -> Path:
     return out
 
 
-def _config(source: Path, out: Path, **kwargs) -> BatchConfig:
-    return BatchConfig(str(source), str(out), rig=RIG, pipeline=PIPELINE, progress=False, **kwargs)
+def _config(source: Path, out: Path, workers: int, **kwargs) -> BatchConfig:
+    """A batch of this module: its workers kept warm for the next test's batch."""
+    pool = PoolConfig(workers=workers, keep_workers=True, **kwargs.pop("pool", {}))
+    return BatchConfig(
+        str(source), str(out), rig=RIG, pipeline=PIPELINE, progress=False, pool=pool, **kwargs
+    )
 
 
 def _assert_same_results(out: Path, reference: Path, names=NAMES) -> None:
@@ -96,7 +101,7 @@ def _manifest(out: Path) -> dict:
 
 
 def test_batch_equals_sequential_runs(local_ray, recordings, sequential, tmp_path):
-    res = run_batch(_config(recordings, tmp_path, pool=PoolConfig(workers=2)))
+    res = run_batch(_config(recordings, tmp_path, 2))
     assert [r.status for r in res.recordings] == ["done"] * 4
     assert res.workers == 2 and res.frames == 40
     assert len({r.worker for r in res.recordings}) == 2  # both workers took recordings
@@ -113,7 +118,7 @@ def test_a_worker_killed_mid_recording_is_replaced_and_its_recording_run_again(
     # start over, not continue those chunks.
     marker = tmp_path / "killed"
     monkeypatch.setenv(KILL_ONCE_ENV, f"rec_b={marker}")
-    res = run_batch(_config(recordings, tmp_path / "out", pool=PoolConfig(workers=2)))
+    res = run_batch(_config(recordings, tmp_path / "out", 2))
     killed_pid, when = marker.read_text().split(maxsplit=1)  # the worker did kill itself once
     assert when.strip() == "mid-recording"  # with a chunk of rec_b on disk
     assert [r.status for r in res.recordings] == ["done"] * 4
@@ -128,11 +133,37 @@ def test_a_recording_whose_worker_keeps_dying_fails_after_its_retries(
 ):
     # A marker in a folder that does not exist cannot be created: the worker dies every time.
     monkeypatch.setenv(KILL_ONCE_ENV, f"rec_a={tmp_path / 'absent' / 'killed'}")
-    res = run_batch(_config(recordings, tmp_path, pool=PoolConfig(workers=1, retries=1)))
+    res = run_batch(_config(recordings, tmp_path, 1, pool={"retries": 1}))
     by_name = {r.name: r for r in res.recordings}
     assert by_name["rec_a"].status == "failed" and by_name["rec_a"].attempts == 2
     assert "worker died 2 times" in by_name["rec_a"].error
     assert [by_name[n].status for n in NAMES[1:]] == ["done"] * 3
+
+
+def test_an_interrupted_batch_resumed_runs_only_what_was_not_done(
+    local_ray, recordings, sequential, tmp_path
+):
+    done_first = []
+
+    def interrupt(status) -> None:  # Ctrl-C on the driver once one recording is done
+        done_first.append(status.name)
+        raise KeyboardInterrupt
+
+    config = _config(recordings, tmp_path, 1)
+    res = run_batch(config, on_done=interrupt)
+    assert res.interrupted and done_first == ["rec_a"]
+    recorded = _manifest(tmp_path)
+    assert recorded["rec_a"]["status"] == "done"
+    assert {recorded[n]["status"] for n in NAMES[1:]} == {"pending"}
+    written = (tmp_path / "rec_a" / "poses.npz").stat().st_mtime_ns
+
+    res = run_batch(BatchConfig(**{**config.__dict__, "resume": True}))
+    assert [r.status for r in res.recordings] == ["skipped", "done", "done", "done"]
+    assert (tmp_path / "rec_a" / "poses.npz").stat().st_mtime_ns == written  # not recomputed
+    _assert_same_results(tmp_path, sequential)
+    # Changed settings are not "done": the recording runs again.
+    changed = BatchConfig(**{**config.__dict__, "resume": True, "fps": 25.0})
+    assert {r.status for r in run_batch(changed).recordings} == {"done"}
 
 
 def test_a_bad_recording_fails_alone_named_and_the_exit_status_says_so(
@@ -164,37 +195,12 @@ def test_a_bad_recording_fails_alone_named_and_the_exit_status_says_so(
     assert "cam_x" in recorded["unknown_camera"]["error"]
 
 
-def test_an_interrupted_batch_resumed_runs_only_what_was_not_done(
-    local_ray, recordings, sequential, tmp_path
-):
-    done_first = []
-
-    def interrupt(status) -> None:  # Ctrl-C on the driver once one recording is done
-        done_first.append(status.name)
-        raise KeyboardInterrupt
-
-    config = _config(recordings, tmp_path, pool=PoolConfig(workers=1))
-    res = run_batch(config, on_done=interrupt)
-    assert res.interrupted and done_first == ["rec_a"]
-    recorded = _manifest(tmp_path)
-    assert recorded["rec_a"]["status"] == "done"
-    assert {recorded[n]["status"] for n in NAMES[1:]} == {"pending"}
-    written = (tmp_path / "rec_a" / "poses.npz").stat().st_mtime_ns
-
-    res = run_batch(BatchConfig(**{**config.__dict__, "resume": True}))
-    assert [r.status for r in res.recordings] == ["skipped", "done", "done", "done"]
-    assert (tmp_path / "rec_a" / "poses.npz").stat().st_mtime_ns == written  # not recomputed
-    _assert_same_results(tmp_path, sequential)
-    # Changed settings are not "done": the recording runs again.
-    changed = BatchConfig(**{**config.__dict__, "resume": True, "fps": 25.0})
-    assert {r.status for r in run_batch(changed).recordings} == {"done"}
-
-
 def test_a_killed_driver_on_the_cluster_is_resumed_without_recomputing(
     local_ray, recordings, tmp_path
 ):
     """``batch --address`` joins the module's Ray from another process, which is SIGKILLed once
     a recording is done; ``--resume`` then runs only the rest."""
+    release_workers()  # the kept workers' CPUs, for the other driver's
     out = tmp_path / "out"
     env = {
         **os.environ,
@@ -215,7 +221,7 @@ def test_a_killed_driver_on_the_cluster_is_resumed_without_recomputing(
     assert done and len(done) < len(NAMES), err
     written = {n: (out / n / "poses.npz").stat().st_mtime_ns for n in done}
 
-    res = run_batch(_config(recordings, out, resume=True, pool=PoolConfig(workers=2)))
+    res = run_batch(_config(recordings, out, 2, resume=True))
     status = {r.name: r.status for r in res.recordings}
     assert {n for n, s in status.items() if s == "skipped"} >= set(done)
     assert set(status.values()) <= {"skipped", "done"}

@@ -8,9 +8,10 @@ hand them to `run_pool`:
   the cluster), a spawned process that imports JAX once, keeps its compiled functions and the
   models it loaded (`jobs.infer.load_models`) for every recording it runs, and has one XLA thread
   pool sized to its CPUs (``XLA_FLAGS`` in its ``runtime_env``);
-- a batch run in a process that started Ray itself (`ray.init`: a notebook, an experiment) leaves
-  its workers idle and warm for the process's next batch; otherwise the job starts Ray and stops
-  it at the end;
+- a batch run in a process that started Ray itself (`ray.init`: a notebook, an experiment, the
+  tests) may keep its workers idle and warm for the process's next batch
+  (`PoolConfig.keep_workers`; they hold their CPUs until `release_workers`); otherwise the
+  workers end with the batch, and Ray too when the job started it;
 - each worker is given one recording at a time, the next one as soon as it is done, so a long
   recording holds no other back;
 - a worker runs `run_task`, the very code ``infer`` / ``infer --session`` / ``generate`` run, and
@@ -79,12 +80,16 @@ class PoolConfig:
         recording).
       cpus_per_worker: CPUs each worker reserves; its XLA thread pool has as many threads.
       retries: how many times a recording whose worker died is run again.
+      keep_workers: with a Ray this process started itself, keep the workers after the batch,
+        idle and warm (JAX imported, functions compiled, models loaded), for its next batch;
+        they hold their CPUs until `release_workers`.
     """
 
     address: str | None = None
     workers: int | None = None
     cpus_per_worker: int = 1
     retries: int = 2
+    keep_workers: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -606,6 +611,8 @@ def run_pool(
         ).options(runtime_env={"env_vars": env})
         context = ray.get_runtime_context()
         key = (context.get_node_id(), context.get_job_id(), tuple(sorted(env.items())))
+        for stale in [k for k in _IDLE if k[:2] != key[:2]]:  # of a Ray since stopped
+            del _IDLE[stale]
         idle = [] if ours else _IDLE.setdefault(key, [])
 
         def new_worker():
@@ -616,10 +623,10 @@ def run_pool(
             return worker
 
         def release(worker) -> None:
-            if ours:
-                ray.kill(worker, no_restart=True)
-            else:  # kept for this process's next batch, warm
+            if pool.keep_workers and not ours:  # kept for this process's next batch, warm
                 idle.append(worker)
+            else:
+                ray.kill(worker, no_restart=True)
 
         bar = progress_bar(
             total=len(tasks),
@@ -724,9 +731,23 @@ def _from_start(task: BatchTask) -> BatchTask:
     return dataclasses.replace(task, job=job)
 
 
-# Workers of a Ray this process did not start itself, kept between its batches with their JAX,
+# Workers kept between this process's batches (`PoolConfig.keep_workers`) with their JAX,
 # compiled functions and models warm: (driver's node, job, worker environment) -> idle actors.
 _IDLE: dict[tuple, list] = {}
+
+
+def release_workers() -> int:
+    """Stops the workers kept idle by earlier batches (`PoolConfig.keep_workers`), freeing their
+    CPUs; returns how many."""
+    workers = [w for idle in _IDLE.values() for w in idle]
+    _IDLE.clear()
+    if workers:
+        import ray
+
+        if ray.is_initialized():
+            for worker in workers:
+                ray.kill(worker, no_restart=True)
+    return len(workers)
 
 
 def _failed(status: dict[str, RecordingStatus]) -> int:
