@@ -59,7 +59,7 @@ def batch_group(tier: str) -> dict:
                 str(folder),
                 str(Path(tmp) / name),
                 rig=RigSource(str(rig_file)),
-                pool=PoolConfig(workers=workers),
+                pool=PoolConfig(workers=workers, keep_workers=True),
                 progress=False,
             )
             res = run_batch(config)
