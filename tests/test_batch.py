@@ -21,11 +21,13 @@ import pytest
 from mvpose_jax.cli import main
 from mvpose_jax.data import save_recording
 from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.errors import InputError
 from mvpose_jax.jobs.batch import (
     KILL_ONCE_ENV,
     MANIFEST,
     BatchConfig,
     PoolConfig,
+    read_manifest_file,
     release_workers,
     run_batch,
     run_generate_batch,
@@ -238,6 +240,24 @@ def test_generate_recordings_seeds_each_recording_whatever_the_workers(local_ray
         alone = tmp_path / f"alone_{i}.json"
         generate(dataclasses.replace(base, out=str(alone), seed=7 + i))
         assert (tmp_path / "pool" / f"recording_{i}.json").read_bytes() == alone.read_bytes()
+
+
+def test_a_manifest_file_lists_recording_calibration_and_output(tmp_path):
+    (tmp_path / "calib.toml").write_text("")
+    (tmp_path / "lines.tsv").write_text(
+        "# recording calibration [output]\n\n"
+        "day1/a.json calib.toml\n"
+        "day 2/b.npz\tpanoptic5\tsecond/b\n"
+    )
+    rows = read_manifest_file(tmp_path / "lines.tsv", "OUT")
+    assert rows == [
+        ("a", str(tmp_path / "day1/a.json"), RigSource(str(tmp_path / "calib.toml")), "OUT/a"),
+        ("second/b", str(tmp_path / "day 2/b.npz"), RigSource("panoptic5"), "OUT/second/b"),
+    ]
+    (tmp_path / "bad.tsv").write_text("a.json\n")
+    with pytest.raises(InputError, match="line 1 holds 1 fields") as e:
+        read_manifest_file(tmp_path / "bad.tsv", "OUT")
+    assert e.value.file == str(tmp_path / "bad.tsv")
 
 
 def test_batch_without_ray_says_how_to_install_it(recordings, tmp_path, monkeypatch, capsys):

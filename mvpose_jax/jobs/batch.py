@@ -326,8 +326,9 @@ def read_manifest_file(path: str | os.PathLike, out: str) -> list[tuple[str, str
 
     Each line is ``RECORDING CALIBRATION [OUTPUT]``, separated by tabs when the line has any
     (paths with spaces), else by spaces; blank lines and lines starting with ``#`` are skipped.
-    A relative recording or calibration path is relative to the manifest file's folder, a
-    relative output to ``out``; no output: ``out/<the recording's name without its suffix>``.
+    A relative recording or calibration path is relative to the manifest file's folder (a
+    calibration that is no file there is taken as given: a preset name), a relative output to
+    ``out``; no output: ``out/<the recording's name without its suffix>``.
     The name of a recording is its output relative to ``out``.
     """
     path = Path(path)
@@ -345,13 +346,15 @@ def read_manifest_file(path: str | os.PathLike, out: str) -> list[tuple[str, str
                 file=path,
                 field=f"line {n}",
             )
-        recording, calibration = (str(base / p) for p in parts[:2])
+        recording = str(base / parts[0])
+        # A calibration file relative to the manifest, else as given (a preset name: panoptic5).
+        calibration = base / parts[1] if (base / parts[1]).exists() else Path(parts[1])
         output = parts[2] if len(parts) == 3 else Path(parts[0]).with_suffix("").name
         rows.append(
             (
                 Path(output).as_posix(),
                 recording,
-                RigSource(str(base / calibration)),
+                RigSource(str(calibration)),
                 os.path.join(out, output),
             )
         )
