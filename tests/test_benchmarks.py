@@ -258,3 +258,21 @@ def test_opencv_reference_matches_the_library_centroid():
     np.testing.assert_array_equal(ok, np.asarray(ours_ok))
     np.testing.assert_allclose(ref[ok], np.asarray(ours)[ok], atol=2e-3)
     np.testing.assert_allclose(ref[ok], xyz[ok], atol=2e-3)
+
+
+def test_the_batch_section_reads_its_record():
+    from benchmarks.batch import markdown
+
+    record = {
+        "recordings": 8, "frames_per_recording": 60, "views": 5, "people": 4,
+        "pipeline": "geometric", "ray_cpus": 2, "worker_start_s": 5.2,
+        "first_recording_extra_s": 6.8, "start_batch_seconds": 13.0, "repeats": 3,
+        "rows": [
+            {"workers": 1, "seconds": 1.0, "recordings_per_s": 8.0, "frames_per_s": 480.0},
+            {"workers": 2, "seconds": 0.6, "recordings_per_s": 13.3, "frames_per_s": 800.0},
+        ],
+        "ratio_2_to_1": 800.0 / 480.0,
+    }  # fmt: skip
+    text = "\n".join(markdown(record))
+    assert "| 2 | 0.60 | 13.30 | 800.0 |" in text
+    assert "2 workers / 1: 1.67x" in text and "5.2 s" in text and "6.8 s" in text
