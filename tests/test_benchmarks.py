@@ -276,3 +276,25 @@ def test_the_batch_section_reads_its_record():
     text = "\n".join(markdown(record))
     assert "| 2 | 0.60 | 13.30 | 800.0 |" in text
     assert "2 workers / 1: 1.67x" in text and "5.2 s" in text and "6.8 s" in text
+
+
+def test_same_results_compares_groupings_exactly_and_keypoints_within_a_tolerance():
+    from benchmarks.same_results import compare
+
+    rng = np.random.default_rng(0)
+    base = "s/p/offline"
+    a = {
+        f"{base}/xyz": rng.normal(size=(3, 2, 4, 3)).astype(np.float32),
+        f"{base}/valid": np.array([[True, False]] * 3),
+        f"{base}/keypoint_valid": np.ones((3, 2, 4), bool),
+        f"{base}/members": rng.integers(-1, 3, (3, 2, 5)),
+    }
+    b = {k: v.copy() for k, v in a.items()}
+    b[f"{base}/xyz"][:, 1] += 1.0  # an invalid person's keypoints are not compared
+    b[f"{base}/xyz"][0, 0, 0, 0] += 5e-6
+    compared, problems = compare(a, b)
+    assert compared == 3 * 4 * 3 and problems == []
+    b[f"{base}/xyz"][1, 0, 2, 1] += 1e-3
+    b[f"{base}/members"][2, 0, 0] += 1
+    _, problems = compare(a, b)
+    assert len(problems) == 2 and any("members" in p for p in problems)
