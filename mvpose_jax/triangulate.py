@@ -20,7 +20,6 @@ rays are not (nearly) parallel.
 
 from __future__ import annotations
 
-import functools
 import itertools
 
 import jax
@@ -371,16 +370,11 @@ def _where_needed(need: jax.Array, fn, fill: float, *rows: jax.Array) -> jax.Arr
 
         return run
 
+    # The smallest gather the needed rows fit in, else the whole batch.
+    sizes = [max(1, B // fraction) for fraction in _GATHER_FRACTIONS]
     count = jnp.sum(need)
-    result = whole
-    for fraction in reversed(_GATHER_FRACTIONS):  # the largest gather wraps the whole batch
-        size = max(1, B // fraction)
-        result = functools.partial(
-            lambda size, otherwise, _: jax.lax.cond(count <= size, gathered(size), otherwise, None),
-            size,
-            result,
-        )
-    return result(None)
+    branch = sum((count > size).astype(jnp.int32) for size in sizes)
+    return jax.lax.switch(branch, [gathered(size) for size in sizes] + [whole], None)
 
 
 def _expand(mask: jax.Array, like: jax.Array) -> jax.Array:
