@@ -1023,6 +1023,13 @@ def adapt_matcher_group(tier: Tier) -> dict:
     }
 
 
+def batch_group(tier: Tier) -> dict:
+    """Many recordings on a local Ray, 1 and 2 workers (`benchmarks.batch`)."""
+    from benchmarks import batch
+
+    return batch.batch_group(tier.name)
+
+
 GROUPS: dict[str, Callable[[Tier], dict]] = {
     "peaks": peaks,
     "latency": latency,
@@ -1033,4 +1040,5 @@ GROUPS: dict[str, Callable[[Tier], dict]] = {
     "adapt": adapt,
     "adapt_matcher": adapt_matcher_group,
     "pipeline": pipeline_group,
+    "batch": batch_group,
 }

@@ -33,7 +33,8 @@ built), then ``repeats`` times; ``ms_per_frame`` is the median of those runs' wa
 How the rest is measured (the same in every record's ``how``):
 
 * stages: ``matching`` is the wall time of the match tables (`matching.gat_match_table`,
-  `matching.geometric_match_table`, `matching.epipolar_distances_of_rows`, each returns numpy),
+  `matching.geometric_match_table`, `matching.combined_match_tables`,
+  `matching.epipolar_distances_of_rows`, each returns numpy),
   measured by wrapping those module functions while the group runs (`_matching_clock`; the
   library is not changed, the wrappers return what the functions return); ``proposals`` is the
   pipeline's own proposals clock (`PipelineResult.seconds`) less ``matching`` (grouping: union-
@@ -126,7 +127,8 @@ HOW = {
     "frames; live: one stream_pipeline over one-frame chunks; offline: run_pipeline in chunks "
     f"of {CHUNK_FRAMES}, then smoothing.smooth_poses for the Butterworth-filtered pipelines",
     "stages_ms": "the median run's: matching = wall time inside matching.gat_match_table / "
-    "geometric_match_table / epipolar_distances_of_rows (wrapped while the group runs); "
+    "geometric_match_table / combined_match_tables / epipolar_distances_of_rows (wrapped while "
+    "the group runs); "
     "proposals = PipelineResult.seconds['proposals'] - matching; 3d, tracking = "
     "PipelineResult.seconds['poses'], ['tracking']; filtering = smooth_poses; other = the rest",
     "jit_calls_per_frame": "XLA executable launches (profiler host events matching "
@@ -198,12 +200,19 @@ def _listen_for_compilations() -> None:
 def _matching_clock(clock: dict[str, float]) -> Iterator[None]:
     """Adds the wall time of the pipeline's match-table calls to ``clock["matching"]``.
 
-    The proposal stages call `matching.gat_match_table`, `matching.geometric_match_table` and
-    `matching.epipolar_distances_of_rows` through the module's globals; each is wrapped here, for
+    The proposal stages call `matching.gat_match_table`, `matching.geometric_match_table`,
+    `matching.combined_match_tables` (the GAT's scores and the epipolar distances of its pairs in
+    one call) and `matching.epipolar_distances_of_rows` through the module's globals; each is
+    wrapped here, for
     the duration of the context, by a wall clock around the call (each returns numpy, so the
     clock stops once the result is on the host). Results are unchanged.
     """
-    names = ("gat_match_table", "geometric_match_table", "epipolar_distances_of_rows")
+    names = (
+        "gat_match_table",
+        "geometric_match_table",
+        "combined_match_tables",
+        "epipolar_distances_of_rows",
+    )
     saved = {n: getattr(matching_module, n) for n in names}
 
     def wrapped(fn: Callable) -> Callable:

@@ -391,6 +391,11 @@ def markdown(run: dict) -> str:
 
         lines += pipeline_markdown(run["pipeline"])
 
+    if run.get("batch"):
+        from benchmarks.batch import markdown as batch_markdown
+
+        lines += batch_markdown(run["batch"])
+
     if run.get("errors"):
         lines += ["", "## Errors", ""] + [f"- {g}: {e}" for g, e in run["errors"].items()]
     return "\n".join(lines) + "\n"

@@ -11,11 +11,14 @@ throughput, compile times), ``tracking`` (the tracker and One-Euro filter per fr
 `benchmarks.memory`) and ``adapt`` and ``adapt_matcher`` (seconds per 1,000 frames of `adapt.adapt_estimator` and
 `adapt.adapt_matcher`) and ``pipeline`` (what users run: `infer`'s default with models, the
 paper's method, the geometric default and epipolar + DLT, live and offline, per stage;
-`benchmarks.pipeline`). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
+`benchmarks.pipeline`) and ``batch`` (many recordings on a local Ray with 1 and 2 workers, and
+a worker's start-up cost; `benchmarks.batch`). Writes ``run.json`` and ``run.md`` under ``--out`` with the machine,
 the git commit, every measurement, the targets with pass/miss, and where the time goes.
 
 ``--quick`` (under 3 minutes on 2 cores) shrinks the grid and the frame counts but keeps every
-section; ``--smoke`` is a seconds-long check of the harness itself (tests). On a GPU machine the
+section; ``--smoke`` is a seconds-long check of the harness itself (tests), without ``batch``
+unless named (starting Ray and a worker costs ~15 s: ``--smoke --groups batch``;
+tests/test_batch.py covers the job itself). On a GPU machine the
 same command runs there, and the report names the device. See benchmarks/README.md.
 """
 
@@ -47,6 +50,11 @@ MEMORY_METHOD = (
 )
 
 
+DEFAULT_GROUPS = (
+    "peaks,latency,offline,training,tracking,infer_memory,adapt,adapt_matcher,pipeline,batch"
+)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     tier = parser.add_mutually_exclusive_group()
@@ -61,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--groups",
-        default="peaks,latency,offline,training,tracking,infer_memory,adapt,adapt_matcher,pipeline",
-        help="comma-separated groups to run",
+        default=None,
+        help=f"comma-separated groups to run (default: {DEFAULT_GROUPS}; --smoke: all but batch)",
     )
     parser.add_argument(
         "--in-process",
@@ -77,7 +85,10 @@ def main(argv: list[str] | None = None) -> int:
         return _child(args.child, args.tier, Path(args.child_out))
 
     tier = "smoke" if args.smoke else "quick" if args.quick else "full"
-    groups = [g.strip() for g in args.groups.split(",") if g.strip()]
+    names = args.groups or DEFAULT_GROUPS
+    groups = [g.strip() for g in names.split(",") if g.strip()]
+    if args.groups is None and args.smoke:
+        groups.remove("batch")
     from benchmarks.measure import GROUPS
 
     unknown = [g for g in groups if g not in GROUPS]

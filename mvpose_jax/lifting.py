@@ -23,7 +23,7 @@ from mvpose_jax.cameras import Rig, up_vector
 from mvpose_jax.compiled import bound_model_fn
 from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.features import assemble_features, estimator_inputs
-from mvpose_jax.graphs import next_power_of_two
+from mvpose_jax.graphs import next_quarter_bucket
 from mvpose_jax.models import to_world
 from mvpose_jax.skeletons import Detections, Poses3D, get_layout, leg_chains
 from mvpose_jax.trained import Estimator
@@ -205,14 +205,15 @@ def _unpadded(out, to_numpy, n: int) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, C, K, 2) / (N, C, K) zero-padded to `graphs.next_power_of_two(N)` people, float32 numpy.
+    """(N, C, K, 2) / (N, C, K) zero-padded to `graphs.next_quarter_bucket(N)` people, float32
+    numpy (a chunk's thousand people cost their own arithmetic, not up to twice it).
 
     Host arrays: the jitted call they go to moves them to the device itself, for less than an
     explicit transfer per array costs.
     """
     n = len(xy)
-    xy_p = np.zeros((next_power_of_two(n),) + np.shape(xy)[1:], np.float32)
-    score_p = np.zeros((next_power_of_two(n),) + np.shape(score)[1:], np.float32)
+    xy_p = np.zeros((next_quarter_bucket(n),) + np.shape(xy)[1:], np.float32)
+    score_p = np.zeros((next_quarter_bucket(n),) + np.shape(score)[1:], np.float32)
     xy_p[:n], score_p[:n] = xy, score
     return xy_p, score_p
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from mvpose_jax.cameras import Rig
 from mvpose_jax.graphs import compose_samples, make_pool
-from mvpose_jax.matching import FRAMES_PER_CALL, epipolar_distances_of_rows, gat_match_table
+from mvpose_jax.matching import FRAMES_PER_CALL, combined_match_tables, gat_match_table
 from mvpose_jax.proposals import (
     CombinedConfig,
     choose_combined_threshold,
@@ -149,9 +149,8 @@ def choose_matcher_settings(
     """
     det, identity = _composed_for(matcher, dev_recordings, num_samples=num_samples, seed=seed)
     count = np.asarray(det.count)
-    rows, scores = gat_match_table(matcher, det)
+    rows, scores, mean, median, shared = combined_match_tables(matcher, det)
     threshold, ari = choose_proposal_threshold(rows, scores, identity, count)
-    mean, median, shared = epipolar_distances_of_rows(matcher.rig, det, rows)
     cutoff, ari_cut = choose_geometric_cutoff(rows, mean, identity, count)
     config = dataclasses.replace(combined, epipolar_cutoff_px=cutoff)
     th, ari_comb = choose_combined_threshold(

@@ -27,7 +27,7 @@ from mvpose_jax.graphs import GraphBatch, build_graphs, match_table, next_power_
 from mvpose_jax.proposals import CombinedConfig, Proposals, propose_combined, propose_people
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.trained import Matcher
-from mvpose_jax.triangulate import camera_pairs
+from mvpose_jax.triangulate import camera_pairs, nanmedian_by_rank
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,6 +189,39 @@ def _frame_scores_fn(
     return nnx.merge(graphdef, params, rest)(batch._replace(det_features=det))
 
 
+def _frame_scores_and_epipolar_fn(
+    graphdef,
+    rest,
+    params,
+    rig: Rig,
+    xy,
+    score,
+    batch: GraphBatch,
+    det_source,
+    det_camera,
+    min_shared: int,
+):
+    """`_frame_scores_fn` and the chunk's epipolar mean and median distances
+    (`_epipolar_distances`, (Q, F, P, P)) in one call: the combined matcher needs both, and a
+    live frame pays per launch and per fetch, not per number."""
+    scores = _frame_scores_fn(graphdef, rest, params, rig, xy, score, batch, det_source, det_camera)
+    mean, median = _epipolar_distances(
+        rig,
+        jnp.moveaxis(xy, 1, 0),
+        jnp.moveaxis(score, 1, 0),
+        min_shared=min_shared,
+        median=True,
+    )
+    return scores, mean, median
+
+
+@functools.cache
+def _fused_fn(min_shared: int):
+    """`_frame_scores_and_epipolar_fn` at ``min_shared`` (a Python int inside the jit), one
+    object per value so that `compiled.bound_model_fn` compiles it once."""
+    return functools.partial(_frame_scores_and_epipolar_fn, min_shared=min_shared)
+
+
 def gat_match_table(
     matcher: Matcher, detections: Detections, *, frames_per_call: int = FRAMES_PER_CALL
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -207,6 +240,42 @@ def gat_match_table(
     Returns:
       rows (M, 5) ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]`` and scores (M,).
     """
+    rows, scores, _, _ = _gat_tables(matcher, detections, frames_per_call, epipolar_min_shared=None)
+    return rows, scores
+
+
+def combined_match_tables(
+    matcher: Matcher,
+    detections: Detections,
+    *,
+    min_shared: int = 3,
+    frames_per_call: int = FRAMES_PER_CALL,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`gat_match_table` and `epipolar_distances_of_rows` of its rows, in one jit call per chunk
+    of frames (what the combined matcher reads).
+
+    Returns:
+      rows (M, 5), GAT scores (M,), mean and median epipolar distances (M,) pixels (inf where
+      fewer than ``min_shared`` keypoints are shared), shared keypoints (M,) int32.
+    """
+    rows, scores, mean, median = _gat_tables(
+        matcher, detections, frames_per_call, epipolar_min_shared=min_shared
+    )
+    if mean is None:  # no pair to score
+        empty = np.zeros(0, np.float32)
+        return rows, scores, empty, empty, np.zeros(0, np.int32)
+    return (rows, scores) + _distances_of_rows(mean, median, rows, detections)
+
+
+def _gat_tables(
+    matcher: Matcher,
+    detections: Detections,
+    frames_per_call: int,
+    *,
+    epipolar_min_shared: int | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """`gat_match_table`'s rows and scores and, with ``epipolar_min_shared``, the dense epipolar
+    mean and median (Q, F, P, P) of the same frames from the same calls (else None, None)."""
     xy = np.asarray(detections.xy, np.float32)
     score = np.asarray(detections.score, np.float32)
     count = np.asarray(detections.count, np.int64)
@@ -215,8 +284,12 @@ def gat_match_table(
         raise InputError(
             f"detections have {C} cameras, the matcher {matcher.rig.num_cameras}", field="cameras"
         )
-    scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef)
-    rows, scores = [], []
+    with_epipolar = epipolar_min_shared is not None
+    if with_epipolar:
+        scores_fn = bound_model_fn(_fused_fn(epipolar_min_shared), matcher.graphdef)
+    else:
+        scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef)
+    rows, scores, means, medians = [], [], [], []
     for start in range(0, F, frames_per_call):
         stop = min(F, start + frames_per_call)
         # A short (or single-frame) chunk is padded only to the next power of two of frames.
@@ -243,13 +316,24 @@ def gat_match_table(
             graphs.det_source,
             graphs.det_camera,
         )
+        if with_epipolar:
+            out, mean, median = jax.device_get(out)  # one fetch for the three
+            means.append(mean[:, : stop - start])
+            medians.append(median[:, : stop - start])
         r = graphs.rows.copy()
         r[:, 0] += start
         rows.append(r)
         scores.append(np.asarray(out)[graphs.match_nodes])
     if not rows:
-        return np.zeros((0, 5), np.int64), np.zeros(0, np.float32)
-    return np.concatenate(rows), np.concatenate(scores)
+        return np.zeros((0, 5), np.int64), np.zeros(0, np.float32), None, None
+    if not with_epipolar:
+        return np.concatenate(rows), np.concatenate(scores), None, None
+    return (
+        np.concatenate(rows),
+        np.concatenate(scores),
+        np.concatenate(means, axis=1),
+        np.concatenate(medians, axis=1),
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("min_shared", "median"))
@@ -284,7 +368,7 @@ def _epipolar_distances(
         d = jnp.where(shared, 0.5 * (d_i + d_j), 0.0).sum(-1) / jnp.maximum(n, 1)
         means.append(jnp.where(n >= min_shared, d, jnp.inf))
         if median:
-            med = jnp.nanmedian(jnp.where(shared, 0.5 * (d_i + d_j), jnp.nan), axis=-1)
+            med = nanmedian_by_rank(jnp.where(shared, 0.5 * (d_i + d_j), jnp.nan), axis=-1)
             medians.append(jnp.where(n >= min_shared, med, jnp.inf))
     return jnp.stack(means), jnp.stack(medians) if median else None
 
@@ -358,10 +442,18 @@ def epipolar_distances_of_rows(
       than ``min_shared`` are; shared (M,) int32, how many keypoints both views see.
     """
     rows = np.asarray(rows, np.int64).reshape(-1, 5)
-    C = np.shape(detections.score)[1]
     if len(rows) == 0:
         return np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32)
     mean, median = _epipolar_dense(rig, detections, min_shared, frames_per_call, median=True)
+    return _distances_of_rows(mean, median, rows, detections)
+
+
+def _distances_of_rows(
+    mean: np.ndarray, median: np.ndarray, rows: np.ndarray, detections: Detections
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The dense (Q, F, P, P) mean and median tables at the pairs ``rows`` (M, 5), and how many
+    keypoints each pair's two skeletons share."""
+    C = np.shape(detections.score)[1]
     pairs = camera_pairs(C)
     pair_of = np.full((C, C), -1, np.int64)
     pair_of[pairs[:, 0], pairs[:, 1]] = np.arange(len(pairs))
@@ -429,12 +521,14 @@ def propose_with_matcher(
         raise ValueError(f"mode must be 'gat' or 'combined', not {mode!r}")
     count = np.asarray(detections.count)
     P = np.shape(detections.score)[2]
-    if matcher.rig.num_cameras == 1:
+    if matcher.rig.num_cameras == 1:  # no pair to score
         rows, scores = np.zeros((0, 5), np.int64), np.zeros(0)
+        mean, median, shared = np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, int)
+    elif mode == "combined":
+        rows, scores, mean, median, shared = combined_match_tables(matcher, detections)
     else:
         rows, scores = gat_match_table(matcher, detections)
     if mode == "combined":
-        mean, median, shared = epipolar_distances_of_rows(matcher.rig, detections, rows)
         proposals, _ = propose_combined(
             rows,
             scores,

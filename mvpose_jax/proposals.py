@@ -36,6 +36,7 @@ Host-side numpy; no model here.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -156,15 +157,51 @@ def _linked_groups(
     return links, members
 
 
-def _scores_among(
-    pair_items: np.ndarray, pair_scores: np.ndarray, items: set[int]
-) -> dict[tuple[int, int], float]:
-    """{(x, y) and (y, x): score} of every scored pair whose two items are both in ``items``."""
-    known = np.isin(pair_items, list(items)).all(-1)
-    score_of = {}
-    for (x, y), s in zip(pair_items[known].tolist(), pair_scores[known].tolist(), strict=True):
-        score_of[(x, y)] = score_of[(y, x)] = s
-    return score_of
+class _PairScores:
+    """The score of every scored pair of skeletons (items) in the frames of ``items``, both
+    ways: ``table.get(x, y, default)``, ``(x, y) in table``.
+
+    A dense (frames, C*P, C*P) table, not a dict of pairs: a chunk's repairs look at thousands
+    of pairs, and building a dict of them in Python was most of the combined matcher's time.
+    """
+
+    def __init__(
+        self, pair_items: np.ndarray, pair_scores: np.ndarray, items: set[int], C: int, P: int
+    ):
+        self.per_frame = C * P
+        frames = np.unique(np.fromiter(items, np.int64, len(items)) // self.per_frame)
+        self.row = dict(zip(frames.tolist(), range(len(frames)), strict=True))
+        shape = (len(frames), self.per_frame, self.per_frame)
+        self.score = np.zeros(shape)
+        self.known = np.zeros(shape, bool)
+        frame = pair_items[:, 0] // self.per_frame
+        pos = np.searchsorted(frames, frame)
+        inside = (pos < len(frames)) & (frames[np.minimum(pos, len(frames) - 1)] == frame)
+        x, y = pair_items[inside, 0] % self.per_frame, pair_items[inside, 1] % self.per_frame
+        r, sc = pos[inside], np.asarray(pair_scores, np.float64)[inside]
+        # Both ways, each row's two entries in turn: a pair scored twice keeps its last score.
+        rr, xx, yy = (np.stack([u, v], 1).reshape(-1) for u, v in ((r, r), (x, y), (y, x)))
+        self.score[rr, xx, yy] = np.repeat(sc, 2)
+        self.known[rr, xx, yy] = True
+
+    def _at(self, x: int, y: int) -> tuple[int, int, int] | None:
+        f = x // self.per_frame
+        if f != y // self.per_frame or f not in self.row:
+            return None
+        return self.row[f], x % self.per_frame, y % self.per_frame
+
+    def get(self, pair: tuple[int, int], default: float) -> float:
+        at = self._at(*pair)
+        return float(self.score[at]) if at is not None and self.known[at] else default
+
+    def __contains__(self, pair: tuple[int, int]) -> bool:
+        at = self._at(*pair)
+        return at is not None and bool(self.known[at])
+
+    def __getitem__(self, pair: tuple[int, int]) -> float:
+        if pair not in self:
+            raise KeyError(pair)
+        return float(self.score[self._at(*pair)])
 
 
 def _merge_split_people(
@@ -196,7 +233,7 @@ def _merge_split_people(
         return root
     # Every scored pair of the candidates' skeletons, to choose the one kept in the shared camera.
     items = {x for *_, ra, rb, _ in candidates for x in members[ra] + members[rb]}
-    score_of = _scores_among(pair_items, pair_scores, items)
+    score_of = _PairScores(pair_items, pair_scores, items, C, P)
     veto = SPLIT_VETO_FRACTION * threshold
     touched: set[int] = set()
     for *_, ra, rb, c in sorted(candidates, reverse=True):  # most links first
@@ -253,8 +290,9 @@ def _drop_duplicate_people(
     links, members = _linked_groups(root, a, b, strength)
     if not links:
         return root
-    score_of = _scores_among(pair_items, pair_scores, set().union(*members.values()))
+    score_of = _PairScores(pair_items, pair_scores, set().union(*members.values()), C, P)
 
+    @functools.cache  # asked once per link a group has
     def own_score(r: int) -> float:
         got = [
             score_of.get((x, y), -np.inf)

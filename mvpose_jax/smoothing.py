@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -45,6 +44,7 @@ from scipy.signal import butter, sosfiltfilt
 from mvpose_jax.data.poses import PoseResults, load_poses_chunk, save_poses_chunk
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D
+from mvpose_jax.triangulate import nanmedian_along
 
 FILTERS = ("none", "one-euro", "butterworth")
 
@@ -351,9 +351,7 @@ def reject_outliers(
     # (at a run's ends), and would flag good samples of fast motion.
     use &= use[..., ::-1]
     win = np.where(use[..., None], x[idx].transpose(0, 2, 1, 3), np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN window: a missing sample
-        med = np.nanmedian(win, axis=2)  # (N, K, 3)
+    med = nanmedian_along(win, axis=2)  # (N, K, 3); NaN for an all-NaN window (no sample)
     out = kv & (_norm(x - med, axis=-1) > max_deviation_m)
     return dataclasses.replace(series, keypoint_valid=kv & ~out), out
 

@@ -258,3 +258,43 @@ def test_opencv_reference_matches_the_library_centroid():
     np.testing.assert_array_equal(ok, np.asarray(ours_ok))
     np.testing.assert_allclose(ref[ok], np.asarray(ours)[ok], atol=2e-3)
     np.testing.assert_allclose(ref[ok], xyz[ok], atol=2e-3)
+
+
+def test_the_batch_section_reads_its_record():
+    from benchmarks.batch import markdown
+
+    record = {
+        "recordings": 8, "frames_per_recording": 60, "views": 5, "people": 4,
+        "pipeline": "geometric", "ray_cpus": 2, "worker_start_s": 5.2,
+        "first_recording_extra_s": 6.8, "start_batch_seconds": 13.0, "repeats": 3,
+        "rows": [
+            {"workers": 1, "seconds": 1.0, "recordings_per_s": 8.0, "frames_per_s": 480.0},
+            {"workers": 2, "seconds": 0.6, "recordings_per_s": 13.3, "frames_per_s": 800.0},
+        ],
+        "ratio_2_to_1": 800.0 / 480.0,
+    }  # fmt: skip
+    text = "\n".join(markdown(record))
+    assert "| 2 | 0.60 | 13.30 | 800.0 |" in text
+    assert "2 workers / 1: 1.67x" in text and "5.2 s" in text and "6.8 s" in text
+
+
+def test_same_results_compares_groupings_exactly_and_keypoints_within_a_tolerance():
+    from benchmarks.same_results import compare
+
+    rng = np.random.default_rng(0)
+    base = "s/p/offline"
+    a = {
+        f"{base}/xyz": rng.normal(size=(3, 2, 4, 3)).astype(np.float32),
+        f"{base}/valid": np.array([[True, False]] * 3),
+        f"{base}/keypoint_valid": np.ones((3, 2, 4), bool),
+        f"{base}/members": rng.integers(-1, 3, (3, 2, 5)),
+    }
+    b = {k: v.copy() for k, v in a.items()}
+    b[f"{base}/xyz"][:, 1] += 1.0  # an invalid person's keypoints are not compared
+    b[f"{base}/xyz"][0, 0, 0, 0] += 5e-6
+    compared, problems = compare(a, b)
+    assert compared == 3 * 4 * 3 and problems == []
+    b[f"{base}/xyz"][1, 0, 2, 1] += 1e-3
+    b[f"{base}/members"][2, 0, 0] += 1
+    _, problems = compare(a, b)
+    assert len(problems) == 2 and any("members" in p for p in problems)

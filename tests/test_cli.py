@@ -33,6 +33,7 @@ COMMANDS = [
     "export",
     "view",
     "score",
+    "batch",
 ]
 
 

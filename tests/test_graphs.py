@@ -20,6 +20,7 @@ from mvpose_jax.graphs import (
     make_pool,
     match_table,
     next_bucket,
+    next_quarter_bucket,
 )
 from mvpose_jax.synthetic import generate_single_person_recordings
 
@@ -219,3 +220,10 @@ def test_detection_features_match_keypoint_features(ring_rig):
 def test_budget_of_a_batch_is_a_bucket():
     b = graph_budget(3, 3, 1)
     assert (b.nodes, b.dets) == (64, 16)
+
+
+def test_next_quarter_bucket_is_the_smallest_of_its_sizes():
+    sizes = sorted({1, 2, 4, 8} | {p * q // 4 for p in (8, 16, 32, 64, 128) for q in (5, 6, 7, 8)})
+    for n in range(1, 257):
+        assert next_quarter_bucket(n) == next(s for s in sizes if s >= n), n
+    assert next_quarter_bucket(1025) == 1280  # a chunk of 256 frames of 4 people, and one more

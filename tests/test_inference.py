@@ -491,6 +491,26 @@ def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
     assert not (rows[:, 0] == 2).any()
 
 
+def test_combined_match_tables_are_the_gat_table_and_its_rows_epipolar_distances(ring_rig):
+    """One jit call per chunk for both tables gives the two calls' numbers."""
+    from mvpose_jax.matching import combined_match_tables, epipolar_distances_of_rows
+    from mvpose_jax.trained import Matcher
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=5, seed=5)
+    model = MatchingGAT(ring_rig.num_cameras, rec.num_keypoints, TINY, rngs=nnx.Rngs(2))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    matcher = Matcher(graphdef, rest, params, ring_rig, MatcherConfig(gat=TINY))
+    for per_call in (1, 4):
+        rows, scores = gat_match_table(matcher, rec.detections, frames_per_call=per_call)
+        want = epipolar_distances_of_rows(ring_rig, rec.detections, rows)
+        got = combined_match_tables(matcher, rec.detections, frames_per_call=per_call)
+        np.testing.assert_array_equal(got[0], rows)
+        np.testing.assert_allclose(got[1], scores, atol=1e-6)
+        for a, b in zip(got[2:], want, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4)  # inf where inf
+        assert np.isfinite(got[2]).mean() > 0.5
+
+
 def test_geometric_baseline_groups_true_people(ring_rig):
     from mvpose_jax.synthetic import generate_recording
 

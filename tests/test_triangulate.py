@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import warnings
 
 import cv2
 import jax
@@ -542,3 +543,56 @@ def test_skeleton_spread_is_the_median_distance_from_the_median_point():
     )
     assert triangulate.human_sized(xyz, valid, 0.99).tolist() == [False, True, True]
     assert triangulate.human_sized(xyz, valid, np.inf).all()
+
+
+@pytest.mark.parametrize("axis", [-1, -2])
+def test_nanmedian_by_rank_is_jnp_nanmedian_bit_for_bit(axis):
+    rng = np.random.default_rng(30)
+    a = rng.normal(size=(7, 5, 18, 6)).astype(np.float32)
+    a[rng.random(a.shape) < 0.3] = np.nan
+    a[..., 3, :] = a[..., 5, :]  # ties
+    a[0, 0] = np.nan  # slices with no number
+    a[1, 1, :2] = np.inf
+    a[1, 2, :3] = -np.inf
+    ours = np.asarray(jax.jit(triangulate.nanmedian_by_rank, static_argnums=1)(a, axis))
+    ref = np.asarray(jnp.nanmedian(a, axis=axis))
+    np.testing.assert_array_equal(ours, ref)  # NaN where jnp gives NaN, equal elsewhere
+
+
+@pytest.mark.parametrize("axis", [-1, -2, 1])
+def test_nanmedian_along_is_numpys(axis):
+    rng = np.random.default_rng(31)
+    a = rng.normal(size=(6, 9, 3))
+    a[rng.random(a.shape) < 0.4] = np.nan
+    a[0, :, :] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # numpy warns on all-NaN slices
+        ref = np.nanmedian(a, axis=axis)
+    np.testing.assert_array_equal(triangulate.nanmedian_along(a, axis), ref)
+
+
+def _wild_scene(num_points: int, wild_fraction: float, seed: int):
+    rig = random_rig(seed=seed, num_cameras=5)
+    X = scene_points(rig, seed + 1, (num_points // 18, 18))
+    px = np.asarray(cameras.project_points(rig, jnp.asarray(X)))
+    rng = np.random.default_rng(seed + 2)
+    px = px + rng.normal(scale=1.0, size=px.shape)
+    wild = rng.random(px.shape[:-1]) < wild_fraction / 5
+    px = np.where(wild[..., None], px + rng.choice([-1.0, 1.0], px.shape) * 200.0, px)
+    w = (rng.random(px.shape[:-1]) > 0.1).astype(np.float32)
+    return rig, jnp.asarray(px, jnp.float32), jnp.asarray(w)
+
+
+@pytest.mark.parametrize("wild_fraction", [0.02, 0.15, 0.8])
+def test_robust_on_the_needed_rows_alone_equals_every_row(monkeypatch, wild_fraction):
+    # 0.02: the needed rows fit the small gather; 0.15 the large one; 0.8: the whole batch.
+    rig, px, w = _wild_scene(36 * 18, wild_fraction, seed=32)
+    gathered = [np.asarray(a) for a in triangulate.triangulate_skeletons_robust(rig, px, w)]
+    monkeypatch.setattr(triangulate, "_MIN_ROWS_TO_COMPACT", 10**9)
+    jax.clear_caches()  # the jitted function must be traced again without the gathers
+    whole = [np.asarray(a) for a in triangulate.triangulate_skeletons_robust(rig, px, w)]
+    jax.clear_caches()
+    np.testing.assert_array_equal(gathered[1], whole[1])
+    np.testing.assert_array_equal(gathered[2], whole[2])
+    np.testing.assert_allclose(gathered[0], whole[0], atol=1e-6, rtol=0)
+    assert not np.asarray(whole[2]).all()  # some views were dropped

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 # isort: off
 from mvpose_jax.cli import rig, generate, train, adapt, convert, infer  # noqa: F401
 from mvpose_jax.cli import smooth, evaluate, render, export, view, score  # noqa: F401
+from mvpose_jax.cli import batch  # noqa: F401
 
 # isort: on
 from mvpose_jax.cli.options import SOURCE_LAYOUT_HELP

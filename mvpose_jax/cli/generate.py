@@ -6,11 +6,14 @@ import argparse
 
 from mvpose_jax.cli.options import (
     add_detection_options,
+    add_pool_arguments,
     add_rig_argument,
     detections_source,
+    pool_config,
     rig_source,
 )
 from mvpose_jax.cli.registry import command
+from mvpose_jax.errors import InputError
 from mvpose_jax.jobs.generate import (
     RATE_OPTIONS,
     TRAINING_FLOOR_JITTER_M,
@@ -43,6 +46,27 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="write N one-person training recordings into the --out folder instead of one scene",
     )
+    p.add_argument(
+        "--recordings",
+        type=int,
+        default=0,
+        metavar="N",
+        help="write N recordings into the --out folder (recording_<i>.json or .npz), recording "
+        "i with seed --seed + i, on a pool of Ray workers (--workers, --address; "
+        'pip install "mvpose-jax[cluster]"): the same files whatever the number of workers',
+    )
+    p.add_argument(
+        "--single-person",
+        action="store_true",
+        help="with --recordings: one-person training recordings (the floor jittered as "
+        "--single-person-recordings' are) instead of scenes of --people",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="with --recordings: skip the recordings OUT/batch.json records as written",
+    )
+    add_pool_arguments(p)
     p.add_argument(
         "--format",
         choices=("native", "npz"),
@@ -133,6 +157,12 @@ def _generate(args: argparse.Namespace) -> int:
         detector_like=(detections_source(args, args.detector_like) if args.detector_like else None),
         rates=rates,
     )
+    if args.recordings:
+        return _generate_recordings(args, config)
+    if args.single_person or args.resume:
+        raise InputError(
+            "goes with --recordings", field="--single-person" if args.single_person else "--resume"
+        )
     done = generate(config)
     if done.floor is not None:
         measured = done.floor
@@ -149,6 +179,21 @@ def _generate(args: argparse.Namespace) -> int:
         f"{done.detections} detections"
     )
     return 0
+
+
+def _generate_recordings(args: argparse.Namespace, config: GenerateConfig) -> int:
+    """``--recordings N``: the recordings on the Ray pool (`jobs.batch.run_generate_batch`)."""
+    from mvpose_jax.cli.batch import print_summary
+    from mvpose_jax.jobs.batch import run_generate_batch
+
+    res = run_generate_batch(
+        config,
+        args.recordings,
+        pool_config(args),
+        single_person=args.single_person,
+        resume=args.resume,
+    )
+    return print_summary(res, "generate")
 
 
 def _synthetic_figure_arguments(p: argparse.ArgumentParser) -> None:

@@ -33,20 +33,8 @@ from mvpose_jax.jobs.export import export_formats
 from mvpose_jax.jobs.smooth import smoothing_settings
 
 
-def _infer_arguments(p: argparse.ArgumentParser) -> None:
-    detection_arguments(p, required=False)
-    p.add_argument(
-        "--session",
-        metavar="DIR",
-        help="a Pose2Sim project (session, participant or trial folder) read as Pose2Sim reads "
-        "it: its Config.toml files, its calibration, the detection folders paired with the "
-        "calibration's cameras by sorted position; every trial is reconstructed into OUT/<trial>/ "
-        "with Pose2Sim-named TRC files in OUT/<trial>/pose-3d/ (--detections on such a folder "
-        "does the same)",
-    )
-    p.add_argument(
-        "--cameras", nargs="+", help="use only these cameras of the recording (default: all)"
-    )
+def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
+    """The models and the pipeline's stages (``infer``, ``batch``; `pipeline_config` reads them)."""
     p.add_argument(
         "--matcher",
         help="folder of a trained matcher (train-matcher --out); default: the geometric "
@@ -97,6 +85,39 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         "a chunk at a time, so memory does not grow with the recording (native and original "
         "JSON are one document and are loaded whole: convert long ones to .npz)",
     )
+
+
+def add_tracking_arguments(p: argparse.ArgumentParser) -> None:
+    """Tracking and smoothing (``infer``, ``batch``; `pipeline_config` reads them)."""
+    p.add_argument(
+        "--no-track",
+        action="store_true",
+        help="no track ids (each frame's people stand alone; no filtering or gap filling)",
+    )
+    p.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=1.0,
+        help="tracking: a person unseen for up to this many seconds keeps their track id",
+    )
+    add_smoothing_arguments(p, default_filter="butterworth")
+
+
+def _infer_arguments(p: argparse.ArgumentParser) -> None:
+    detection_arguments(p, required=False)
+    p.add_argument(
+        "--session",
+        metavar="DIR",
+        help="a Pose2Sim project (session, participant or trial folder) read as Pose2Sim reads "
+        "it: its Config.toml files, its calibration, the detection folders paired with the "
+        "calibration's cameras by sorted position; every trial is reconstructed into OUT/<trial>/ "
+        "with Pose2Sim-named TRC files in OUT/<trial>/pose-3d/ (--detections on such a folder "
+        "does the same)",
+    )
+    p.add_argument(
+        "--cameras", nargs="+", help="use only these cameras of the recording (default: all)"
+    )
+    add_pipeline_arguments(p)
     p.add_argument(
         "--out",
         required=True,
@@ -115,18 +136,7 @@ def _infer_arguments(p: argparse.ArgumentParser) -> None:
         help="keep OUT/chunks/ (each chunk's results and the run's settings) after writing the "
         "results; default: removed once poses.json and poses.npz are written",
     )
-    p.add_argument(
-        "--no-track",
-        action="store_true",
-        help="no track ids (each frame's people stand alone; no filtering or gap filling)",
-    )
-    p.add_argument(
-        "--max-gap-s",
-        type=float,
-        default=1.0,
-        help="tracking: a person unseen for up to this many seconds keeps their track id",
-    )
-    add_smoothing_arguments(p, default_filter="butterworth")
+    add_tracking_arguments(p)
     p.add_argument(
         "--export",
         action="append",

@@ -416,3 +416,39 @@ def print_dev_quality(quality: dict | None) -> None:
             f"estimator {q['estimator_px']:.2f} px, triangulation {q['triangulation_px']:.2f} px "
             f"({verdict} than triangulation)"
         )
+
+
+def add_pool_arguments(p: argparse.ArgumentParser) -> None:
+    """The Ray workers' options (``batch``, ``generate --recordings``; `pool_config` reads them)."""
+    p.add_argument(
+        "--address",
+        help="the Ray cluster to join (`ray start --head` prints it; 'auto': the one this machine "
+        "belongs to); default: a Ray on this machine's CPUs, started and stopped by the command",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="Ray workers (default: the cluster's CPUs / --cpus-per-worker, at most one per "
+        "recording); each loads JAX, compiles and loads the models once",
+    )
+    p.add_argument(
+        "--cpus-per-worker",
+        type=int,
+        default=1,
+        help="CPUs each worker reserves, and the threads of its XLA pool",
+    )
+    p.add_argument(
+        "--retries",
+        type=int,
+        default=2,
+        help="times a recording whose worker died (killed, out of memory, machine lost) is run "
+        "again, from its start, on a fresh worker",
+    )
+
+
+def pool_config(args: argparse.Namespace):
+    """The `jobs.batch.PoolConfig` of `add_pool_arguments`' options."""
+    from mvpose_jax.jobs.batch import PoolConfig
+
+    return PoolConfig(args.address, args.workers, args.cpus_per_worker, args.retries)

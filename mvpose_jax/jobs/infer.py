@@ -224,11 +224,15 @@ def resume_record(config: PipelineConfig, inputs: dict[str, Any]) -> dict[str, A
 
 
 def run_infer(
-    config: InferConfig, *, notify: Callable[[str, str], None] = lambda kind, message: None
+    config: InferConfig,
+    *,
+    notify: Callable[[str, str], None] = lambda kind, message: None,
+    models: dict | None = None,
 ) -> InferResult:
     """Runs ``infer`` (the module docstring); ``notify(kind, message)`` gets what a person
     watching should know while it runs: "resuming" (where), "partial" (partial results written
-    before an error is raised).
+    before an error is raised). ``models``: a cache of loaded models the caller keeps between
+    runs (a ``batch`` worker: models loaded once per process, `load_models`); None: loaded here.
 
     Raises:
       InputError: bad input or settings (named); an error while running leaves the finished
@@ -267,8 +271,7 @@ def run_infer(
         head = stream.read_frames(0, min(F, 8)) if F else None
         export = _exporter(config, rig_all, head)  # checks its settings before the work
         fps = config.fps or recording_fps(head.timestamps if head is not None else None)
-        matcher = load_matcher(config.matcher, rig) if config.matcher else None
-        estimator = load_estimator(config.estimator, rig) if config.estimator else None
+        matcher, estimator = load_models(config, rig, {} if models is None else models)
         adapted = None
         if config.adapt is not None:
             from mvpose_jax.adapt import adapt_estimator
@@ -407,6 +410,30 @@ def run_infer(
         view,
         read_notes,
     )
+
+
+def load_models(config: InferConfig, rig, cache: dict) -> tuple[Any, Any]:
+    """(matcher, estimator) of ``config`` for ``rig`` (None where not given), taken from
+    ``cache`` when loaded before for the same folder and cameras, else loaded and kept there."""
+
+    def key(kind: str, folder: str):
+        arrays = (rig.K, rig.dist, rig.R, rig.t, rig.size)
+        cams = b"".join(np.asarray(a, np.float64).tobytes() for a in arrays)
+        return kind, str(Path(folder).resolve()), tuple(rig.names), hash(cams)
+
+    out = []
+    for kind, folder, load in (
+        ("matcher", config.matcher, load_matcher),
+        ("estimator", config.estimator, load_estimator),
+    ):
+        if not folder:
+            out.append(None)
+            continue
+        k = key(kind, folder)
+        if k not in cache:
+            cache[k] = load(folder, rig)
+        out.append(cache[k])
+    return out[0], out[1]
 
 
 def _write_view(config: InferConfig, rig_all, done: Assembled, fps: float) -> Path:

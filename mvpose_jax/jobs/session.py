@@ -101,15 +101,28 @@ def run_session(
     out = []
     for trial in session.trials:
         on_trial(trial)
-        infer = trial_config(config, trial)
-        result = run_infer(infer, notify=notify)
-        trc = _pose2sim_names(result, trial) if result.exported else ()
-        if trc:  # the exports were moved to Pose2Sim's names
-            result = result._replace(exported=trc)
-        out.append(TrialResult(trial, result, trc, result.read_notes))
-        if result.interrupted:
+        done = run_trial(config, trial, notify=notify)
+        out.append(done)
+        if done.result.interrupted:
             break
     return out
+
+
+def run_trial(
+    config: SessionConfig,
+    trial: Pose2SimTrial,
+    *,
+    notify: Callable[[str, str], None] = lambda kind, message: None,
+    models: dict | None = None,
+) -> TrialResult:
+    """One trial of a session: its ``infer`` run (`trial_config`), the TRC files under
+    Pose2Sim's names; what `run_session` and a ``batch`` worker run per trial (``models`` as
+    `run_infer`'s)."""
+    result = run_infer(trial_config(config, trial), notify=notify, models=models)
+    trc = _pose2sim_names(result, trial) if result.exported else ()
+    if trc:  # the exports were moved to Pose2Sim's names
+        result = result._replace(exported=trc)
+    return TrialResult(trial, result, trc, result.read_notes)
 
 
 def _pose2sim_names(result: InferResult, trial: Pose2SimTrial) -> tuple[Path, ...]:
