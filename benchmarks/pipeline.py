@@ -678,10 +678,10 @@ def pipeline_group(tier_name: str) -> dict:
                 pose2sim["ratio_to_default_offline"] = (
                     pose2sim["ms_per_frame"] / ours["ms_per_frame"]
                 )
-        else:
-            pose2sim["note"] = (
-                "Pose2Sim is not installed (the benchmarks' optional extra: pip install .[bench])"
-            )
+    if not pose2sim["installed"]:
+        pose2sim["note"] = (
+            "Pose2Sim is not installed (the benchmarks' optional extra: pip install .[bench])"
+        )
     return {
         "records": records,
         "training": training,

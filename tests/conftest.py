@@ -32,6 +32,17 @@ from mvpose_jax.data.calibration import PRESETS, load_preset  # noqa: E402
 from tests.helpers import random_rig  # noqa: E402
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """Drops every compiled program after each test module. A worker process runs many modules,
+    and each XLA:CPU executable it keeps holds its own memory maps: after ~15 modules a worker
+    held 65,000 maps, Linux's default `vm.max_map_count` (65,530), and the next compile
+    segfaulted (in XLA, while serialising the program for the cache). The persistent cache
+    (above) makes the programs a later module needs again cheap to get back."""
+    yield
+    jax.clear_caches()
+
+
 def pytest_unconfigure(config):
     if _OWN_CACHE is not None:
         shutil.rmtree(_OWN_CACHE, ignore_errors=True)

@@ -231,6 +231,21 @@ def test_a_killed_driver_on_the_cluster_is_resumed_without_recomputing(
         assert (out / n / "poses.npz").stat().st_mtime_ns == written[n]
 
 
+def test_a_batch_written_to_a_url_equals_sequential_runs_and_resumes_from_it(
+    local_ray, recordings, sequential, tmp_path
+):
+    # file:// goes through fsspec as s3:// or gs:// would: staged by the workers, then uploaded.
+    url = tmp_path.as_uri() + "/run"
+    res = run_batch(_config(recordings, url, 2))
+    assert [r.status for r in res.recordings] == ["done"] * 4
+    assert res.manifest == url + "/" + MANIFEST
+    _assert_same_results(tmp_path / "run", sequential)
+    assert not [p for p in (tmp_path / "run").rglob("*") if ".partial-" in p.name]
+    assert _manifest(tmp_path / "run")["rec_b"]["out"] == url + "/rec_b"
+    again = run_batch(_config(recordings, url, 2, resume=True))
+    assert [r.status for r in again.recordings] == ["skipped"] * 4 and again.frames == 0
+
+
 def test_generate_recordings_seeds_each_recording_whatever_the_workers(local_ray, tmp_path):
     base = GenerateConfig(RIG, str(tmp_path / "pool"), people=2, frames=6, seed=7, floor_height=0.0)
     res = run_generate_batch(base, 3, PoolConfig(workers=2), progress=False)

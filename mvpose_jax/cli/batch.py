@@ -34,7 +34,8 @@ def _batch_arguments(p: argparse.ArgumentParser) -> None:
         required=True,
         help="output folder: OUT/<trial>/ per Pose2Sim trial, OUT/<recording>/ per recording "
         "(as infer writes them), and the run manifest OUT/batch.json (each recording's status, "
-        "error, output); on a cluster, a path every machine sees",
+        "error, output); on a cluster, a path every machine sees or an fsspec URL "
+        "(s3://bucket/run, gs://..., file:///shared/run: each worker uploads its results)",
     )
     add_rig_argument(p, default=None, required=False)
     p.add_argument(

@@ -51,7 +51,8 @@ def _generate_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="write N recordings into the --out folder (recording_<i>.json or .npz), recording "
+        help="write N recordings into the --out folder or fsspec URL (recording_<i>.json or "
+        ".npz), recording "
         "i with seed --seed + i, on a pool of Ray workers (--workers, --address; "
         'pip install "mvpose-jax[cluster]"): the same files whatever the number of workers',
     )

@@ -16,7 +16,8 @@ hand them to `run_pool`:
   recording holds no other back;
 - a worker runs `run_task`, the very code ``infer`` / ``infer --session`` / ``generate`` run, and
   writes the recording's results itself (atomically, as those jobs do) to its output folder, a
-  path every worker sees (shared storage on a cluster);
+  path every worker sees (shared storage on a cluster) or an fsspec URL (``s3://bucket/run``:
+  written locally, then uploaded file by file, `jobs.storage`);
 - a worker that dies (killed, out of memory, its machine gone) is replaced and its recording is
   run again from its start, up to `PoolConfig.retries` times; a recording whose input is bad
   fails with the `errors.InputError` naming its file, frame, camera and field, and the others go
@@ -46,10 +47,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from mvpose_jax.data.files import atomic_write_text, read_json, to_jsonable
+from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.data.pose2sim import Pose2SimTrial
 from mvpose_jax.errors import InputError, MvposeError
 from mvpose_jax.inference import PipelineConfig
+from mvpose_jax.jobs import storage
 from mvpose_jax.jobs.common import DetectionsSource, RigSource
 from mvpose_jax.jobs.generate import GenerateConfig
 from mvpose_jax.jobs.infer import INFER_PIPELINE, InferConfig
@@ -100,9 +102,10 @@ class BatchConfig:
       source: a Pose2Sim project (session, participant or trial folder: every trial, as
         ``infer --session``), a folder of recordings (every .json, .npz and OpenPose folder in
         it, recursively; ``rig`` their calibration) or a manifest file (`read_manifest_file`).
-      out: the output folder: ``out/<trial>/`` per Pose2Sim trial, ``out/<path in the folder
-        without its suffix>/`` per recording of a folder, the manifest file's outputs relative to
-        it; and the run manifest ``out/batch.json``.
+      out: the output folder (a path, or an fsspec URL such as ``s3://bucket/run``):
+        ``out/<trial>/`` per Pose2Sim trial, ``out/<path in the folder without its suffix>/``
+        per recording of a folder, the manifest file's outputs relative to it; and the run
+        manifest ``out/batch.json``.
       rig: the calibration of a folder's recordings (a manifest file names its own).
       pipeline, matcher, estimator, fps, keep_chunks: as `jobs.infer.InferConfig`'s, for every
         recording.
@@ -178,7 +181,7 @@ class BatchResult(NamedTuple):
     imported JAX (None: no new worker, all taken warm from an earlier batch)."""
 
     recordings: tuple[RecordingStatus, ...]
-    manifest: Path
+    manifest: Path | str
     workers: int
     seconds: float
     interrupted: bool = False
@@ -208,7 +211,7 @@ def run_batch(
     """
     return run_pool(
         batch_tasks(config),
-        Path(config.out),
+        config.out,
         config.pool,
         resume=config.resume,
         progress=config.progress,
@@ -243,7 +246,7 @@ def run_generate_batch(
             "recordings), not --single-person-recordings too",
             field="--single-person-recordings",
         )
-    out = check_writable(config.out, folder=True)
+    out = config.out if storage.is_url(config.out) else check_writable(config.out, folder=True)
     suffix = ".npz" if config.format == "npz" else ".json"
     jitter = config.floor_jitter
     if single_person and jitter is None:
@@ -253,15 +256,16 @@ def run_generate_batch(
     width = len(str(recordings - 1))
     tasks = []
     for i in range(recordings):
-        path = out / f"recording_{i:0{width}d}{suffix}"
+        name = f"recording_{i:0{width}d}"
+        path = storage.join(out, name + suffix)
         job = dataclasses.replace(
             config,
-            out=str(path),
+            out=path,
             seed=config.seed + i,
             people=1 if single_person else config.people,
             floor_jitter=jitter,
         )
-        tasks.append(BatchTask(path.stem, str(path), job))
+        tasks.append(BatchTask(name, path, job))
     return run_pool(
         tasks, out, pool, resume=resume, progress=progress, on_done=on_done, source="generate"
     )
@@ -296,7 +300,7 @@ def batch_tasks(config: BatchConfig) -> list[BatchTask]:
             progress=False,
         )
         tasks = [
-            BatchTask(t.name, os.path.join(config.out, t.name), TrialJob(session, t))
+            BatchTask(t.name, storage.join(config.out, t.name), TrialJob(session, t))
             for t in find_trials(source).trials
         ]
     elif source.is_file():
@@ -310,7 +314,7 @@ def batch_tasks(config: BatchConfig) -> list[BatchTask]:
         tasks = []
         for path in _recordings_under(source):
             name = path.relative_to(source).with_suffix("").as_posix()
-            out = os.path.join(config.out, name)
+            out = storage.join(config.out, name)
             tasks.append(_infer_task(config, name, config.rig, str(path), out))
     names = [t.name for t in tasks]
     twice = sorted({n for n in names if names.count(n) > 1})
@@ -355,7 +359,7 @@ def read_manifest_file(path: str | os.PathLike, out: str) -> list[tuple[str, str
                 Path(output).as_posix(),
                 recording,
                 RigSource(str(calibration)),
-                os.path.join(out, output),
+                storage.join(out, output),
             )
         )
     if not rows:
@@ -406,31 +410,17 @@ def run_task(task: BatchTask, models: dict | None = None) -> dict[str, Any]:
     """Runs one recording in this process, as ``infer`` / ``infer --session`` / ``generate``
     would, and says how it went: {"status": "done" | "failed", "error", "frames", "seconds",
     "worker"}. Bad input (an `MvposeError`) and any other exception fail the recording without
-    raising; a worker runs this, ``models`` its cache of loaded models (`infer.load_models`)."""
-    from mvpose_jax.jobs.generate import generate
-    from mvpose_jax.jobs.infer import run_infer
-    from mvpose_jax.jobs.session import run_trial
-
-    die = None
-    if task.kill_marker is not None and not os.path.exists(task.kill_marker):
-        die = _die_mid_recording(task)
+    raising; a worker runs this, ``models`` its cache of loaded models (`infer.load_models`).
+    An output at a URL is written into a local staging folder, then uploaded
+    (`storage.publish`); its ``infer`` run starts from its first frame."""
     start = time.perf_counter()
     worker = f"{socket.gethostname()}:{os.getpid()}"
     try:
-        job = task.job
-        if isinstance(job, TrialJob):
-            result = run_trial(job.session, job.trial, models=models).result
-            frames = result.frames
-        elif isinstance(job, InferConfig):
-            result = run_infer(job, models=models)
-            frames = result.frames
-        else:
-            made = generate(job)
-            frames = made.frames * made.recordings
-        if not isinstance(job, GenerateConfig) and result.interrupted:
-            raise MvposeError("interrupted")
-        if die is not None:  # the recording ended before the hook saw a chunk: die now
-            die()
+        with storage.staging(task.out) as folder:
+            job, local = (task.job, task.out) if folder is None else _staged(task, folder)
+            frames = _run_job(job, models, task.kill_marker, local)
+            if folder is not None:
+                storage.publish(local, task.out)
     except MvposeError as e:
         return _status("failed", str(e), 0, start, worker)
     except Exception as e:  # a bug, named: it must not stop the other recordings
@@ -438,7 +428,45 @@ def run_task(task: BatchTask, models: dict | None = None) -> dict[str, Any]:
     return _status("done", None, frames, start, worker)
 
 
-def _die_mid_recording(task: BatchTask) -> Callable[[], None]:
+def _staged(task: BatchTask, folder: Path) -> tuple[InferConfig | TrialJob | GenerateConfig, str]:
+    """``task``'s job writing into the local ``folder`` instead of its URL, and where in it the
+    results then are (a folder, or a generated recording's file)."""
+    job = task.job
+    if isinstance(job, TrialJob):
+        session = dataclasses.replace(job.session, out=str(folder), resume=False)
+        return TrialJob(session, job.trial), str(folder / job.trial.name)
+    local = str(folder / task.out.rstrip("/").rsplit("/", 1)[-1])
+    if isinstance(job, InferConfig):
+        return dataclasses.replace(job, out=local, resume=False), local
+    return dataclasses.replace(job, out=local), local
+
+
+def _run_job(job, models: dict | None, kill_marker: str | None, out: str) -> int:
+    """Runs one recording's job, its results written to ``out``; returns its frames."""
+    from mvpose_jax.jobs.generate import generate
+    from mvpose_jax.jobs.infer import run_infer
+    from mvpose_jax.jobs.session import run_trial
+
+    die = None
+    if kill_marker is not None and not os.path.exists(kill_marker):
+        die = _die_mid_recording(job, kill_marker, out)
+    if isinstance(job, TrialJob):
+        result = run_trial(job.session, job.trial, models=models).result
+        frames = result.frames
+    elif isinstance(job, InferConfig):
+        result = run_infer(job, models=models)
+        frames = result.frames
+    else:
+        made = generate(job)
+        frames = made.frames * made.recordings
+    if not isinstance(job, GenerateConfig) and result.interrupted:
+        raise MvposeError("interrupted")
+    if die is not None:  # the recording ended before the hook saw a chunk: die now
+        die()
+    return frames
+
+
+def _die_mid_recording(job, kill_marker: str, out: str) -> Callable[[], None]:
     """Test hook (`KILL_ONCE_ENV`): this process SIGKILLs itself once the recording's first chunk
     is on disk (a generated recording: at once), the marker written first (one that cannot be
     written makes a worker that dies every time). Returns the kill, for a recording that ends
@@ -446,14 +474,14 @@ def _die_mid_recording(task: BatchTask) -> Callable[[], None]:
 
     def die(when: str = "at its end") -> None:
         with contextlib.suppress(OSError):
-            Path(task.kill_marker).write_text(f"{os.getpid()} {when}\n")
+            Path(kill_marker).write_text(f"{os.getpid()} {when}\n")
         os.kill(os.getpid(), signal.SIGKILL)
 
-    if isinstance(task.job, GenerateConfig):
+    if isinstance(job, GenerateConfig):
         die("at its start")
 
     def watch() -> None:
-        chunks = Path(task.out) / "chunks"
+        chunks = Path(out) / "chunks"
         while not any(chunks.glob("chunk_*.npz")):
             time.sleep(0.002)
         die("mid-recording")
@@ -528,7 +556,7 @@ def xla_env(cpus: int) -> dict[str, str]:
 
 def run_pool(
     tasks: Sequence[BatchTask],
-    out: Path,
+    out: str | os.PathLike,
     pool: PoolConfig,
     *,
     resume: bool = False,
@@ -536,7 +564,8 @@ def run_pool(
     on_done: Callable[[RecordingStatus], None] = lambda status: None,
     source: str = "",
 ) -> BatchResult:
-    """Runs ``tasks`` on Ray workers (the module docstring), the run manifest in ``out``."""
+    """Runs ``tasks`` on Ray workers (the module docstring), the run manifest in ``out`` (a
+    folder, or an fsspec URL)."""
     try:
         import ray
     except ImportError:
@@ -550,9 +579,10 @@ def run_pool(
     if pool.retries < 0:
         raise InputError("must be >= 0", field="--retries")
     started = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = out / MANIFEST
+    storage.make_folder(out)
+    manifest = storage.join(out, MANIFEST)
+    if not storage.is_url(manifest):
+        manifest = Path(manifest)
     settings = {t.name: task_settings(t) for t in tasks}
     earlier = _read_manifest(manifest) if resume else {}
     status: dict[str, RecordingStatus] = {}
@@ -563,7 +593,7 @@ def run_pool(
         if (
             was.get("status") in ("done", "skipped")
             and was.get("settings") == settings[t.name]
-            and os.path.exists(t.out)
+            and storage.exists(t.out)
         ):
             status[t.name] = RecordingStatus(
                 t.name, "skipped", t.out, None, int(was.get("attempts", 0))
@@ -583,7 +613,7 @@ def run_pool(
                 name: {**s._asdict(), "settings": settings[name]} for name, s in status.items()
             },
         }
-        atomic_write_text(manifest, json.dumps(to_jsonable(doc), indent=1) + "\n")
+        storage.write_text(manifest, json.dumps(to_jsonable(doc), indent=1) + "\n")
 
     write_manifest()
     if not todo:
@@ -765,11 +795,11 @@ def _kill_hook() -> tuple[str, str] | None:
     return name, marker
 
 
-def _read_manifest(path: Path) -> dict[str, dict]:
+def _read_manifest(path: Path | str) -> dict[str, dict]:
     """The recordings of an earlier run's manifest (empty when there is none)."""
-    if not path.exists():
+    if not storage.exists(path):
         return {}
-    doc = read_json(path)
+    doc = storage.read_json_at(path)
     if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT:
         raise InputError("not a batch run manifest", file=path, field="format")
     recordings = doc.get("recordings")
