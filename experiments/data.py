@@ -13,6 +13,7 @@ from mvpose_jax.data import select_cameras
 from mvpose_jax.lifting import members_from_identity
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.synthetic import (
+    DetectorConfig,
     SyntheticConfig,
     detection_variants,
     generate_recording,
@@ -109,11 +110,16 @@ def make_data(
     progress: bool,
     floor_height: float | None = None,
     up: tuple[float, float, float] | None = None,
+    detector: DetectorConfig | None = None,
 ) -> Data:
     """Training and dev recordings of training seed ``seed``, with the shared ``scenes``
     (``floor_height``, ``up``: the floor along up, metres, and up, as measured on a real rig
-    (`floor.estimate_floor_from_detections`); None: the rig's, or guessed from the cameras)."""
+    (`floor.estimate_floor_from_detections`); None: the rig's, or guessed from the cameras;
+    ``detector``: the simulated detector, such as one fitted to a real recording
+    (`detector_fit.fit_detector`); None: the default one)."""
     config = SyntheticConfig()
+    if detector is not None:
+        config = dataclasses.replace(config, detector=detector)
     if floor_height is not None or up is not None:
         config = config.with_scene(floor_height=floor_height, up=up)
     if sc.train_floor_jitter_m > 0:

@@ -39,6 +39,7 @@ from mvpose_jax.proposals import (
     choose_geometric_cutoff,
     choose_proposal_threshold,
 )
+from mvpose_jax.synthetic import DetectorConfig
 from mvpose_jax.trained import (
     Estimator,
     Matcher,
@@ -205,12 +206,14 @@ def cached_models(
     floor_height: float | None = None,
     up: tuple[float, float, float] | None = None,
     data: Data | None = None,
+    detector: DetectorConfig | None = None,
 ) -> Models:
     """The matcher and estimator of ``rig`` (every camera) trained as the experiments train them
     (``scale``, a name of `SCALES` or a `Scale`; training seed ``seed``), loaded from ``folder``
     when it holds them, else trained and, with a ``folder``, written there (see the module's
     docstring for its layout). ``floor_height``, ``up``: the training recordings' (`make_data`);
-    ``data``: train on these recordings instead of generating them (real single-person ones).
+    ``data``: train on these recordings instead of generating them (real single-person ones);
+    ``detector``: the generated recordings' simulated detector (None: the default one).
 
     Raises:
       InputError: ``folder`` is a file (such as the pickles these caches were before), or a
@@ -220,7 +223,9 @@ def cached_models(
         return load_models(rig, folder)
     sc = SCALES[scale] if isinstance(scale, str) else scale
     if data is None:
-        data = make_data(rig, {}, sc, seed, progress, floor_height=floor_height, up=up)
+        data = make_data(
+            rig, {}, sc, seed, progress, floor_height=floor_height, up=up, detector=detector
+        )
     matcher, fit = fit_matcher(
         data, sc, rig.names, seed, progress, None if folder is None else folder / "matcher"
     )
@@ -239,6 +244,7 @@ def cached_models(
             "scale": scale if isinstance(scale, str) else "custom",
             "floor_height": floor_height,
             "up": up,
+            "detector": None if detector is None else dataclasses.asdict(detector),
             "fit": fit,
             "estimator_fit": estimator_fit,
         }

@@ -58,10 +58,11 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from experiments.records import report_json
 from mvpose_jax.cameras import Rig, point_depths, project_points
 from mvpose_jax.data import Recording, load_recording, slice_frames
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.data.files import atomic_write_text, to_jsonable
+from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.data.pose2sim import Pose2SimTrial, find_trials
 from mvpose_jax.data.poses import PoseResults, load_poses
 from mvpose_jax.errors import InputError
@@ -117,6 +118,9 @@ MODEL_SOURCES = {
     "synthetic": "models from synthetic recordings of the rig",
     "trials": "models from the single-person trials",
     "mixed": "models from both, mixed",
+    # Made by `experiments.detector_like` (not by `demo_models`): synthetic recordings whose
+    # detector is fitted to the two-person trial's own detections.
+    "detector-like": "models from synthetic recordings with a detector fitted to the trial",
 }
 MODEL_ROWS = tuple(
     (f"ours, {MODEL_SOURCES[source]}: {what}, pose/", source, pipeline)
@@ -828,24 +832,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     timings = timings_of(report)
     clean = without_timings(report)
     # The tables and numbers are deterministic; the wall times go to their own file.
-    atomic_write_text(
-        out / "pose2sim_demo.json", json.dumps(_finite(to_jsonable(clean)), indent=1) + "\n"
-    )
+    atomic_write_text(out / "pose2sim_demo.json", report_json(clean))
     atomic_write_text(out / "pose2sim_demo.md", markdown(clean))
     atomic_write_text(out / "timings.json", json.dumps(timings, indent=1) + "\n")
     atomic_write_text(out / "pose2sim_demo_timed.md", markdown(clean, timings))
     print((out / "pose2sim_demo.md").read_text())
     return 0
-
-
-def _finite(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    return value
 
 
 if __name__ == "__main__":

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import time
 from pathlib import Path
@@ -68,7 +67,8 @@ from experiments.real_models import (
     synthetic_models,
     training_record,
 )
-from mvpose_jax.data.files import atomic_write_text, to_jsonable
+from experiments.records import report_json
+from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.floor import estimate_floor_from_detections
 from mvpose_jax.inference import run_pipeline
@@ -772,7 +772,7 @@ def main(argv=None) -> int:
             "models": {k: r for k, (_, r) in pairs.items()}
         }
     report["seconds"] = time.perf_counter() - start
-    atomic_write_text(out / "real.json", json.dumps(_no_nan(to_jsonable(report)), indent=1))
+    atomic_write_text(out / "real.json", report_json(report))
     text = markdown(report)
     if "pose2sim_demo" in report:
         text += "\n" + demo.markdown(report["pose2sim_demo"], timings, level=2)
@@ -793,17 +793,6 @@ def _pct(v: float) -> str:
 
 def _signed(v: float) -> str:
     return "-" if v is None or not math.isfinite(v) else f"{v:+.2f}"
-
-
-def _no_nan(value):
-    """NaN (no error to average) as JSON null."""
-    if isinstance(value, dict):
-        return {k: _no_nan(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_no_nan(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from mvpose_jax.cameras import Rig
 from mvpose_jax.floor import FloorEstimate
 from mvpose_jax.jobs.generate import TRAINING_FLOOR_JITTER_M
 from mvpose_jax.models import MLPConfig
+from mvpose_jax.synthetic import DetectorConfig
 
 # Steps by number of views: the quick scale's (3 views 20000, 5-6 views 6000) cut to fit the
 # benchmark's budget (about 3 minutes per model pair on 2 cores).
@@ -79,6 +80,31 @@ def synthetic_models(
         progress=progress,
         floor_height=floor.height,
         up=floor.measured_up,
+    )
+
+
+def detector_like_models(
+    rig: Rig,
+    floor: FloorEstimate,
+    detector: DetectorConfig,
+    folder: Path,
+    *,
+    smoke: bool,
+    progress: bool = False,
+) -> Models:
+    """As `synthetic_models`, with the recordings' simulated detector ``detector``: one fitted
+    to the real recording's own detections (`detector_fit.fit_detector`, what ``mvpose-jax
+    generate --detector-like`` does), so that the models see its jitter, misses and false
+    skeletons while they train."""
+    return cached_models(
+        rig,
+        folder,
+        seed=SEED,
+        scale=scale(smoke),
+        progress=progress,
+        floor_height=floor.height,
+        up=floor.measured_up,
+        detector=detector,
     )
 
 

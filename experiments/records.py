@@ -4,6 +4,7 @@ long run keeps, and the records of earlier runs read back (``--tables-from``).""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from experiments.config import Scale
@@ -21,6 +22,22 @@ def run_record(seed: int, scenes_seed: int, sc: Scale) -> dict:
         "train_floor_jitter_m": sc.train_floor_jitter_m,
         "train_floor_offset_m": sc.train_floor_offset_m,
     }
+
+
+def report_json(report) -> str:
+    """``report`` as JSON text: arrays and dataclasses as `to_jsonable` writes them, NaN (no
+    error to average) and infinities as null, which JSON lacks."""
+    return json.dumps(_finite(to_jsonable(report)), indent=1) + "\n"
+
+
+def _finite(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
 
 
 def save_partial(runs: list[dict], out: Path) -> None:

@@ -164,3 +164,25 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
     assert "say it with --train-floor-jitter" in capsys.readouterr().err
     argv += [str(other), "--train-floor-jitter", "0", "--train-floor-offset", "0"]
     assert main(argv) == 0
+
+
+def test_training_recordings_take_the_given_detector():
+    """`make_data(detector=...)` (what `real_models.detector_like_models` trains on): the same
+    people and motion, seen by the given detector instead of the default one."""
+    import dataclasses
+
+    import numpy as np
+
+    from experiments.config import SCALES
+    from experiments.data import make_data
+    from mvpose_jax.data.calibration import load_preset
+    from mvpose_jax.synthetic import DetectorConfig
+
+    rig = load_preset("panoptic5")
+    blind = dataclasses.replace(DetectorConfig(), miss_rate=1.0, false_positive_rate=0.0)
+    default = make_data(rig, {}, SCALES["smoke"], 0, False)
+    given = make_data(rig, {}, SCALES["smoke"], 0, False, detector=blind)
+    for a, b in zip(default.train + default.dev, given.train + given.dev, strict=True):
+        np.testing.assert_array_equal(a.ground_truth.xyz, b.ground_truth.xyz)
+        assert int(np.asarray(b.detections.count).sum()) == 0
+    assert sum(int(np.asarray(r.detections.count).sum()) for r in default.train) > 0

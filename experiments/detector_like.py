@@ -1,0 +1,266 @@
+"""Models trained on a detector like the recording's: ``python -m experiments.detector_like --out
+DIR [--baseline-models DIR] [--smoke]`` (issue 37, items 1 and 4).
+
+For each real recording of ``../shared/real/``, two model pairs (the paper's GAT and the small
+residual MLP, `real_models.REAL_SCALE`, training seed 0), both trained without a label on
+synthetic single-person recordings of its rig with the floor measured from its people:
+
+* **default detector**: the simulator's default detector (`real_models.synthetic_models`, what
+  ``python -m experiments.real`` trains; ``--baseline-models`` reuses its models folder);
+* **detector like the recording's**: the detector fitted to the recording's own detections
+  without a label (`detector_fit.fit_detector`: jitter, left/right swaps, dropped keypoints,
+  missed people, false skeletons, border margin, scores; `real_models.detector_like_models`,
+  what ``mvpose-jax generate --detector-like`` gives a user). The GAT's and the combined
+  matcher's thresholds are chosen on frames composed from dev recordings of the same simulator.
+
+Scored as ``experiments.real`` scores them (nothing is tuned on these recordings):
+
+* MVOR days 1-2 (evaluation only): the MVOR protocol (`mvor_protocol.evaluate`) for the geometric
+  default and, with each pair, the ``infer`` default (combined + blend), combined + MLP, the
+  paper's GAT + MLP and true groups + blend; and people built per frame (issue 37 item 4: the
+  paper's GAT alone should build as many as the geometric grouping);
+* Pose2Sim's demo, the two-person trial (no labels): the label-free score (share of every
+  skeleton's keypoints within 20 px, median px, people per frame) of the ``infer`` default and the
+  paper's method with each pair (`pose2sim_demo.run`'s rows), beside the geometric default.
+
+Writes ``DIR/detector_like.md`` and ``DIR/detector_like.json``; the models go to ``DIR/models``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from experiments import pose2sim_demo as demo
+from experiments import real
+from experiments.mvor import DEFAULT_ROOT, load_mvor, poses_to_joints, select_frames, true_identity
+from experiments.mvor_protocol import evaluate
+from experiments.real_models import (
+    MODELS_RECIPE,
+    detector_like_models,
+    synthetic_models,
+    training_record,
+)
+from experiments.records import report_json
+from mvpose_jax.data.files import atomic_write_text
+from mvpose_jax.data.pose2sim import find_trials
+from mvpose_jax.detector_fit import fit_detector
+from mvpose_jax.floor import estimate_floor_from_detections
+from mvpose_jax.lifting import members_from_identity
+
+# The model pairs: (key, label).
+SOURCES = (("default", "default detector"), ("fitted", "detector like the recording's"))
+# MVOR rows with models: (label, grouping, 3D method) as `real.MODEL_PIPELINES` names them.
+MVOR_MODEL_ROWS = (
+    ("infer default (combined + blend)", "combined", "blend"),
+    ("combined + MLP", "combined", "mlp"),
+    ("paper's method (GAT + MLP)", "gat", "mlp"),
+    ("true groups + blend", "true", "blend"),
+)
+GEOMETRIC = ("geometric default (epipolar + robust)", "epipolar", "robust")
+# The demo's rows: `pose2sim_demo.MODEL_SOURCES` keys of the two pairs.
+DEMO_SOURCE = {"default": "synthetic", "fitted": "detector-like"}
+
+
+def mvor_rows(data, pairs: dict) -> list[dict]:
+    """The MVOR protocol's overall numbers (and people built per frame) of the geometric default
+    and of `MVOR_MODEL_ROWS` with each model pair of ``pairs`` ({`SOURCES` key: Models})."""
+    identity = true_identity(data)
+    members = members_from_identity(identity, data.gt.valid.shape[1])
+    views = (members >= 0).sum(-1)
+    plan = [(GEOMETRIC[0], None, GEOMETRIC[1], {"method": GEOMETRIC[2]})]
+    for key, label in SOURCES:
+        for name, grouping, method in MVOR_MODEL_ROWS:
+            settings = real.model_settings(grouping, method, pairs[key])
+            plan.append((f"{name}, {label}", key, grouping, settings))
+    rows = []
+    for name, key, grouping, settings in plan:
+        start = time.perf_counter()
+        result = real.pipeline_result(data, grouping, settings, identity, members)
+        seconds = time.perf_counter() - start
+        joints = poses_to_joints(result.poses, data.layout)
+        s = evaluate(joints, data, unreachable=views < real.MIN_VIEWS)["overall"]
+        built = int(np.asarray(result.poses.valid, bool).sum())
+        rows.append(
+            {
+                "row": name,
+                "models": key,
+                "missed": s["missed"],
+                "people": s["people"],
+                "mpjpe_mm": s["mpjpe_mm"],
+                "pck3d_150": s["pck3d_150"],
+                "pcp_upper": s["pcp_upper"],
+                "produced": s["produced"],
+                "people_per_frame": built / data.num_frames,
+                "seconds": seconds,
+            }
+        )
+    return rows
+
+
+def demo_rows(table: dict) -> list[dict]:
+    """The demo's geometric default and model rows of ``table`` (`pose2sim_demo.run`), with the
+    headline numbers."""
+    wanted = {demo.OUR_ROWS[0][0]: None} | {
+        label: key
+        for label, source, _ in demo.MODEL_ROWS
+        for key, s in DEMO_SOURCE.items()
+        if s == source
+    }
+    out = []
+    for row in table["multi_person"]["rows"]:
+        if row["row"] in wanted:
+            n = row["all_keypoints"]
+            out.append(
+                {
+                    "row": row["row"],
+                    "models": wanted[row["row"]],
+                    "within_20px_all_skeletons": n["within_20px_all_skeletons"],
+                    "median_px": n["median_px"],
+                    "coverage": n["coverage"],
+                    "people_per_frame": n["people_per_frame"],
+                    "jitter_m_s2": n["jitter_m_s2"],
+                }
+            )
+    return out
+
+
+def fitted_fields(fit) -> dict:
+    """The fitted detector's fields that differ from the default (value, samples)."""
+    return {
+        f.name: {"value": f.value, "samples": f.samples, "fitted": f.fitted} for f in fit.fields
+    }
+
+
+def markdown(report: dict) -> str:
+    lines = [
+        "# Models trained on a detector like the recording's",
+        "",
+        f"Models: {report['recipe']}. One pair with the simulator's default detector, one with "
+        "the detector fitted to the recording's own detections (no label). Nothing is tuned on "
+        "these recordings.",
+        "",
+    ]
+    if "mvor" in report:
+        m = report["mvor"]
+        lines += [
+            f"## MVOR days 1-2 ({m['split']})",
+            "",
+            "| pipeline | missed / people | MPJPE mm | PCK3D@150 % | PCP upper % "
+            "| joints produced % | people built / frame |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for r in m["rows"]:
+            lines.append(
+                f"| {r['row']} | {r['missed']} / {r['people']} | {r['mpjpe_mm']:.1f} "
+                f"| {r['pck3d_150']:.1f} | {r['pcp_upper']:.1f} | {r['produced']:.1f} "
+                f"| {r['people_per_frame']:.2f} |"
+            )
+        lines.append("")
+    if "pose2sim_demo" in report:
+        d = report["pose2sim_demo"]
+        lines += [
+            f"## Pose2Sim demo, {d['trial']} (no labels: the label-free score)",
+            "",
+            "| result | within 20 px (all skeletons) % | median px | coverage % | people / frame "
+            "| jitter m/s² |",
+            "|---|---|---|---|---|---|",
+        ]
+        for r in d["rows"]:
+            lines.append(
+                f"| {r['row']} | {100 * r['within_20px_all_skeletons']:.1f} "
+                f"| {r['median_px']:.2f} | {100 * r['coverage']:.1f} "
+                f"| {r['people_per_frame']:.2f} | {r['jitter_m_s2']:.2f} |"
+            )
+        lines.append("")
+    lines.append(f"Seconds, with training: {report['seconds']:.0f}.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", required=True, help="folder for detector_like.md/.json and models")
+    p.add_argument("--data", default=str(DEFAULT_ROOT), help="the MVOR days 1-2 folder")
+    p.add_argument("--pose2sim", default=str(demo.DEFAULT_DATA), help="Pose2Sim's demo session")
+    p.add_argument(
+        "--baseline-models",
+        help="experiments.real's models folder (its mvor-synthetic/ and pose2sim-demo/synthetic/ "
+        "are the default detector's pairs); default OUT/models, trained there where missing",
+    )
+    p.add_argument("--smoke", action="store_true", help="smoke-size models, a few frames (CI)")
+    args = p.parse_args(argv)
+    start = time.perf_counter()
+    out = Path(args.out)
+    base = Path(args.baseline_models) if args.baseline_models else out / "models"
+    report: dict = {"recipe": MODELS_RECIPE, "smoke": args.smoke}
+
+    data = load_mvor(args.data)
+    floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
+    fit = fit_detector(data.rig, data.detections, layout=data.layout)
+    print("\n".join([f"{args.data}: fitted detector", *fit.describe()]))
+    pairs = {
+        "default": synthetic_models(
+            data.rig, floor, base / "mvor-synthetic", smoke=args.smoke, progress=True
+        ),
+        "fitted": detector_like_models(
+            data.rig,
+            floor,
+            fit.config,
+            out / "models" / "mvor-detector-like",
+            smoke=args.smoke,
+            progress=True,
+        ),
+    }
+    if args.smoke:
+        data = select_frames(data, real.smoke_frames(data))
+    report["mvor"] = {
+        "split": real.SPLIT,
+        "detector": fitted_fields(fit),
+        "training": {k: training_record(m, floor) for k, m in pairs.items()},
+        "rows": mvor_rows(data, pairs),
+    }
+
+    demo_data = Path(args.pose2sim)
+    if demo_data.is_dir():
+        trial = {t.name: t for t in find_trials(demo_data, pose_folders=("pose",)).trials}[
+            demo.MULTI_TRIAL
+        ]
+        rig, detections = demo.raw_detections(trial, None)
+        floor = estimate_floor_from_detections(rig, detections, layout=demo.LAYOUT)
+        fit = fit_detector(rig, detections, layout=demo.LAYOUT)
+        print("\n".join([f"{trial.folder}: fitted detector", *fit.describe()]))
+        folders = {
+            "default": base / "pose2sim-demo" / "synthetic",
+            "fitted": out / "models" / "pose2sim-demo-detector-like",
+        }
+        pairs = {
+            "default": synthetic_models(rig, floor, folders["default"], smoke=args.smoke),
+            "fitted": detector_like_models(
+                rig, floor, fit.config, folders["fitted"], smoke=args.smoke, progress=True
+            ),
+        }
+        table = demo.run(
+            demo_data,
+            smoke=args.smoke,
+            models={DEMO_SOURCE[k]: folder for k, folder in folders.items()},
+        )
+        report["pose2sim_demo"] = {
+            "split": demo.SPLIT,
+            "trial": demo.MULTI_TRIAL,
+            "detector": fitted_fields(fit),
+            "training": {k: training_record(m, floor) for k, m in pairs.items()},
+            "rows": demo_rows(table),
+        }
+    report["seconds"] = time.perf_counter() - start
+    atomic_write_text(out / "detector_like.json", report_json(report))
+    text = markdown(report)
+    atomic_write_text(out / "detector_like.md", text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
