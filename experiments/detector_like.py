@@ -21,7 +21,10 @@ Scored as ``experiments.real`` scores them (nothing is tuned on these recordings
   paper's GAT alone should build as many as the geometric grouping);
 * Pose2Sim's demo, the two-person trial (no labels): the label-free score (share of every
   skeleton's keypoints within 20 px, median px, people per frame) of the ``infer`` default and the
-  paper's method with each pair (`pose2sim_demo.run`'s rows), beside the geometric default.
+  paper's method with each pair (`pose2sim_demo.run`'s rows), beside the geometric default;
+* the GAT's scores of cross-view skeleton pairs against a reference grouping (MVOR's true groups
+  and the geometric default's; the demo's geometric default): ROC AUC and the shares of pairs on
+  the wrong side of the chosen threshold (`pair_separation`).
 
 Writes ``DIR/detector_like.md`` and ``DIR/detector_like.json``; the models go to ``DIR/models``.
 """
@@ -33,6 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import mannwhitneyu
 
 from experiments import pose2sim_demo as demo
 from experiments import real
@@ -49,7 +53,10 @@ from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.data.pose2sim import find_trials
 from mvpose_jax.detector_fit import fit_detector
 from mvpose_jax.floor import estimate_floor_from_detections
+from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import members_from_identity
+from mvpose_jax.matching import gat_match_table
+from mvpose_jax.trained import Matcher
 
 # The model pairs: (key, label).
 SOURCES = (("default", "default detector"), ("fitted", "detector like the recording's"))
@@ -99,6 +106,35 @@ def mvor_rows(data, pairs: dict) -> list[dict]:
             }
         )
     return rows
+
+
+def pair_separation(matcher: Matcher, threshold: float, detections, identity) -> dict:
+    """How the GAT's scores of cross-view skeleton pairs separate the pairs of one person from the
+    others, by a reference grouping ``identity`` (F, C, P; -1: no person, left out); see
+    `score_separation`."""
+    rows, scores = gat_match_table(matcher, detections)
+    f, ca, sa, cb, sb = rows.T
+    a, b = identity[f, ca, sa], identity[f, cb, sb]
+    known = (a >= 0) & (b >= 0)
+    return score_separation(scores[known], (a == b)[known], threshold)
+
+
+def score_separation(scores: np.ndarray, same: np.ndarray, threshold: float) -> dict:
+    """ROC AUC of ``scores`` (n,) for telling ``same`` (n,) bool pairs from the others, the
+    median score of each kind, and the shares on the wrong side of ``threshold`` (a pair of one
+    person below it can split them)."""
+    s, same = np.asarray(scores, np.float64), np.asarray(same, bool)
+    return {
+        "pairs": int(same.size),
+        "same_person_pairs": int(same.sum()),
+        # ROC AUC as the Mann-Whitney U over the pairs of kinds (ties count a half).
+        "auc": float(mannwhitneyu(s[same], s[~same]).statistic / (same.sum() * (~same).sum())),
+        "median_same": float(np.median(s[same])),
+        "median_other": float(np.median(s[~same])),
+        "same_below_threshold": float((s[same] < threshold).mean()),
+        "other_above_threshold": float((s[~same] >= threshold).mean()),
+        "threshold": threshold,
+    }
 
 
 def demo_rows(table: dict) -> list[dict]:
@@ -176,7 +212,24 @@ def markdown(report: dict) -> str:
                 f"| {r['people_per_frame']:.2f} | {r['jitter_m_s2']:.2f} |"
             )
         lines.append("")
-    lines.append(f"Seconds, with training: {report['seconds']:.0f}.")
+    lines += [
+        "## The GAT's pair scores (same person or not, by a reference grouping)",
+        "",
+        "| recording | models' detector | reference | pairs (same person) | ROC AUC | median score, "
+        "same / other | threshold | same below it % | other above it % |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for rec in ("mvor", "pose2sim_demo"):
+        for key, by_reference in report.get(rec, {}).get("pair_separation", {}).items():
+            for reference, p in by_reference.items():
+                lines.append(
+                    f"| {rec} | {dict(SOURCES)[key]} | {reference} | {p['pairs']} "
+                    f"({p['same_person_pairs']}) | {p['auc']:.3f} | {p['median_same']:.2f} / "
+                    f"{p['median_other']:.3f} | {p['threshold']:g} "
+                    f"| {100 * p['same_below_threshold']:.1f} "
+                    f"| {100 * p['other_above_threshold']:.1f} |"
+                )
+    lines += ["", f"Seconds, with training: {report['seconds']:.0f}."]
     return "\n".join(lines) + "\n"
 
 
@@ -216,11 +269,20 @@ def main(argv=None) -> int:
     }
     if args.smoke:
         data = select_frames(data, real.smoke_frames(data))
+    truth = true_identity(data)
+    geometric = np.asarray(run_pipeline(data.rig, data.detections, layout=data.layout).identity)
     report["mvor"] = {
         "split": real.SPLIT,
         "detector": fitted_fields(fit),
         "training": {k: training_record(m, floor) for k, m in pairs.items()},
         "rows": mvor_rows(data, pairs),
+        "pair_separation": {
+            k: {
+                reference: pair_separation(m.matcher, m.fit["threshold"], data.detections, ident)
+                for reference, ident in (("true groups", truth), ("geometric", geometric))
+            }
+            for k, m in pairs.items()
+        },
     }
 
     demo_data = Path(args.pose2sim)
@@ -247,12 +309,21 @@ def main(argv=None) -> int:
             smoke=args.smoke,
             models={DEMO_SOURCE[k]: folder for k, folder in folders.items()},
         )
+        geometric = np.asarray(run_pipeline(rig, detections, layout=demo.LAYOUT).identity)
         report["pose2sim_demo"] = {
             "split": demo.SPLIT,
             "trial": demo.MULTI_TRIAL,
             "detector": fitted_fields(fit),
             "training": {k: training_record(m, floor) for k, m in pairs.items()},
             "rows": demo_rows(table),
+            "pair_separation": {
+                k: {
+                    "geometric": pair_separation(
+                        m.matcher, m.fit["threshold"], detections, geometric
+                    )
+                }
+                for k, m in pairs.items()
+            },
         }
     report["seconds"] = time.perf_counter() - start
     atomic_write_text(out / "detector_like.json", report_json(report))

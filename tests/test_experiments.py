@@ -186,3 +186,19 @@ def test_training_recordings_take_the_given_detector():
         np.testing.assert_array_equal(a.ground_truth.xyz, b.ground_truth.xyz)
         assert int(np.asarray(b.detections.count).sum()) == 0
     assert sum(int(np.asarray(r.detections.count).sum()) for r in default.train) > 0
+
+
+def test_score_separation_auc_is_scikit_learns():
+    import numpy as np
+    from sklearn.metrics import roc_auc_score
+
+    from experiments.detector_like import score_separation
+
+    rng = np.random.default_rng(3)
+    same = rng.random(400) < 0.3
+    scores = np.round(rng.random(400) * 0.7 + 0.3 * same, 2)  # rounded: ties across kinds
+    got = score_separation(scores, same, 0.5)
+    assert got["auc"] == pytest.approx(roc_auc_score(same, scores), abs=1e-12)
+    assert got["same_person_pairs"] == same.sum() and got["pairs"] == 400
+    assert got["same_below_threshold"] == pytest.approx((scores[same] < 0.5).mean())
+    assert got["other_above_threshold"] == pytest.approx((scores[~same] >= 0.5).mean())
