@@ -17,11 +17,13 @@ Scored as ``experiments.real`` scores them (nothing is tuned on these recordings
 
 * MVOR days 1-2 (evaluation only): the MVOR protocol (`mvor_protocol.evaluate`) for the geometric
   default and, with each pair, the ``infer`` default (combined + blend), combined + MLP, the
-  paper's GAT + MLP and true groups + blend; and people built per frame (issue 37 item 4: the
+  paper's GAT + MLP, the GAT with split people made one again (``--proposals gat-repaired``)
+  + MLP and true groups + blend; and people built per frame (issue 37 item 4: the
   paper's GAT alone should build as many as the geometric grouping);
 * Pose2Sim's demo, the two-person trial (no labels): the label-free score (share of every
   skeleton's keypoints within 20 px, median px, people per frame) of the ``infer`` default and the
-  paper's method with each pair (`pose2sim_demo.run`'s rows), beside the geometric default;
+  paper's method with each pair (`pose2sim_demo.run`'s rows) and of the GAT with splits repaired
+  + MLP, beside the geometric default;
 * the GAT's scores of cross-view skeleton pairs against a reference grouping (MVOR's true groups
   and the geometric default's; the demo's geometric default): ROC AUC and the shares of pairs on
   the wrong side of the chosen threshold (`pair_separation`).
@@ -32,6 +34,7 @@ Writes ``DIR/detector_like.md`` and ``DIR/detector_like.json``; the models go to
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
 from pathlib import Path
 
@@ -65,6 +68,7 @@ MVOR_MODEL_ROWS = (
     ("infer default (combined + blend)", "combined", "blend"),
     ("combined + MLP", "combined", "mlp"),
     ("paper's method (GAT + MLP)", "gat", "mlp"),
+    ("GAT with splits repaired + MLP", "gat-repaired", "mlp"),
     ("true groups + blend", "true", "blend"),
 )
 GEOMETRIC = ("geometric default (epipolar + robust)", "epipolar", "robust")
@@ -146,22 +150,17 @@ def demo_rows(table: dict) -> list[dict]:
         for key, s in DEMO_SOURCE.items()
         if s == source
     }
-    out = []
-    for row in table["multi_person"]["rows"]:
-        if row["row"] in wanted:
-            n = row["all_keypoints"]
-            out.append(
-                {
-                    "row": row["row"],
-                    "models": wanted[row["row"]],
-                    "within_20px_all_skeletons": n["within_20px_all_skeletons"],
-                    "median_px": n["median_px"],
-                    "coverage": n["coverage"],
-                    "people_per_frame": n["people_per_frame"],
-                    "jitter_m_s2": n["jitter_m_s2"],
-                }
-            )
-    return out
+    return [
+        _headline(row) | {"models": wanted[row["row"]]}
+        for row in table["multi_person"]["rows"]
+        if row["row"] in wanted
+    ]
+
+
+def _headline(row: dict) -> dict:
+    n = row["all_keypoints"]
+    keys = ("within_20px_all_skeletons", "median_px", "coverage", "people_per_frame", "jitter_m_s2")
+    return {"row": row["row"], **{k: n[k] for k in keys}}
 
 
 def fitted_fields(fit) -> dict:
@@ -309,13 +308,33 @@ def main(argv=None) -> int:
             smoke=args.smoke,
             models={DEMO_SOURCE[k]: folder for k, folder in folders.items()},
         )
+        frames = demo.SMOKE_FRAMES if args.smoke else None
+        repaired = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for key, label in SOURCES:
+                result, _ = demo.our_result(
+                    trial,
+                    "mlp",
+                    Path(tmp) / key,
+                    frames,
+                    models=folders[key],
+                    proposals="gat-repaired",
+                )
+                scored = demo.raw_detections(trial, frames)[1]
+                repaired.append(
+                    {
+                        "row": f"{label}: GAT with splits repaired + MLP, pose/",
+                        "all_keypoints": demo.score_row(result, rig, scored),
+                    }
+                )
         geometric = np.asarray(run_pipeline(rig, detections, layout=demo.LAYOUT).identity)
         report["pose2sim_demo"] = {
             "split": demo.SPLIT,
             "trial": demo.MULTI_TRIAL,
             "detector": fitted_fields(fit),
             "training": {k: training_record(m, floor) for k, m in pairs.items()},
-            "rows": demo_rows(table),
+            "rows": demo_rows(table)
+            + [_headline(r) | {"models": k} for (k, _), r in zip(SOURCES, repaired, strict=True)],
             "pair_separation": {
                 k: {
                     "geometric": pair_separation(

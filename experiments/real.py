@@ -249,11 +249,12 @@ def error_by_views(result: PoseResults, data: MvorData) -> dict:
 
 def model_settings(grouping: str, method: str, models: Models) -> dict:
     """`pipeline_result`'s settings of a row with models: the matcher's proposals with the
-    settings chosen on its composed dev frames (the GAT's threshold, the combined matcher's)."""
+    settings chosen on its composed dev frames (the GAT's threshold, also for "gat-repaired";
+    the combined matcher's)."""
     settings = {"method": method, "estimator": models.estimator}
     if grouping == "combined":
         settings.update(matcher=models.matcher, combined=combined_config(models.fit))
-    elif grouping == "gat":
+    elif grouping in ("gat", "gat-repaired"):
         settings.update(matcher=models.matcher, threshold=models.fit["threshold"])
     return settings
 
@@ -264,7 +265,7 @@ def pipeline_result(
     """One variant's result as `PoseResults` (untracked, no timestamps: MVOR's frames are
     snapshots). ``grouping``: "epipolar" (`run_pipeline` with ``settings``) or "true" (the
     ground-truth groupings ``identity`` (F, C, P) / ``members`` (F, H, C), `poses_of_members`), or
-    with models "combined" or "gat" (the matcher's proposals; `model_settings`)."""
+    with models "combined", "gat" or "gat-repaired" (the matcher's proposals; `model_settings`)."""
     settings = {"min_views": MIN_VIEWS, **settings}
     matcher, estimator = settings.pop("matcher", None), settings.pop("estimator", None)
     if grouping != "true":

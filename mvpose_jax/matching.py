@@ -510,12 +510,14 @@ def propose_with_matcher(
     min_views: int = 2,
     mode: str = "gat",
     combined: CombinedConfig | None = None,
+    repair_splits: bool = False,
 ) -> Proposals:
-    """`gat_match_table` then `propose_people` (single-camera matchers: one person per skeleton).
+    """`gat_match_table` then `propose_people` (single-camera matchers: one person per skeleton;
+    ``repair_splits``: `propose_people`'s).
 
     With ``mode="combined"`` the GAT's scores are joined with the pairs' epipolar distances on
     the matcher's cameras (`proposals.propose_combined`, settings ``combined``, default
-    `CombinedConfig()`; ``threshold`` is not used).
+    `CombinedConfig()`; ``threshold`` and ``repair_splits`` are not used).
     """
     if mode not in ("gat", "combined"):
         raise ValueError(f"mode must be 'gat' or 'combined', not {mode!r}")
@@ -542,7 +544,13 @@ def propose_with_matcher(
         )
         return proposals
     return propose_people(
-        rows, scores, count, num_skeletons=P, threshold=threshold, min_views=min_views
+        rows,
+        scores,
+        count,
+        num_skeletons=P,
+        threshold=threshold,
+        min_views=min_views,
+        repair_splits=repair_splits,
     )
 
 
@@ -583,6 +591,23 @@ def propose_gat(rig: Rig, detections: Detections, config: MatchingConfig, *, mat
     del rig
     return propose_with_matcher(
         matcher, detections, threshold=config.threshold, min_views=config.min_views, mode="gat"
+    )
+
+
+def propose_gat_repaired(
+    rig: Rig, detections: Detections, config: MatchingConfig, *, matcher: Matcher
+):
+    """Registered proposals "gat-repaired": the matcher's scores alone, grouped as "gat", then a
+    person split over two groups by a duplicate or fragment skeleton in one view made one again
+    (`proposals.propose_people`'s ``repair_splits``; no geometry)."""
+    del rig
+    return propose_with_matcher(
+        matcher,
+        detections,
+        threshold=config.threshold,
+        min_views=config.min_views,
+        mode="gat",
+        repair_splits=True,
     )
 
 

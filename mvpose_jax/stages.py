@@ -109,6 +109,12 @@ for _stage in (
         needs_matcher=True,
     ),
     Stage(
+        "gat-repaired",
+        "mvpose_jax.matching:propose_gat_repaired",
+        "as gat, then a person split by a duplicate or fragment skeleton made one again",
+        needs_matcher=True,
+    ),
+    Stage(
         "epipolar",
         "mvpose_jax.matching:propose_epipolar",
         "symmetric epipolar distance of skeleton pairs, 2^(-d / half-score px); no model",

@@ -690,6 +690,12 @@ def test_pipeline_proposal_modes_with_a_matcher(scene):
     gat = run_pipeline(rig, det, matcher=matcher, proposals="gat", threshold=0.3)
     alone = propose_with_matcher(matcher, det, threshold=0.3)
     np.testing.assert_array_equal(gat.identity, alone.identity)
+    # "gat-repaired": the same scores, grouped with propose_people's split repair.
+    repaired = run_pipeline(rig, det, matcher=matcher, proposals="gat-repaired", threshold=0.3)
+    rows, scores = gat_match_table(matcher, det)
+    P = np.shape(det.score)[2]
+    want = propose_people(rows, scores, count, num_skeletons=P, threshold=0.3, repair_splits=True)
+    np.testing.assert_array_equal(repaired.identity, want.identity)
     explicit = run_pipeline(
         rig, det, matcher=matcher, proposals="combined", combined=CombinedConfig()
     )

@@ -131,14 +131,15 @@ def add_proposal_arguments(p: argparse.ArgumentParser) -> None:
         help="how skeletons are grouped into people: combined (the default with --matcher: the "
         "GAT's scores joined with epipolar geometry, each frame kept on the grouping that agrees "
         "better with the geometry; settings from the --matcher folder), gat (the GAT's scores "
-        "alone, --threshold; the paper's) or epipolar (the default without --matcher: symmetric "
-        "epipolar distance, --half-score-px)",
+        "alone, --threshold; the paper's), gat-repaired (as gat, then a person split by a "
+        "duplicate or fragment skeleton made one again) or epipolar (the default without "
+        "--matcher: symmetric epipolar distance, --half-score-px)",
     )
     p.add_argument(
         "--threshold",
         type=float,
         default=None,
-        help="--proposals gat or epipolar: least match score to join two skeletons (default: the "
+        help="--proposals gat, gat-repaired or epipolar: least match score to join two skeletons (default: the "
         "one train-matcher chose, in the --matcher folder's proposal_threshold.json; else 0.5, "
         "the paper's)",
     )
