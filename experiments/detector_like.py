@@ -9,7 +9,7 @@ synthetic single-person recordings of its rig with the floor measured from its p
   ``python -m experiments.real`` trains; ``--baseline-models`` reuses its models folder);
 * **detector like the recording's**: the detector fitted to the recording's own detections
   without a label (`detector_fit.fit_detector`: jitter, left/right swaps, dropped keypoints,
-  missed people, false skeletons, border margin, scores; `real_models.detector_like_models`,
+  missed people, false skeletons, border margin, scores; `real_models.synthetic_models` with ``detector``,
   what ``mvpose-jax generate --detector-like`` gives a user). The GAT's and the combined
   matcher's thresholds are chosen on frames composed from dev recordings of the same simulator.
 
@@ -47,7 +47,6 @@ from experiments.mvor import DEFAULT_ROOT, load_mvor, poses_to_joints, select_fr
 from experiments.mvor_protocol import evaluate
 from experiments.real_models import (
     MODELS_RECIPE,
-    detector_like_models,
     synthetic_models,
     training_record,
 )
@@ -257,13 +256,13 @@ def main(argv=None) -> int:
         "default": synthetic_models(
             data.rig, floor, base / "mvor-synthetic", smoke=args.smoke, progress=True
         ),
-        "fitted": detector_like_models(
+        "fitted": synthetic_models(
             data.rig,
             floor,
-            fit.config,
             out / "models" / "mvor-detector-like",
             smoke=args.smoke,
             progress=True,
+            detector=fit.config,
         ),
     }
     if args.smoke:
@@ -299,8 +298,8 @@ def main(argv=None) -> int:
         }
         pairs = {
             "default": synthetic_models(rig, floor, folders["default"], smoke=args.smoke),
-            "fitted": detector_like_models(
-                rig, floor, fit.config, folders["fitted"], smoke=args.smoke, progress=True
+            "fitted": synthetic_models(
+                rig, floor, folders["fitted"], smoke=args.smoke, progress=True, detector=fit.config
             ),
         }
         table = demo.run(

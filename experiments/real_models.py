@@ -68,34 +68,20 @@ def scale(smoke: bool) -> Scale:
 
 
 def synthetic_models(
-    rig: Rig, floor: FloorEstimate, folder: Path, *, smoke: bool, progress: bool = False
-) -> Models:
-    """The matcher and estimator of ``rig`` trained on synthetic recordings of it with the
-    measured ``floor`` (loaded from ``folder`` when it holds them)."""
-    return cached_models(
-        rig,
-        folder,
-        seed=SEED,
-        scale=scale(smoke),
-        progress=progress,
-        floor_height=floor.height,
-        up=floor.measured_up,
-    )
-
-
-def detector_like_models(
     rig: Rig,
     floor: FloorEstimate,
-    detector: DetectorConfig,
     folder: Path,
     *,
     smoke: bool,
     progress: bool = False,
+    detector: DetectorConfig | None = None,
 ) -> Models:
-    """As `synthetic_models`, with the recordings' simulated detector ``detector``: one fitted
-    to the real recording's own detections (`detector_fit.fit_detector`, what ``mvpose-jax
-    generate --detector-like`` does), so that the models see its jitter, misses and false
-    skeletons while they train."""
+    """The matcher and estimator of ``rig`` trained on synthetic recordings of it with the
+    measured ``floor`` (loaded from ``folder`` when it holds them). ``detector``: the
+    recordings' simulated detector, such as one fitted to the real recording's own detections
+    (`detector_fit.fit_detector`, what ``mvpose-jax generate --detector-like`` does), so that
+    the models see its jitter, misses and false skeletons while they train; None: the default
+    one."""
     return cached_models(
         rig,
         folder,

@@ -167,7 +167,7 @@ def test_arp_experiment_smoke_and_tables_from_saved_runs(tmp_path, capsys):
 
 
 def test_training_recordings_take_the_given_detector():
-    """`make_data(detector=...)` (what `real_models.detector_like_models` trains on): the same
+    """`make_data(detector=...)` (what `real_models.synthetic_models` trains on with a fitted detector): the same
     people and motion, seen by the given detector instead of the default one."""
     import dataclasses
 
