@@ -27,14 +27,19 @@ from mvpose_jax.cameras import Rig, project_points, rig_centre_and_radius
 from mvpose_jax.checkpoints import TrainState  # TrainState: defined with what holds it
 from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
-from mvpose_jax.features import EstimatorInputs, assemble_features, estimator_inputs
+from mvpose_jax.features import (
+    EstimatorInputs,
+    assemble_features,
+    estimator_inputs,
+)
 from mvpose_jax.losses import masked_mean, reprojection_error_l1
-from mvpose_jax.models import PoseMLP, to_world
+from mvpose_jax.models import estimator_model, to_world
 from mvpose_jax.parallel import mesh_size, replicate, shard_batch
 from mvpose_jax.trained import (
     Estimator,
     EstimatorConfig,
     ModelFolder,
+    rig_agnostic_estimator,
 )
 from mvpose_jax.triangulate import triangulate_points
 
@@ -210,8 +215,13 @@ def estimator_training(
     tcfg = config.train
     mesh = training_mesh(tcfg)
     if start is None:
-        model = PoseMLP(len(infer_idx), num_keypoints, config.mlp, rngs=nnx.Rngs(tcfg.seed))
+        model = estimator_model(len(infer_idx), num_keypoints, config.mlp, rngs=nnx.Rngs(tcfg.seed))
         normalisation = None
+        if config.mlp.views == "pooled":  # as `trained.rig_agnostic_estimator` loads it
+            graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+            start = rig_agnostic_estimator(graphdef, rest, params, config, rig_train)
+            model = nnx.merge(start.graphdef, start.params, start.rest)
+            normalisation = start.normalisation
     else:
         params = jax.tree.map(jnp.copy, start.params)
         model = nnx.merge(start.graphdef, params, start.rest)
@@ -250,6 +260,7 @@ def train_estimator(
     checkpoint_dir: str | Path | None = None,
     progress: bool = True,
     resume: bool = False,
+    start: Estimator | None = None,
 ) -> tuple[Estimator, FitResult]:
     """Trains a 3D estimator from people's 2D detections alone (no 3D labels).
 
@@ -261,6 +272,8 @@ def train_estimator(
       checkpoint_dir: where best and latest checkpoints go (optional).
       resume: continue from the latest checkpoint in ``checkpoint_dir`` (same config required),
         exactly where it stopped.
+      start: an estimator to fine-tune (its network and frame; e.g. the pretrained rig-agnostic
+        one set up for ``rig``, `trained.rig_agnostic_estimator`); None: a fresh network.
     Returns:
       (the best `Estimator`, the `FitResult`).
     Raises:
@@ -271,7 +284,9 @@ def train_estimator(
     n_train = len(train_xy)
     batch = min(tcfg.batch_size, n_train)
     steps_per_epoch = math.ceil(n_train / batch)
-    setup = estimator_training(rig, config, train_xy.shape[-2], steps_per_epoch=steps_per_epoch)
+    setup = estimator_training(
+        rig, config, train_xy.shape[-2], steps_per_epoch=steps_per_epoch, start=start
+    )
     mesh, graphdef, rest, state = setup.mesh, setup.graphdef, setup.rest, setup.state
     if mesh is not None and batch % mesh_size(mesh):
         raise InputError(
@@ -300,9 +315,14 @@ def train_estimator(
         infer_cameras=list(setup.rig_infer.names),
         num_keypoints=int(train_xy.shape[-2]),
     )
-    centre, radius = rig_centre_and_radius(setup.rig_train)
-    # The normalised frame travels with the model (inference may hold only the inference cameras).
-    run_config["frame"] = [float(x) for x in np.asarray(centre)] + [float(radius)]
+    centre, radius = setup.normalisation or rig_centre_and_radius(setup.rig_train)
+    # The normalised frame travels with the model (inference may hold only the inference cameras);
+    # a rig-agnostic model takes every rig's own (`trained.rig_agnostic_estimator`).
+    run_config["frame"] = (
+        "rig-centre-metres"
+        if config.mlp.views == "pooled"
+        else [float(x) for x in np.asarray(centre)] + [float(radius)]
+    )
     result = fit_resumable(
         state,
         setup.train_step,
@@ -327,6 +347,7 @@ def train_estimator(
             setup.infer_idx,
             dev_xy,
             dev_score,
+            setup.normalisation,
         )
         ModelFolder(checkpoint_dir).write_dev_quality(quality)
     return Estimator(

@@ -71,6 +71,12 @@ def keypoint_features(rig: Rig, xy: jax.Array, score: jax.Array, normalisation=N
     return jnp.where(seen[..., None], feats, 0.0)
 
 
+def rig_agnostic_frame(rig: Rig) -> tuple[jax.Array, jax.Array]:
+    """(centre (3,), unit ()) of a rig-agnostic model's inputs (`models.ViewPooledMLP`): the mean
+    camera centre, in metres (unit 1), so that a body has the same size on every rig."""
+    return jnp.mean(camera_centres(rig), axis=0), jnp.asarray(1.0, jnp.float32)
+
+
 class EstimatorInputs(NamedTuple):
     """What the 3D estimator's features are assembled from, for N people seen by C cameras.
 

@@ -3,6 +3,9 @@
 * `PoseMLP`: the 3D estimator (DESIGN.md §1.3): the (C_i, K, 14) features of one person,
   flattened, through LeakyReLU(0.1) hidden layers to a linear (K, 3) output in the rig-normalised
   frame (`features`); `to_world` maps it to metres.
+* `ViewPooledMLP`: a 3D estimator for any rig: each view encoded by shared weights, pooled over
+  the views present, so that the number and order of cameras do not matter (`estimator_model`
+  picks one of the two from `MLPConfig.views`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import math
 import jax
 import jax.numpy as jnp
 import jraph
+import numpy as np
 from flax import nnx
 
 from mvpose_jax.features import NUM_ESTIMATOR_FEATURES
@@ -34,15 +38,32 @@ class MLPConfig:
         themselves. "anchored": offsets from the person's anchor, the mean of its initial 3D
         estimates. "residual": offsets from each keypoint's initial 3D estimate where it has
         one, else from the anchor. All three read only the network's own inputs.
+      views: how the views enter. "slots" (the paper): one slot of inputs per camera, so the
+        network is tied to its cameras' number and order. "pooled": `ViewPooledMLP`, the same
+        network for any number and order of cameras (needs ``output="residual"``).
+      view_widths: the per-view encoder's layer widths ("pooled" only).
     """
 
     widths: tuple[int, ...] = PAPER_MLP_WIDTHS
     slope: float = 0.1
     output: str = "absolute"
+    views: str = "slots"
+    view_widths: tuple[int, ...] = (256, 256)
+
+    def __post_init__(self):
+        if self.views not in ("slots", "pooled"):
+            raise ValueError(f"MLPConfig.views must be slots or pooled, not {self.views!r}")
+        if self.views == "pooled" and self.output != "residual":
+            raise ValueError("MLPConfig: views='pooled' predicts residuals (output='residual')")
 
     @classmethod
     def quick(cls) -> MLPConfig:
         return cls(widths=(512, 512, 256))
+
+    @classmethod
+    def pooled(cls) -> MLPConfig:
+        """The rig-agnostic estimator's sizes (`ViewPooledMLP`, about 0.9 M parameters)."""
+        return cls(widths=(512, 512), output="residual", views="pooled", view_widths=(256, 256))
 
 
 class FeatureMajorLinear(nnx.Module):
@@ -167,6 +188,124 @@ def initial_estimate(features: jax.Array, per_keypoint: bool) -> jax.Array:
     one_view = seen.sum(axis=-2) == 1
     fallback = jnp.where(one_view[..., None], on_ray, anchor)
     return jnp.where(has[..., None] > 0, xyz, fallback)
+
+
+class FrameRotation(nnx.Variable):
+    """A fixed rotation a model applies to its inputs' world vectors (not trained): the rig's
+    world turned so that its up is +z, the frame a rig-agnostic model was trained in."""
+
+
+def rotation_to_z_up(up) -> np.ndarray:
+    """(3, 3) rotation Q with ``Q @ up = +z`` (the smallest turn; identity for up = +z)."""
+    u = np.asarray(up, np.float64)
+    u = u / np.linalg.norm(u)
+    z = np.array([0.0, 0.0, 1.0])
+    v, c = np.cross(u, z), float(u @ z)
+    if c < -1 + 1e-9:  # upside down: half a turn about x
+        return np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+class ViewPooledMLP(nnx.Module):
+    """A 3D estimator for any rig: (..., C, K, 14) features -> (..., K, 3), any C, any order.
+
+    Each present view (one with a keypoint) becomes one vector through an encoder shared by all
+    views: its keypoints' image evidence (visible, x, y, score), rays, and its camera's centre
+    relative to the person's anchor (the mean of its initial 3D). The views are pooled (masked
+    mean and max), each view is encoded again beside that summary (one set layer, so that a
+    view's meaning can depend on the others), pooled again, and a decoder reads the pool with
+    the initial 3D relative to the anchor and predicts offsets from each keypoint's initial
+    estimate (`initial_estimate`, per keypoint). Nothing depends on the cameras' number or order;
+    world vectors are read after `FrameRotation` (identity unless set: a rig whose up is not +z
+    is turned to the z-up world the model was trained in, and its output turned back).
+    """
+
+    def __init__(self, num_keypoints: int, config: MLPConfig, *, rngs: nnx.Rngs):
+        if config.views != "pooled":
+            raise ValueError("ViewPooledMLP needs MLPConfig(views='pooled')")
+        self.num_keypoints = num_keypoints
+        self.slope = config.slope
+        K = num_keypoints
+        widths = tuple(config.view_widths)
+        # Per view: K x (visible, x, y, score, ray 3) and the camera relative to the anchor.
+        sizes = (K * 7 + 3,) + widths
+        self.encode = nnx.List(
+            [nnx.Linear(a, b, rngs=rngs) for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
+        )
+        self.relate = nnx.Linear(widths[-1] * 3, widths[-1], rngs=rngs)
+        dec = (widths[-1] * 2 + K * 4,) + tuple(config.widths)
+        self.decode = nnx.List(
+            [nnx.Linear(a, b, rngs=rngs) for a, b in zip(dec[:-1], dec[1:], strict=True)]
+        )
+        # Offsets start at zero: an untrained model returns the initial estimate.
+        self.out = nnx.Linear(dec[-1], K * 3, kernel_init=nnx.initializers.zeros, rngs=rngs)
+        self.rotation = FrameRotation(jnp.eye(3, dtype=jnp.float32))
+
+    def __call__(self, features: jax.Array) -> jax.Array:
+        q = self.rotation[...]
+        turn = lambda v: v @ q.T  # noqa: E731  (world -> model frame, row vectors)
+        features = jnp.concatenate(
+            [
+                features[..., :4],
+                turn(features[..., 4:7]),
+                turn(features[..., 7:10]),
+                features[..., 10:11],
+                turn(features[..., 11:14]),
+            ],
+            axis=-1,
+        )
+        xyz, has, anchor = _initial_estimate(features)  # (..., K, 3), (..., K), (..., 3)
+        seen = features[..., 0]  # (..., C, K)
+        present = seen.max(axis=-1) > 0  # (..., C)
+        # The view's camera: the same in every visible keypoint's slot, zero elsewhere.
+        camera = (
+            jnp.sum(features[..., 4:7] * seen[..., None], axis=-2)
+            / jnp.maximum(seen.sum(-1), 1.0)[..., None]
+        )  # (..., C, 3)
+        per_view = jnp.concatenate(
+            [
+                features[..., :4].reshape(features.shape[:-2] + (-1,)),
+                features[..., 7:10].reshape(features.shape[:-2] + (-1,)),
+                jnp.where(present[..., None], camera - anchor[..., None, :], 0.0),
+            ],
+            axis=-1,
+        )  # (..., C, K*7 + 3)
+        h = per_view
+        for layer in self.encode:
+            h = jax.nn.leaky_relu(layer(h), self.slope)
+        pooled = _masked_pool(h, present)  # (..., 2W)
+        context = jnp.broadcast_to(pooled[..., None, :], h.shape[:-1] + pooled.shape[-1:])
+        h = jax.nn.leaky_relu(self.relate(jnp.concatenate([h, context], -1)), self.slope)
+        pooled = _masked_pool(h, present)
+        rel = jnp.where(has[..., None] > 0, xyz - anchor[..., None, :], 0.0)
+        batch = features.shape[:-3]
+        g = jnp.concatenate(
+            [pooled, jnp.concatenate([has[..., None], rel], -1).reshape(batch + (-1,))], -1
+        )
+        for layer in self.decode:
+            g = jax.nn.leaky_relu(layer(g), self.slope)
+        offsets = self.out(g).reshape(batch + (self.num_keypoints, 3))
+        out = offsets + initial_estimate(features, per_keypoint=True)
+        return out @ q  # back to the world frame
+
+
+def _masked_pool(h: jax.Array, present: jax.Array) -> jax.Array:
+    """Mean and max of (..., C, W) over the present views (..., C): (..., 2W); zeros without any."""
+    m = present[..., None].astype(h.dtype)
+    mean = jnp.sum(h * m, axis=-2) / jnp.maximum(m.sum(-2), 1.0)
+    top = jnp.max(jnp.where(present[..., None], h, -jnp.inf), axis=-2)
+    return jnp.concatenate([mean, jnp.where(present.any(-1)[..., None], top, 0.0)], axis=-1)
+
+
+def estimator_model(
+    num_cameras: int, num_keypoints: int, config: MLPConfig, *, rngs: nnx.Rngs
+) -> nnx.Module:
+    """The 3D estimator ``config.views`` names: `PoseMLP` (per-camera slots, the paper's) or
+    `ViewPooledMLP` (any rig; ``num_cameras`` is then only the features' slot count)."""
+    if config.views == "pooled":
+        return ViewPooledMLP(num_keypoints, config, rngs=rngs)
+    return PoseMLP(num_cameras, num_keypoints, config, rngs=rngs)
 
 
 def to_world(xyz_normalised: jax.Array, centre: jax.Array, radius: jax.Array) -> jax.Array:

@@ -28,11 +28,19 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from mvpose_jax.cameras import Rig, rig_centre_and_radius
+from mvpose_jax.cameras import Rig, rig_centre_and_radius, up_vector
 from mvpose_jax.checkpoints import Checkpoints, TrainState
 from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.errors import InputError, MvposeWarning
-from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
+from mvpose_jax.features import rig_agnostic_frame
+from mvpose_jax.models import (
+    GATConfig,
+    MatchingGAT,
+    MLPConfig,
+    PoseMLP,
+    estimator_model,
+    rotation_to_z_up,
+)
 from mvpose_jax.proposals import CombinedConfig
 
 
@@ -119,7 +127,11 @@ def estimator_config_from_dict(d: dict) -> EstimatorConfig:
     """Rebuilds an `EstimatorConfig` from its saved JSON form (`dataclasses.asdict`)."""
     tup = lambda v: None if v is None else tuple(v)  # noqa: E731
     try:
-        mlp = MLPConfig(**{**d["mlp"], "widths": tuple(d["mlp"]["widths"])})
+        mlp = dict(d["mlp"])
+        mlp["widths"] = tuple(mlp["widths"])
+        if "view_widths" in mlp:
+            mlp["view_widths"] = tuple(mlp["view_widths"])
+        mlp = MLPConfig(**mlp)
         return EstimatorConfig(
             train_cameras=tup(d["train_cameras"]),
             infer_cameras=tup(d["infer_cameras"]),
@@ -132,18 +144,52 @@ def estimator_config_from_dict(d: dict) -> EstimatorConfig:
         raise InputError(f"not an estimator config ({e})", field="config") from None
 
 
+# The name `load_estimator` (and so ``infer --estimator``, ``adapt``, ``train-estimator --start``)
+# takes for the rig-agnostic estimator shipped in the package.
+PRETRAINED = "pretrained"
+
+
+def pretrained_estimator_folder() -> Path:
+    """The shipped rig-agnostic estimator's model folder (package data; `experiments.pretrain
+    --ship` writes it). Raises `InputError` when this installation lacks it."""
+    folder = Path(__file__).resolve().parent / "pretrained" / "estimator"
+    if not (folder / "best").is_dir():
+        raise InputError(
+            "this installation holds no pretrained estimator (mvpose_jax/pretrained/estimator); "
+            "reinstall the package, or train one: python -m experiments.pretrain --ship",
+            file=folder,
+        )
+    return folder
+
+
+def resolve_estimator_folder(directory: str | Path) -> Path:
+    """``directory``, or the shipped estimator's folder for the name `PRETRAINED`."""
+    return pretrained_estimator_folder() if str(directory) == PRETRAINED else Path(directory)
+
+
 def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Estimator:
     """Restores an estimator saved by `train_estimator` (its config comes with the checkpoint).
 
     Args:
-      directory: the ``checkpoint_dir`` of training (a `ModelFolder`).
-      rig: a rig holding the estimator's inference cameras (by name).
+      directory: the ``checkpoint_dir`` of training (a `ModelFolder`), or `PRETRAINED` for the
+        rig-agnostic estimator shipped in the package.
+      rig: a rig holding the estimator's inference cameras (by name); a rig-agnostic estimator
+        takes all of its cameras.
     """
+    directory = resolve_estimator_folder(directory)
     folder = ModelFolder(directory).require(which, "train-estimator")
     saved = folder.read_config(which)
     config = estimator_config_from_dict(saved)
     if "num_keypoints" not in saved:
         raise InputError("checkpoint config lacks num_keypoints", file=directory, field="config")
+    if config.mlp.views == "pooled":
+        graphdef, params, rest = nnx.split(
+            estimator_model(0, int(saved["num_keypoints"]), config.mlp, rngs=nnx.Rngs(0)),
+            nnx.Param,
+            ...,
+        )
+        params = folder.restore_params(jax.eval_shape(lambda: params), which)
+        return rig_agnostic_estimator(graphdef, rest, params, config, rig)
     rig_infer = rig.select(list(config.infer_cameras or config.train_cameras or rig.names))
     K = int(saved["num_keypoints"])
     graphdef, params, rest = nnx.split(
@@ -163,6 +209,16 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
         normalisation = (jnp.asarray(f[:3]), jnp.asarray(f[3]))
     _warn_if_worse_than_triangulation(folder)
     return Estimator(graphdef, rest, params, rig_infer, config, normalisation)
+
+
+def rig_agnostic_estimator(graphdef, rest, params, config: EstimatorConfig, rig: Rig) -> Estimator:
+    """A rig-agnostic estimator (`models.ViewPooledMLP`) set up for ``rig``: every camera is an
+    inference camera, the frame is the rig's (`features.rig_agnostic_frame`) and the model turns
+    the rig's up (`cameras.up_vector`) to the +z it was trained with."""
+    model = nnx.merge(graphdef, params, rest)
+    model.rotation[...] = jnp.asarray(rotation_to_z_up(up_vector(rig)), jnp.float32)
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    return Estimator(graphdef, rest, params, rig, config, rig_agnostic_frame(rig))
 
 
 class ModelQualityWarning(MvposeWarning):
@@ -305,6 +361,7 @@ DEV_QUALITY_FILE = "dev_reprojection.json"
 PROPOSAL_THRESHOLD_FILE = "proposal_threshold.json"
 ADAPT_REPORT_FILE = "adapt_report.json"
 PIPELINE_FILE = "pipeline.json"
+PRETRAIN_REPORT_FILE = "pretrain_report.json"
 
 
 class ModelFolder:
@@ -433,6 +490,14 @@ class ModelFolder:
     def adapt_report_path(self) -> Path:
         """Where `write_adapt_report` writes (for messages)."""
         return self.path / ADAPT_REPORT_FILE
+
+    def write_pretrain_report(self, report: dict) -> Path:
+        """Writes how a rig-agnostic model was pretrained and how it did on rigs it never saw
+        (`experiments.pretrain`): its data, seed, steps and validation table."""
+        return self._write_json(PRETRAIN_REPORT_FILE, report)
+
+    def read_pretrain_report(self) -> dict | None:
+        return self._read_json(PRETRAIN_REPORT_FILE)
 
     def write_adapt_report(self, report: dict) -> Path:
         """Writes what an adaptation did (`adapt.AdaptReport.to_json`)."""

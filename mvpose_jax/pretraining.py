@@ -1,0 +1,269 @@
+"""One 3D estimator for many rigs (`pretrain_estimator`): the paper's training without labels,
+over people recorded by rigs of every kind, for `models.ViewPooledMLP`.
+
+The recipe is `estimator_training`'s (reprojection loss over all of a person's views, view-subset
+augmentation, initial 3D from the kept views), with two changes that a model for any rig needs:
+
+* each person carries its own rig: the loss projects into that person's cameras;
+* the frame is the rig's centre in metres (`rig_agnostic_frame`), not its radius: a body is then
+  the same size in the inputs of a stereo pair and of a 10 m studio. World vectors are taken in
+  a z-up world (training rigs are drawn so; at inference `trained.rig_agnostic_estimator` turns
+  the user's up to +z inside the model).
+
+People are padded to a few camera counts (`CAMERA_BUCKETS`; padded views have no keypoint) so
+that the step compiles once per bucket; a batch holds one bucket's people.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from mvpose_jax.cameras import Rig, project_points
+from mvpose_jax.data.files import to_jsonable
+from mvpose_jax.errors import InputError
+from mvpose_jax.estimator_training import random_view_subsets
+from mvpose_jax.features import (
+    EstimatorInputs,
+    assemble_features,
+    estimator_inputs,
+    rig_agnostic_frame,
+)
+from mvpose_jax.losses import masked_mean
+from mvpose_jax.models import estimator_model
+from mvpose_jax.train import (
+    FitResult,
+    fit_resumable,
+    init_train_state,
+    make_optimizer,
+    make_train_step,
+)
+from mvpose_jax.trained import EstimatorConfig
+
+# The loss's pixel unit: a pixel of a camera of this focal length (about a 1080p camera's).
+REFERENCE_FOCAL_PX = 1000.0
+
+# People are padded to the first of these camera counts that holds their rig.
+CAMERA_BUCKETS = (3, 6, 10)
+
+
+class RigPeople(NamedTuple):
+    """Single people seen by one rig (training data of `pretrain_estimator`).
+
+    ``xy``: (N, C, K, 2) pixels; ``score``: (N, C, K), 0 = missing
+    (`features.single_person_samples` of the rig's recordings).
+    """
+
+    rig: Rig
+    xy: np.ndarray
+    score: np.ndarray
+
+
+class PooledBatch(NamedTuple):
+    """People of several rigs, padded to one camera count C (a bucket)."""
+
+    inputs: EstimatorInputs  # (N, C, ...) in each person's rig frame
+    available: jax.Array  # (N, C) bool
+    xy: jax.Array  # (N, C, K, 2) loss targets
+    score: jax.Array  # (N, C, K)
+    rig: Rig  # each person's cameras: every leaf (N, C, ...)
+    centre: jax.Array  # (N, 3) each person's frame origin, metres (unit: 1 m)
+
+
+def bucket_for(num_cameras: int) -> int:
+    """The padded camera count of a rig of ``num_cameras`` cameras."""
+    for b in CAMERA_BUCKETS:
+        if num_cameras <= b:
+            return b
+    raise InputError(
+        f"a rig of {num_cameras} cameras is larger than the largest bucket {CAMERA_BUCKETS[-1]}",
+        field="cameras",
+    )
+
+
+def pad_rig(rig: Rig, num_cameras: int) -> Rig:
+    """The rig padded to ``num_cameras`` with copies of its first camera (they never see a
+    keypoint), names ``v0..`` and no ``up``: rigs of one bucket then stack into one pytree."""
+    C = rig.num_cameras
+    idx = np.concatenate([np.arange(C), np.zeros(num_cameras - C, int)])
+    take = lambda a: jnp.asarray(a)[idx]  # noqa: E731
+    names = tuple(f"v{i}" for i in range(num_cameras))
+    return Rig(take(rig.K), take(rig.dist), take(rig.R), take(rig.t), take(rig.size), names)
+
+
+def pooled_batch(people: RigPeople) -> PooledBatch:
+    """One rig's people as a `PooledBatch` of its bucket."""
+    rig = people.rig
+    C = bucket_for(rig.num_cameras)
+    pad = C - rig.num_cameras
+    xy = jnp.asarray(np.pad(people.xy, ((0, 0), (0, pad), (0, 0), (0, 0))), jnp.float32)
+    score = jnp.asarray(np.pad(people.score, ((0, 0), (0, pad), (0, 0))), jnp.float32)
+    padded = pad_rig(rig, C)
+    frame = rig_agnostic_frame(rig)
+    inputs = estimator_inputs(padded, xy, score, frame)
+    N = len(xy)
+    per_person = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,) + a.shape), padded)
+    return PooledBatch(
+        inputs,
+        (score > 0).any(-1),
+        xy,
+        score,
+        per_person,
+        jnp.broadcast_to(frame[0], (N, 3)),
+    )
+
+
+def bucketed(people: Sequence[RigPeople]) -> dict[int, PooledBatch]:
+    """Every rig's people, concatenated per bucket."""
+    parts: dict[int, list[PooledBatch]] = {}
+    for p in people:
+        if len(p.xy):
+            parts.setdefault(bucket_for(p.rig.num_cameras), []).append(pooled_batch(p))
+    return {c: jax.tree.map(lambda *a: jnp.concatenate(a), *b) for c, b in sorted(parts.items())}
+
+
+def _person_error(rig: Rig, xyz, xy, score):
+    """One person's summed Manhattan reprojection error in pixels of a camera of focal length
+    `REFERENCE_FOCAL_PX` (each camera's pixels scaled by it over the camera's own focal length),
+    so that people of a 640-pixel camera weigh as much as those of a 4K one."""
+    scale = REFERENCE_FOCAL_PX / rig.K[:, 0, 0]  # (C,)
+    px = project_points(rig, xyz)  # (C, K, 2)
+    seen = score > 0
+    diff = jnp.where(seen[..., None], px - jnp.where(seen[..., None], xy, 0.0), 0.0)
+    return jnp.sum(jnp.abs(diff).sum(axis=(1, 2)) * scale)
+
+
+def pooled_loss_fn(num_augment: int, loss_power: float):
+    """``loss_fn(model, PooledBatch, key)`` for `make_train_step`: as
+    `estimator_training.estimator_loss_fn`, each person projected into its own rig."""
+
+    def loss_fn(model, batch: PooledBatch, key):
+        subsets, subset_ok = random_view_subsets(key, batch.available, num_augment)
+        masks = jnp.concatenate([batch.available[None], subsets], axis=0)  # (1+A, N, C)
+        ok = jnp.concatenate([batch.available.any(-1)[None], subset_ok], axis=0)
+        feats = jax.vmap(assemble_features, in_axes=(None, 0))(batch.inputs, masks)
+        xyz = model(feats) + batch.centre[None, :, None, :]  # unit 1 m
+        err = jax.vmap(jax.vmap(_person_error), in_axes=(None, 0, None, None))(
+            batch.rig, xyz, batch.xy, batch.score
+        )  # (1+A, N)
+        n_kp = jnp.maximum((batch.score > 0).sum(axis=(1, 2)), 1)
+        metrics = {"px_per_keypoint": masked_mean(err[0] / n_kp, ok[0])}
+        return err**loss_power, ok, metrics
+
+    return loss_fn
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _eval_sums(graphdef, rest, params, batch: PooledBatch, loss_power):
+    model = nnx.merge(graphdef, params, rest)
+    xyz = model(assemble_features(batch.inputs, batch.available)) + batch.centre[:, None, :]
+    err = jax.vmap(_person_error)(batch.rig, xyz, batch.xy, batch.score)
+    ok = batch.available.any(-1)
+    n_kp = jnp.maximum((batch.score > 0).sum(axis=(1, 2)), 1)
+    return jnp.stack(
+        [
+            jnp.sum(jnp.where(ok, err**loss_power, 0.0)),
+            jnp.sum(jnp.where(ok, err / n_kp, 0.0)),
+            jnp.sum(ok),
+        ]
+    )
+
+
+def pooled_eval(graphdef, rest, params, data: dict[int, PooledBatch], loss_power: float) -> dict:
+    """``{"val_loss", "val_px_per_keypoint"}`` over every bucket's people (all their views)."""
+    sums = sum(np.asarray(_eval_sums(graphdef, rest, params, b, loss_power)) for b in data.values())
+    n = max(float(sums[2]), 1.0)
+    return {"val_loss": float(sums[0] / n), "val_px_per_keypoint": float(sums[1] / n)}
+
+
+def _epoch_batches(
+    data: dict[int, PooledBatch], batch_size: int, seed: int, epoch: int
+) -> Iterator[PooledBatch]:
+    """One epoch: each bucket shuffled and cut into full batches (a short tail wraps around),
+    the buckets' batches interleaved at random; reproducible from (seed, epoch)."""
+    rng = np.random.default_rng([seed, epoch])
+    plan = []
+    for c, b in data.items():
+        n = len(b.available)
+        order = np.resize(rng.permutation(n), max(1, math.ceil(n / batch_size)) * batch_size)
+        plan += [(c, order[i : i + batch_size]) for i in range(0, len(order), batch_size)]
+    for i in rng.permutation(len(plan)):
+        c, idx = plan[i]
+        yield jax.tree.map(lambda a, idx=idx: a[idx], data[c])
+
+
+def pretrain_estimator(
+    train: Sequence[RigPeople],
+    dev: Sequence[RigPeople],
+    config: EstimatorConfig,
+    *,
+    checkpoint_dir: str | Path | None = None,
+    progress: bool = True,
+    resume: bool = False,
+) -> tuple[tuple[Any, Any, Any], FitResult]:
+    """Trains a rig-agnostic 3D estimator on people of many rigs, without labels.
+
+    Args:
+      train, dev: people per rig (`RigPeople`); dev picks the best checkpoint.
+      config: an `EstimatorConfig` whose ``mlp.views`` is "pooled" (``train_cameras`` and
+        ``infer_cameras`` must be None: the model has no cameras of its own).
+      checkpoint_dir: a model folder for the checkpoints (optional); `trained.load_estimator`
+        reads it back for any rig.
+    Returns:
+      ((graphdef, rest, params) of the best model, the `FitResult`).
+    Raises:
+      InputError: a config that is not rig-agnostic, or no training people.
+    """
+    if config.mlp.views != "pooled" or config.train_cameras or config.infer_cameras:
+        raise InputError(
+            "pretraining needs a rig-agnostic estimator: MLPConfig.views='pooled' and no cameras",
+            field="mlp.views",
+        )
+    train_data, dev_data = bucketed(train), bucketed(dev)
+    if not train_data or not dev_data:
+        raise InputError("no training or dev people to pretrain on", field="recordings")
+    K = next(iter(train_data.values())).xy.shape[-2]
+    tcfg = config.train
+    batch = tcfg.batch_size
+    steps_per_epoch = sum(max(1, math.ceil(len(b.available) / batch)) for b in train_data.values())
+    model = estimator_model(CAMERA_BUCKETS[-1], K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
+    tx = make_optimizer(tcfg, steps_per_epoch)
+    graphdef, rest, state = init_train_state(model, tx)
+    step = make_train_step(
+        graphdef, rest, tx, pooled_loss_fn(config.num_augment, config.loss_power)
+    )
+    run_config = to_jsonable(dataclasses.asdict(config))
+    run_config.update(
+        train_cameras=None,
+        infer_cameras=None,
+        num_keypoints=int(K),
+        frame="rig-centre-metres",
+        rigs={"train": len(train), "dev": len(dev)},
+        people={
+            "train": int(sum(len(p.xy) for p in train)),
+            "dev": int(sum(len(p.xy) for p in dev)),
+        },
+    )
+    result = fit_resumable(
+        state,
+        step,
+        lambda epoch: _epoch_batches(train_data, batch, tcfg.seed, epoch),
+        lambda s: pooled_eval(graphdef, rest, s.params, dev_data, config.loss_power),
+        tcfg,
+        steps_per_epoch=steps_per_epoch,
+        checkpoint_dir=checkpoint_dir,
+        run_config=run_config,
+        resume=resume,
+        desc="pretrain estimator",
+        progress=progress,
+    )
+    return (graphdef, rest, jax.device_get(result.state.params)), result

@@ -1,0 +1,266 @@
+"""The rig-agnostic estimator: random rigs, the view-pooled network, pretraining over rigs, and
+loading one model for any rig."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from mvpose_jax.cameras import camera_centres, project_points, up_vector
+from mvpose_jax.data.calibration import load_rig
+from mvpose_jax.features import assemble_features, estimator_inputs, single_person_samples
+from mvpose_jax.losses import reprojection_error_l1
+from mvpose_jax.models import (
+    MLPConfig,
+    ViewPooledMLP,
+    estimator_model,
+    initial_estimate,
+    rotation_to_z_up,
+)
+from mvpose_jax.pretraining import (
+    REFERENCE_FOCAL_PX,
+    RigPeople,
+    _person_error,
+    bucketed,
+    pad_rig,
+    pooled_batch,
+    pooled_eval,
+    pretrain_estimator,
+)
+from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
+from mvpose_jax.synthetic.rigs import RIG_FAMILIES, look_at, random_rig
+from mvpose_jax.trained import EstimatorConfig, TrainConfig, load_estimator
+
+TINY = MLPConfig(widths=(32,), output="residual", views="pooled", view_widths=(32, 32))
+
+
+@pytest.mark.parametrize("family", RIG_FAMILIES)
+def test_random_rigs_have_a_capture_area_and_look_at_it(family):
+    rig, floor = random_rig(family, [3, 1])
+    assert rig.up == (0.0, 0.0, 1.0)
+    assert 2 <= rig.num_cameras <= 10
+    config = SyntheticConfig().with_scene(up=rig.up, floor_height=floor)
+    (rec,) = generate_single_person_recordings(rig, num_recordings=1, num_frames=4, config=config)
+    # The person is seen whole by at least two cameras in most frames.
+    views = (np.asarray(rec.detections.count) > 0).sum(-1)
+    assert np.median(views) >= 2
+    # Cameras stand above the floor.
+    assert (np.asarray(camera_centres(rig))[:, 2] > floor).all()
+
+
+def test_look_at_matches_opencv_projection():
+    """A camera built by look_at projects its target to the image centre (cv2 as reference)."""
+    import cv2
+
+    centre, target = np.array([3.0, -2.0, 2.5]), np.array([0.2, 0.1, 1.0])
+    R = look_at(centre, target)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    K = np.array([[1000.0, 0, 640], [0, 1000, 360], [0, 0, 1]])
+    px, _ = cv2.projectPoints(target[None], cv2.Rodrigues(R)[0], -R @ centre, K, None)
+    np.testing.assert_allclose(px.reshape(2), [640, 360], atol=1e-6)
+    # No roll: the image's x axis is level (perpendicular to up).
+    assert abs(R[0] @ np.array([0, 0, 1.0])) < 1e-12
+
+
+@pytest.mark.parametrize("up", [(0, 0, 1), (0, 1, 0), (0, -1, 0), (0, 0, -1), (1, 2, 3)])
+def test_rotation_to_z_up(up):
+    q = rotation_to_z_up(up)
+    np.testing.assert_allclose(q @ (np.array(up) / np.linalg.norm(up)), [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(q @ q.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(q) == pytest.approx(1.0)
+
+
+def _features(seed=0, n=6, c=5, k=18):
+    x = jax.random.normal(jax.random.key(seed), (n, c, k, 14))
+    seen = jax.random.uniform(jax.random.key(seed + 1), (n, c, k)) > 0.3
+    x = x.at[..., 0].set(seen).at[..., 10].set(seen)
+    return jnp.where(seen[..., None], x, 0.0)
+
+
+def test_pooled_estimator_ignores_camera_order_and_count():
+    model = ViewPooledMLP(18, TINY, rngs=nnx.Rngs(0))
+    # Non-zero output weights: an untrained model returns the initial estimate exactly.
+    x = _features()
+    np.testing.assert_allclose(model(x), initial_estimate(x, per_keypoint=True), atol=1e-6)
+    model.out.kernel[...] = jax.random.normal(jax.random.key(2), model.out.kernel[...].shape)
+    y = model(x)
+    perm = np.array([3, 0, 4, 1, 2])
+    np.testing.assert_allclose(model(x[:, perm]), y, atol=1e-5)
+    # An empty view slot (a padded camera) changes nothing.
+    padded = jnp.concatenate([x, jnp.zeros_like(x[:, :2])], axis=1)
+    np.testing.assert_allclose(model(padded), y, atol=1e-5)
+
+
+def test_frame_rotation_is_equivariant():
+    """Turning the world and the model's frame together turns the output with them."""
+    model = ViewPooledMLP(18, TINY, rngs=nnx.Rngs(0))
+    model.out.kernel[...] = jax.random.normal(jax.random.key(2), model.out.kernel[...].shape)
+    x = _features()
+    y = model(x)
+    q = jnp.asarray(rotation_to_z_up((0.3, -1.0, 0.2)), jnp.float32)  # world -> z-up
+    turn = lambda v: v @ q.T.T  # noqa: E731  (z-up world -> the turned world: q^T v)
+    turned = jnp.concatenate(
+        [x[..., :4], turn(x[..., 4:7]), turn(x[..., 7:10]), x[..., 10:11], turn(x[..., 11:14])],
+        -1,
+    )
+    model.rotation[...] = q
+    np.testing.assert_allclose(model(turned), turn(y), atol=1e-4)
+
+
+def test_estimator_model_picks_the_architecture():
+    assert isinstance(estimator_model(5, 18, TINY, rngs=nnx.Rngs(0)), ViewPooledMLP)
+    assert not isinstance(
+        estimator_model(5, 18, MLPConfig.quick(), rngs=nnx.Rngs(0)), ViewPooledMLP
+    )
+    with pytest.raises(ValueError, match="residual"):
+        MLPConfig(views="pooled", output="absolute")
+
+
+def _people(rig, floor, seed, n=2, frames=6):
+    config = SyntheticConfig().with_scene(up=(0.0, 0.0, 1.0), floor_height=floor)
+    recs = generate_single_person_recordings(
+        rig, num_recordings=n, num_frames=frames, config=config, seed=seed
+    )
+    return RigPeople(rig, *single_person_samples(recs))
+
+
+def test_person_error_is_the_reprojection_error_in_reference_pixels():
+    rig, floor = random_rig("ring", [5, 0])
+    people = _people(rig, floor, 1)
+    xyz = jnp.asarray(np.random.default_rng(0).normal(0, 1, (18, 3)) + [0, 0, floor + 1.0])
+    xy, score = jnp.asarray(people.xy[0]), jnp.asarray(people.score[0])
+    got = _person_error(rig, xyz, xy, score)
+    scale = REFERENCE_FOCAL_PX / np.asarray(rig.K)[:, 0, 0]
+    per_camera = [
+        float(
+            reprojection_error_l1(
+                rig.select([c]), xyz[None], xy[None, c : c + 1], score[None, c : c + 1]
+            )[0]
+        )
+        for c in range(rig.num_cameras)
+    ]
+    assert float(got) == pytest.approx(float(np.dot(per_camera, scale)), rel=1e-5)
+
+
+def test_padded_rigs_change_no_input():
+    """A person's inputs in a rig padded to its bucket are its inputs in the rig, plus empty
+    views."""
+    rig, floor = random_rig("wall", [6, 2])
+    people = _people(rig, floor, 2)
+    batch = pooled_batch(people)
+    C = rig.num_cameras
+    assert batch.available.shape[1] in (3, 6, 10) and batch.available.shape[1] >= C
+    assert not batch.available[:, C:].any()
+    frame = (jnp.mean(camera_centres(rig), 0), jnp.asarray(1.0))
+    own = estimator_inputs(rig, jnp.asarray(people.xy), jnp.asarray(people.score), frame)
+    a = assemble_features(own, (jnp.asarray(people.score) > 0).any(-1))
+    b = assemble_features(batch.inputs, batch.available)
+    np.testing.assert_allclose(b[:, :C], a, atol=1e-4)
+    assert not np.asarray(b[:, C:]).any()
+    padded = pad_rig(rig, batch.available.shape[1])
+    np.testing.assert_allclose(padded.K[:C], rig.K)
+
+
+def test_pretraining_learns_and_one_model_loads_for_any_rig(tmp_path):
+    """Pretraining lowers the dev reprojection error; the model folder loads for rigs of other
+    camera counts and up directions and gives what the network gives on their inputs."""
+    train = [
+        _people(*random_rig(f, [7, i]), [7, i]) for i, f in enumerate(["ring", "arc", "wall"] * 2)
+    ]
+    dev = [_people(*random_rig("corners", [8, 0]), [8, 0])]
+    config = EstimatorConfig(
+        mlp=TINY,
+        train=TrainConfig(
+            learning_rate=1e-3, batch_size=16, max_steps=30, eval_every=1, patience=100
+        ),
+        loss_power=1.0,
+    )
+    (graphdef, rest, params), fit = pretrain_estimator(
+        train, dev, config, checkpoint_dir=tmp_path / "m", progress=False
+    )
+    assert fit.steps == 30 and len(bucketed(train)) >= 2  # more than one camera bucket
+    # The training people's reprojection loss fell below the untrained model's (which returns
+    # the initial estimate).
+    data = bucketed(train)
+    start = nnx.split(estimator_model(10, 18, TINY, rngs=nnx.Rngs(0)), nnx.Param, ...)
+    before = pooled_eval(start[0], start[2], start[1], data, 1.0)["val_loss"]
+    after = pooled_eval(graphdef, rest, params, data, 1.0)["val_loss"]
+    assert after < 0.95 * before, (before, after)
+    for name in ("panoptic5", "arplab6"):
+        rig = load_rig(name)
+        est = load_estimator(tmp_path / "m", rig)
+        assert est.rig_infer.names == rig.names
+        np.testing.assert_allclose(est.rest["rotation"][...] @ up_vector(rig), [0, 0, 1], atol=1e-5)
+        np.testing.assert_allclose(est.normalisation[0], camera_centres(rig).mean(0), atol=1e-5)
+        xyz = jnp.asarray([[0.1, 0.2, 1.0]] * 18) + est.normalisation[0][None]
+        px = jnp.moveaxis(project_points(rig, xyz[None]), 0, 1)
+        score = jnp.ones(px.shape[:-1])
+        inputs = estimator_inputs(rig, px, score, est.normalisation)
+        feats = assemble_features(inputs, jnp.ones((1, rig.num_cameras), bool))
+        out = nnx.merge(est.graphdef, est.params, est.rest)(feats)[0] + est.normalisation[0][None]
+        # Exact detections of a point: the network's answer stays near it (the residual is
+        # small after a few steps), and the model runs on this rig's camera count.
+        assert out.shape == (18, 3) and np.isfinite(np.asarray(out)).all()
+
+
+def test_fine_tuning_starts_from_the_pretrained_model(tmp_path):
+    from mvpose_jax.estimator_training import train_estimator
+
+    train = [_people(*random_rig("ring", [9, i]), [9, i]) for i in range(2)]
+    config = EstimatorConfig(
+        mlp=TINY,
+        train=TrainConfig(learning_rate=1e-3, batch_size=16, max_steps=4, eval_every=1),
+        loss_power=1.0,
+    )
+    pretrain_estimator(train, train, config, checkpoint_dir=tmp_path / "m", progress=False)
+    rig = load_rig("panoptic5")
+    start = load_estimator(tmp_path / "m", rig)
+    people = _people(rig, None, 3)
+    tune = dataclasses.replace(config, train=dataclasses.replace(config.train, max_steps=2))
+    tuned, fit = train_estimator(
+        rig,
+        people.xy,
+        people.score,
+        people.xy,
+        people.score,
+        tune,
+        progress=False,
+        start=start,
+        checkpoint_dir=tmp_path / "t",
+    )
+    assert fit.steps == 2
+    # Same frame; the parameters moved from the pretrained ones.
+    np.testing.assert_allclose(tuned.normalisation[0], start.normalisation[0])
+    moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), tuned.params, start.params)
+    assert max(jax.tree.leaves(moved)) > 0
+    # The fine-tuned folder loads as a rig-agnostic model again.
+    again = load_estimator(tmp_path / "t", rig)
+    jax.tree.map(np.testing.assert_allclose, again.params, tuned.params)
+
+
+def test_pretrain_experiment_smoke(tmp_path):
+    """``python -m experiments.pretrain --scale smoke`` on one evaluation rig: a report with the
+    rows it promises, the fine-tuning step size chosen on validation scenes, and a model folder
+    that loads for a rig it never saw."""
+    import json
+
+    from experiments.pretrain import FINETUNE_RATES, main
+
+    main(["--out", str(tmp_path), "--scale", "smoke", "--rigs", "pair", "--no-progress"])
+    report = json.loads((tmp_path / "pretrain.json").read_text())
+    (rig,) = report["rigs"].values()
+    assert rig["cameras"] == 2 and rig["held_out_family"]
+    assert rig["finetune_learning_rate"] in FINETUNE_RATES
+    for split in ("validation", "test"):
+        for who in ("per-rig", "pretrained", "fine-tuned"):
+            for method in ("mlp", "blend"):
+                assert 0 <= rig[split][f"{who}, {method}"]["pcp"] <= 100
+    assert "| robust triangulation |" in (tmp_path / "pretrain.md").read_text()
+    est = load_estimator(tmp_path / "models" / "pretrained", load_rig("arplab6"))
+    assert est.rig_infer.num_cameras == 6
