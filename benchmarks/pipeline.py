@@ -1,6 +1,6 @@
 """The ``pipeline`` group: what users run, timed through the library's public API.
 
-Four pipelines (`PIPELINES`), each through `inference.stream_pipeline` / `inference.run_pipeline`
+Five pipelines (`PIPELINES`), each through `inference.stream_pipeline` / `inference.run_pipeline`
 with a `PipelineConfig`, as ``mvpose-jax infer`` builds them:
 
 * ``default``: `jobs.infer.INFER_PIPELINE` with a matcher and an estimator, as `infer`
@@ -10,7 +10,10 @@ with a `PipelineConfig`, as ``mvpose-jax infer`` builds them:
 * ``paper``: the GAT's proposals (at the folder's threshold) and the MLP, untracked;
 * ``geometric``: ``infer --method robust`` without models: epipolar proposals, robust
   triangulation, tracking and the Butterworth filter;
-* ``dlt``: epipolar proposals and DLT, untracked.
+* ``dlt``: epipolar proposals and DLT, untracked;
+* ``pretrained``: ``infer --estimator pretrained`` (the rig-agnostic estimator shipped in the
+  package, no training on the rig): epipolar proposals, the blend, tracking and the Butterworth
+  filter.
 
 Models are the CLI's default sizes (`GATConfig()`, `MLPConfig.quick()`), per rig: trained for a
 few steps on synthetic single-person recordings of the scene's rig in the full tier, random
@@ -103,9 +106,18 @@ from mvpose_jax.proposals import CombinedConfig
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.smoothing import smooth_poses
 from mvpose_jax.synthetic import generate_single_person_recordings
-from mvpose_jax.trained import Estimator, EstimatorConfig, Matcher, MatcherConfig, TrainConfig
+from mvpose_jax.trained import (
+    PRETRAINED,
+    Estimator,
+    EstimatorConfig,
+    Matcher,
+    MatcherConfig,
+    TrainConfig,
+    load_estimator,
+)
 
-PIPELINES = ("geometric", "default", "paper", "dlt")  # geometric first: the others' yardstick
+# geometric first: the others' yardstick
+PIPELINES = ("geometric", "default", "paper", "dlt", "pretrained")
 MODES = ("live", "offline")
 STAGES = ("matching", "proposals", "3d", "tracking", "filtering", "other")
 CHUNK_FRAMES = 256
@@ -313,6 +325,14 @@ class RigModels:
     settings: MatcherSettings  # the proposal settings chosen for the matcher, as train-matcher does
     seconds: float
     steps: int
+    pretrained: Estimator  # the package's rig-agnostic estimator, set up for the rig
+
+    def for_pipeline(self, needs: bool | str) -> RigModels | None:
+        """What a pipeline of `pipeline_configs` runs with: these models (True), none (False),
+        or the pretrained estimator alone ("pretrained")."""
+        if needs == "pretrained":
+            return dataclasses.replace(self, matcher=None, estimator=self.pretrained)
+        return self if needs else None
 
 
 def train_models(rig: Rig, tier: PipelineTier, seed: int = 0) -> RigModels:
@@ -358,15 +378,17 @@ def train_models(rig: Rig, tier: PipelineTier, seed: int = 0) -> RigModels:
             rig, xy, score, dev_xy, dev_score, estimator_config, progress=False
         )
     settings = choose_matcher_settings(matcher, dev, num_samples=64, seed=seed)
-    return RigModels(matcher, estimator, settings, time.perf_counter() - t0, steps)
+    seconds = time.perf_counter() - t0
+    return RigModels(matcher, estimator, settings, seconds, steps, load_estimator(PRETRAINED, rig))
 
 
 def pipeline_configs(
     settings: MatcherSettings | None = None,
 ) -> dict[str, tuple[PipelineConfig, bool]]:
-    """{name: (config, needs the models)} of `PIPELINES`, each as `infer` resolves it for a
+    """{name: (config, the models it needs)} of `PIPELINES`, each as `infer` resolves it for a
     matcher folder holding ``settings`` (None: a folder without chosen settings: the GAT at the
-    paper's 0.5, `CombinedConfig()`)."""
+    paper's 0.5, `CombinedConfig()`). Needs: True (the rig's matcher and estimator), False
+    (none) or "pretrained" (the shipped estimator alone, `RigModels.for_pipeline`)."""
     infer_matching = INFER_PIPELINE.matching
     threshold = settings.threshold if settings is not None else 0.5
     combined = settings.combined if settings is not None else CombinedConfig()
@@ -403,6 +425,15 @@ def pipeline_configs(
                 MatchingConfig("epipolar", 0.5), LiftingConfig("dlt"), chunk_frames=CHUNK_FRAMES
             ),
             False,
+        ),
+        # `infer --estimator pretrained`: epipolar proposals (no matcher), the blend.
+        "pretrained": (
+            dataclasses.replace(
+                INFER_PIPELINE,
+                matching=dataclasses.replace(infer_matching, proposals="epipolar", threshold=0.5),
+                lifting=dataclasses.replace(INFER_PIPELINE.lifting, method="blend"),
+            ),
+            "pretrained",
         ),
     }
 
@@ -580,7 +611,7 @@ def _scene_records(
                 rig,
                 det,
                 config,
-                models if needs_models else None,
+                models.for_pipeline(needs_models),
                 repeats=tier.repeats,
                 count_frames=tier.count_frames,
                 fps=fps,

@@ -4,7 +4,7 @@
     python -m benchmarks.same_results --write after.npz      # on the new one
     python -m benchmarks.same_results --compare before.npz after.npz
 
-The pipeline group's four pipelines (`benchmarks.pipeline.PIPELINES`, each as ``infer`` builds
+The pipeline group's pipelines (`benchmarks.pipeline.PIPELINES`, each as ``infer`` builds
 it, with the group's untrained models of the CLI's default sizes and their chosen proposal
 settings) run offline (`run_pipeline`, chunks of 256) and live (one-frame chunks, the first
 `LIVE_FRAMES` frames) on synthetic panoptic5 scenes with 1, 4 and 8 people and on the real
@@ -51,9 +51,10 @@ def outputs() -> dict[str, np.ndarray]:
     out = {}
     for scene, rig, det, models, fps in _scenes():
         for name, (config, needs) in pipeline.pipeline_configs(models.settings).items():
+            used = models.for_pipeline(needs)
             kw = dict(
-                matcher=models.matcher if needs else None,
-                estimator=models.estimator if needs else None,
+                matcher=used.matcher if used else None,
+                estimator=used.estimator if used else None,
                 layout=pipeline.LAYOUT,
                 fps=fps,
             )

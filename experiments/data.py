@@ -75,11 +75,19 @@ class Data:
         return det, ident, gt, ids
 
 
-def make_scenes(rig, sc: Scale, scenes_seed: int, *, tracking: bool = False) -> dict:
+def make_scenes(
+    rig,
+    sc: Scale,
+    scenes_seed: int,
+    *,
+    tracking: bool = False,
+    config: SyntheticConfig | None = None,
+) -> dict:
     """Multi-person scenes, one per entry of ``test_people``, of each split's seed stream.
 
     tracking: the long tracking scenes (``sc.tracking_frames`` each, streams
     ``tracking/<split>``) rather than the validation and test scenes (``sc.test_frames`` each).
+    config: the simulator's settings (None: the default, floor guessed from the cameras).
     Returns: split -> list of `Recording`.
     """
     splits = TRACKING_SPLITS if tracking else SPLITS
@@ -89,6 +97,7 @@ def make_scenes(rig, sc: Scale, scenes_seed: int, *, tracking: bool = False) -> 
                 rig,
                 num_people=n,
                 num_frames=sc.tracking_frames if tracking else sc.test_frames,
+                config=config or SyntheticConfig(),
                 seed=seed_stream(f"tracking/{split}" if tracking else split, scenes_seed, n),
             )
             for n in sc.test_people

@@ -1124,3 +1124,34 @@ def test_infer_proposals_option_combined_by_default_with_a_matcher(
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert "--threshold" in err and "--proposals gat" in err, err
+
+
+def test_the_shipped_pretrained_estimator_runs_on_any_rig_and_fine_tunes(files, tmp_path, capsys):
+    """`--estimator pretrained` needs no training: it loads the package's rig-agnostic estimator
+    for this rig (5 cameras) and for a 3-camera subset of it; `train-estimator --start
+    pretrained` fine-tunes it into a folder that loads as the same kind of model."""
+    from mvpose_jax.synthetic import generate_single_person_recordings
+    from mvpose_jax.trained import PRETRAINED, load_estimator, pretrained_estimator_folder
+
+    assert (pretrained_estimator_folder() / "pretrain_report.json").is_file()
+    base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]
+    for name, extra in (("all", []), ("three", ["--cameras", "trackera", "trackerc", "trackere"])):
+        assert main([*base, *extra, "--estimator", PRETRAINED, "--out", str(tmp_path / name)]) == 0
+        poses = load_poses(tmp_path / name / "poses.npz").poses
+        assert poses.valid.any() and np.isfinite(poses.xyz[poses.keypoint_valid]).all()
+    recs = generate_single_person_recordings(
+        load_rig("panoptic5"), num_recordings=2, num_frames=6, seed=3
+    )
+    for i, rec in enumerate(recs):
+        save_recording(rec, tmp_path / "train" / f"walk_{i}.npz")
+    out = tmp_path / "tuned"
+    train = ["train-estimator", "--rig", "panoptic5", "--train", str(tmp_path / "train")]
+    assert (
+        main(
+            [*train, "--out", str(out), "--start", PRETRAINED, "--steps", "2", "--batch-size", "8"]
+        )
+        == 0
+    )
+    tuned = load_estimator(out, load_rig("panoptic5"))
+    assert tuned.config.mlp.views == "pooled"
+    capsys.readouterr()

@@ -42,8 +42,9 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--estimator",
-        help="folder of a trained estimator (train-estimator --out); default: "
-        "triangulation of the keypoints seen in 2+ views",
+        help="folder of a trained estimator (train-estimator --out), or 'pretrained' (the "
+        "rig-agnostic estimator shipped in the package: any calibrated rig, no training; "
+        "docs/pretrained.md); default: triangulation of the keypoints seen in 2+ views",
     )
     p.add_argument(
         "--method",

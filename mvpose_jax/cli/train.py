@@ -104,6 +104,14 @@ def _train_estimator_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--patience", type=int, default=20, help="validations without improvement before stopping"
     )
+    p.add_argument(
+        "--start",
+        metavar="MODEL",
+        help="fine-tune this estimator instead of training a new one: a model folder, or "
+        "'pretrained' (the rig-agnostic estimator shipped in the package, for any rig); its "
+        "network replaces --paper-size and --output, and a rig-agnostic one trains on every "
+        "camera of the rig",
+    )
 
 
 @command(
@@ -125,6 +133,7 @@ def _train_estimator(args: argparse.Namespace) -> int:
         learning_rate=args.learning_rate,
         constant_lr=args.constant_lr,
         patience=args.patience,
+        start=args.start,
     )
     done = train_estimator_job(job)
     print(

@@ -42,6 +42,7 @@ from mvpose_jax.trained import (
     load_matcher,
     read_combined_config,
     read_proposal_threshold,
+    resolve_estimator_folder,
 )
 
 # infer's defaults (those of `mvpose-jax infer`): tracked, Butterworth-filtered, the proposals'
@@ -512,7 +513,8 @@ def _inputs(config: InferConfig, stream, fps: float, pipeline: PipelineConfig) -
         "source_layout": src.source_layout,
         "frames": list(config.frames) if config.frames is not None else None,
         "matcher": where(config.matcher),
-        "estimator": where(config.estimator),
+        # "pretrained": the shipped folder, so that a reinstalled package's other weights count.
+        "estimator": where(config.estimator and resolve_estimator_folder(config.estimator)),
         "adapt": config.adapt is not None,
     }
     if pipeline.tracking is not None:

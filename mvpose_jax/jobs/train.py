@@ -172,6 +172,10 @@ class EstimatorJob:
       augment: view-subset samples per seed sample.
       steps, batch_size, learning_rate, patience: the fit loop.
       constant_lr: no cosine decay.
+      start: fine-tune this estimator (a model folder, or "pretrained": the rig-agnostic one
+        shipped in the package) instead of a fresh network; its architecture wins over
+        ``paper_size`` and ``output``, and it must take ``infer_cameras`` (a rig-agnostic one
+        takes any).
     """
 
     run: TrainingRun
@@ -186,6 +190,7 @@ class EstimatorJob:
     learning_rate: float = 1e-3
     constant_lr: bool = False
     patience: int = 20
+    start: str | None = None
 
 
 class EstimatorTrained(NamedTuple):
@@ -226,11 +231,23 @@ def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
     else:
         n = max(1, len(xy) // 10)
         xy, score, dev_xy, dev_score = xy[:-n], score[:-n], xy[-n:], score[-n:]
-    mlp = MLPConfig() if job.paper_size else MLPConfig.quick()
+    start = None
+    if job.start:
+        from mvpose_jax.trained import load_estimator
+
+        start = load_estimator(job.start, rig.select(list(infer_cams)))
+        mlp = start.config.mlp
+        if mlp.views == "pooled":
+            # A rig-agnostic network is fine-tuned on, and set up for, every camera of the rig.
+            train_cams = infer_cams = tuple(rig.names)
+            start = load_estimator(job.start, rig)
+    else:
+        mlp = MLPConfig() if job.paper_size else MLPConfig.quick()
+        mlp = MLPConfig(widths=mlp.widths, output=job.output)
     config = EstimatorConfig(
         train_cameras=train_cams,
         infer_cameras=infer_cams,
-        mlp=MLPConfig(widths=mlp.widths, output=job.output),
+        mlp=mlp,
         num_augment=job.augment,
         loss_power=job.loss_power,
         train=TrainConfig(
@@ -253,6 +270,7 @@ def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
         config,
         checkpoint_dir=run.out,
         resume=run.resume,
+        start=start,
     )
     write_model_pipeline(run.out, matcher=False)
     best = min(fit.history, key=lambda h: h["val_loss"]) if fit.history else {}

@@ -1,0 +1,165 @@
+"""The shipped rig-agnostic estimator on real footage: ``python -m experiments.pretrained_real
+--out DIR [--models MODELS]``.
+
+Beside the geometric default and the estimator trained on synthetic recordings of each real rig
+(what a user gets today after training, `real_models.synthetic_models`), with the same proposals:
+
+* MVOR days 1-2 (labelled, 3 cameras): the MVOR protocol (annotated people missed, MPJPE,
+  PCK3D@150) of epipolar proposals + robust triangulation, + the blend and + the estimator alone
+  (``mlp``), and of the true groupings + each estimator;
+* the Pose2Sim demo's two-person trial (no labels, 4 cameras): the label-free yardstick
+  (`label_free.label_free_score`: share of all skeletons within 20 px, people per frame).
+
+Untracked and unfiltered (MVOR's frames are snapshots; the demo rows are compared alike).
+Nothing is tuned on either: evaluation only. Writes ``DIR/pretrained_real.md`` and ``.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from experiments import pose2sim_demo as demo
+from experiments.mvor import DEFAULT_ROOT, load_mvor, poses_to_joints, select_frames, true_identity
+from experiments.mvor_protocol import evaluate
+from experiments.real import MIN_VIEWS, pipeline_result, smoke_frames
+from experiments.real_models import synthetic_models
+from experiments.records import report_json
+from mvpose_jax.data.files import atomic_write_text
+from mvpose_jax.data.pose2sim import find_trials
+from mvpose_jax.data.poses import PoseResults
+from mvpose_jax.floor import estimate_floor_from_detections
+from mvpose_jax.inference import run_pipeline
+from mvpose_jax.lifting import members_from_identity
+from mvpose_jax.trained import PRETRAINED, load_estimator
+
+# (row, grouping, 3D method, estimator: None, "rig" (trained on the rig's synthetic recordings)
+# or "pretrained" (shipped))
+ROWS = (
+    ("geometric default (epipolar + robust)", "epipolar", "robust", None),
+    ("epipolar + blend, rig's estimator", "epipolar", "blend", "rig"),
+    ("epipolar + blend, pretrained", "epipolar", "blend", "pretrained"),
+    ("epipolar + MLP, rig's estimator", "epipolar", "mlp", "rig"),
+    ("epipolar + MLP, pretrained", "epipolar", "mlp", "pretrained"),
+    ("true groups + robust", "true", "robust", None),
+    ("true groups + MLP, rig's estimator", "true", "mlp", "rig"),
+    ("true groups + MLP, pretrained", "true", "mlp", "pretrained"),
+)
+
+
+def mvor_rows(root: Path, models: Path, pretrained: str, smoke: bool) -> dict:
+    data = load_mvor(root)
+    floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
+    rig_models = synthetic_models(data.rig, floor, models / "mvor-synthetic", smoke=smoke)
+    estimators = {"rig": rig_models.estimator, "pretrained": load_estimator(pretrained, data.rig)}
+    if smoke:
+        data = select_frames(data, smoke_frames(data))
+    identity = true_identity(data)
+    members = members_from_identity(identity, data.gt.valid.shape[1])
+    views = (members >= 0).sum(-1)
+    rows = {}
+    for name, grouping, method, which in ROWS:
+        settings = {"method": method}
+        if which:
+            settings["estimator"] = estimators[which]
+        result = pipeline_result(data, grouping, settings, identity, members)
+        joints = poses_to_joints(result.poses, data.layout)
+        rows[name] = evaluate(joints, data, unreachable=views < MIN_VIEWS)["overall"]
+    return rows
+
+
+def demo_rows(data: Path, models: Path, pretrained: str, smoke: bool) -> dict:
+    trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[demo.MULTI_TRIAL]
+    rig, det = demo.raw_detections(trial, demo.SMOKE_FRAMES if smoke else None)
+    folder = demo.demo_models(data, models / "pose2sim-demo", smoke)["synthetic"][0]
+    estimators = {
+        "rig": load_estimator(folder / "estimator", rig),
+        "pretrained": load_estimator(pretrained, rig),
+    }
+    rows = {}
+    for name, grouping, method, which in ROWS:
+        if grouping != "epipolar":
+            continue  # no true groupings without labels
+        r = run_pipeline(
+            rig,
+            det,
+            estimator=estimators[which] if which else None,
+            layout=demo.LAYOUT,
+            method=method,
+        )
+        result = PoseResults(
+            r.poses, r.confidence, r.members, r.identity, r.cameras, demo.LAYOUT, None, None
+        )
+        rows[name] = demo.score_row(result, rig, det)
+    return rows
+
+
+def markdown(report: dict) -> str:
+    lines = [
+        "# The shipped rig-agnostic estimator on real footage",
+        "",
+        "Evaluation only, untracked and unfiltered. The rig's estimator: trained on synthetic "
+        "recordings of that rig (the recipe of `experiments.real`).",
+        "",
+        "## MVOR days 1-2 (labelled; the MVOR protocol, all frames)",
+        "",
+        "| pipeline | missed (of annotated) | MPJPE mm | PCK3D@150 % |",
+        "|---|---|---|---|",
+    ]
+    for name, r in report["mvor"].items():
+        lines.append(
+            f"| {name} | {r['missed']} of {r['people']} | {r['mpjpe_mm']:.1f} | "
+            f"{r['pck3d_150']:.1f} |"
+        )
+    if "demo" in report:
+        lines += [
+            "",
+            "## Pose2Sim demo, two-person trial (no labels; the label-free yardstick)",
+            "",
+            "| pipeline | skeletons within 20 px | people per frame |",
+            "|---|---|---|",
+        ]
+        for name, r in report["demo"].items():
+            share = r.get("within_20px_all_skeletons")
+            lines.append(
+                f"| {name} | {'-' if share is None else f'{100 * share:.1f} %'} | "
+                f"{r['people_per_frame']:.2f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--data", default=str(DEFAULT_ROOT), help="the MVOR days 1-2 folder")
+    p.add_argument("--pose2sim", default=str(demo.DEFAULT_DATA), help="Pose2Sim's demo session")
+    p.add_argument(
+        "--models",
+        type=Path,
+        help="folder of the rigs' trained models, as experiments.real writes them (default "
+        "OUT/models): reused where it holds them, trained into it where not",
+    )
+    p.add_argument(
+        "--estimator",
+        default=PRETRAINED,
+        help="the rig-agnostic estimator (default: the one shipped in the package)",
+    )
+    p.add_argument("--smoke", action="store_true", help="a few frames (CI)")
+    args = p.parse_args(argv)
+    start = time.perf_counter()
+    models = args.models or args.out / "models"
+    report = {"mvor": mvor_rows(Path(args.data), models, args.estimator, args.smoke)}
+    if Path(args.pose2sim).is_dir():
+        report["demo"] = demo_rows(Path(args.pose2sim), models, args.estimator, args.smoke)
+    report["seconds"] = time.perf_counter() - start
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out / "pretrained_real.json", report_json(report))
+    text = markdown(report)
+    atomic_write_text(args.out / "pretrained_real.md", text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
