@@ -497,11 +497,6 @@ def _epipolar_dense(
     return np.concatenate(means, axis=1), np.concatenate(medians, axis=1) if median else None
 
 
-# How a pipeline with a learned matcher can make its proposals (`stages.PROPOSALS`): the GAT's
-# scores alone (the paper's), the epipolar matcher alone (on the matcher's cameras), or both.
-PROPOSAL_MODES = ("gat", "epipolar", "combined")
-
-
 def propose_with_matcher(
     matcher: Matcher,
     detections: Detections,

@@ -11,9 +11,9 @@ import argparse
 import sys
 
 from mvpose_jax.cli.infer import (
-    _named_by_option,
     add_pipeline_arguments,
     add_tracking_arguments,
+    named_by_option,
     pipeline_config,
 )
 from mvpose_jax.cli.options import add_pool_arguments, add_rig_argument, pool_config, rig_source
@@ -99,7 +99,7 @@ def _batch(args: argparse.Namespace) -> int:
     try:
         res = run_batch(config, on_done=on_done)
     except InputError as e:
-        raise _named_by_option(e) from None
+        raise named_by_option(e) from None
     return print_summary(res, "batch")
 
 

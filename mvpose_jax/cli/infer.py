@@ -191,7 +191,7 @@ def _infer(args: argparse.Namespace) -> int:
     try:
         res = run_infer(infer_config(args), notify=_notify)
     except InputError as e:
-        raise _named_by_option(e) from None
+        raise named_by_option(e) from None
     return _print_result(res, args)
 
 
@@ -235,7 +235,7 @@ def _infer_session(args: argparse.Namespace, session: str) -> int:
     try:
         trials = run_session(config, on_trial=on_trial, notify=_notify)
     except InputError as e:
-        raise _named_by_option(e) from None
+        raise named_by_option(e) from None
     status = 0
     for t in trials:
         status = _print_result(t.result, args) or status
@@ -338,7 +338,7 @@ _OPTION_OF_SETTING = {
 }
 
 
-def _named_by_option(e: InputError) -> InputError:
+def named_by_option(e: InputError) -> InputError:
     """``e`` with its field (a config path) replaced by the option that sets it."""
     option = _OPTION_OF_SETTING.get(e.field or "")
     if option is None:
