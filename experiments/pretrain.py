@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import time
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from experiments.config import SCALES, SPLITS, seed_stream
 from experiments.data import make_data, make_scenes, true_members
 from experiments.fitting import fit_estimator
 from experiments.records import report_json
-from experiments.tables import rounded
+from experiments.tables import diff_mean_sd, mean_sd, rounded, seeds_line
 from mvpose_jax.cameras import Rig, up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text
@@ -284,6 +285,31 @@ def table(report: dict, split: str = "test") -> list[str]:
     return lines
 
 
+def seeds_table(reports: list[dict], split: str = "test") -> list[str]:
+    """Avg PCP per evaluation rig and 3D stage over training seeds (mean ± sd), with each
+    pretrained row's difference from the per-rig row of the same seed."""
+    rigs = list(reports[0]["rigs"])
+    head = "| 3D stage (true groupings), avg PCP % | " + " | ".join(rigs) + " |"
+    lines = [seeds_line(reports), "", head, "|---" * (len(rigs) + 1) + "|"]
+    rows = [r for r in reports[0]["rigs"][rigs[0]][split] if not r.startswith("fine-tuned ")]
+    for row in rows:
+        cells = [mean_sd(reports, ("rigs", rig, split, row, "pcp"), 1) for rig in rigs]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+        who, _, method = row.partition(", ")
+        if who in ("pretrained", "fine-tuned"):
+            diffs = [
+                diff_mean_sd(
+                    reports,
+                    ("rigs", rig, split, row, "pcp"),
+                    ("rigs", rig, split, f"per-rig, {method}", "pcp"),
+                    1,
+                )
+                for rig in rigs
+            ]
+            lines.append(f"| ... minus per-rig, {method} | " + " | ".join(diffs) + " |")
+    return lines
+
+
 def save(report: dict, out: Path) -> None:
     p = report["pretraining"]
     lines = [
@@ -354,6 +380,25 @@ def ship(models: Path, report: dict) -> Path:
     return target
 
 
+def combine(paths: list[Path], out: Path) -> list[str]:
+    """``DIR/pretrain_seeds.md`` from the ``pretrain.json`` of several training seeds' runs."""
+    reports = [json.loads((p / "pretrain.json").read_text()) for p in paths]
+    if len({r["scenes_seed"] for r in reports}) != 1:
+        raise SystemExit("the runs were evaluated on different scenes (--scenes-seed)")
+    lines = [
+        "# One 3D estimator for any rig, over training seeds",
+        "",
+        *seeds_table(reports, "test"),
+        "",
+        "Validation scenes:",
+        "",
+        *seeds_table(reports, "validation"),
+        "",
+    ]
+    atomic_write_text(out / "pretrain_seeds.md", "\n".join(lines))
+    return lines
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, type=Path, help="folder for pretrain.md/.json, models")
@@ -372,9 +417,20 @@ def main(argv=None) -> None:
         help="also write the pretrained estimator into the package (mvpose_jax/pretrained/"
         "estimator: what `infer --estimator pretrained` loads)",
     )
+    p.add_argument(
+        "--combine",
+        nargs="+",
+        type=Path,
+        metavar="RUN",
+        help="instead of running: the mean and spread over the given runs' folders (one "
+        "training seed each) into OUT/pretrain_seeds.md",
+    )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.combine:
+        print("\n".join(combine(args.combine, args.out)))
+        return
     t0 = time.perf_counter()
     report = run(
         PRETRAIN_SCALES[args.scale],

@@ -264,3 +264,8 @@ def test_pretrain_experiment_smoke(tmp_path):
     assert "| robust triangulation |" in (tmp_path / "pretrain.md").read_text()
     est = load_estimator(tmp_path / "models" / "pretrained", load_rig("arplab6"))
     assert est.rig_infer.num_cameras == 6
+    # Seeds combined: one run twice has no spread, and the differences are the run's own.
+    main(["--out", str(tmp_path), "--combine", str(tmp_path), str(tmp_path)])
+    text = (tmp_path / "pretrain_seeds.md").read_text()
+    diff = rig["test"]["pretrained, blend"]["pcp"] - rig["test"]["per-rig, blend"]["pcp"]
+    assert f"| ... minus per-rig, blend | {diff:+.1f} ± 0.0 |" in text
