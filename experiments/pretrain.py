@@ -28,7 +28,7 @@ import json
 import time
 from pathlib import Path
 
-from experiments.config import SCALES, SPLITS, seed_stream
+from experiments.config import SCALES, SPLITS, estimator_config, seed_stream
 from experiments.data import make_data, make_scenes, true_members
 from experiments.fitting import fit_estimator
 from experiments.records import report_json
@@ -45,7 +45,7 @@ from mvpose_jax.pretraining import RigPeople, pretrain_estimator
 from mvpose_jax.progress import progress_bar
 from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.synthetic.rigs import HELD_OUT_FAMILIES, PRETRAIN_FAMILIES, random_rig
-from mvpose_jax.trained import EstimatorConfig, TrainConfig, load_estimator
+from mvpose_jax.trained import EstimatorConfig, load_estimator
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,17 +71,13 @@ class PretrainScale:
 
 
 def pooled_config(steps: int, batch: int = 256, lr: float = 3e-4, widths=None) -> EstimatorConfig:
-    """Our estimator recipe (`experiments.config.estimator_config`) for the rig-agnostic network."""
+    """Our estimator recipe (`experiments.config.estimator_config`) for the rig-agnostic network,
+    at step size ``lr``, validated every 5 epochs."""
     mlp = MLPConfig.pooled() if widths is None else MLPConfig(**widths)
-    train = TrainConfig(
-        learning_rate=lr,
-        batch_size=batch,
-        max_steps=steps,
-        patience=1000,
-        final_lr_fraction=0.01,
-        eval_every=5,
+    config = estimator_config(mlp, steps, batch)
+    return dataclasses.replace(
+        config, train=dataclasses.replace(config.train, learning_rate=lr, eval_every=5)
     )
-    return EstimatorConfig(mlp=mlp, train=train, loss_power=1.0)
 
 
 PRETRAIN_SCALES = {
