@@ -128,7 +128,7 @@ class PoseMLP(nnx.Module):
             # per-slot copies are zero in absent views, so reading them needs a division by
             # the number of views, which an MLP learns slowly; relative coordinates make the
             # pose's shape independent of where the person stands.
-            xyz, has, anchor = _initial_estimate(features)
+            xyz, has, anchor = initial_estimate_parts(features)
             rel = jnp.where(has[..., None] > 0, xyz - anchor[..., None, :], 0.0)
             h = jnp.concatenate(
                 [h, jnp.concatenate([has[..., None], rel], -1).reshape(batch + (-1,))], -1
@@ -143,7 +143,7 @@ class PoseMLP(nnx.Module):
         return out + initial_estimate(features, per_keypoint=self.output == "residual")
 
 
-def _initial_estimate(features: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def initial_estimate_parts(features: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(xyz (..., K, 3), has (..., K), anchor (..., 3)) read from estimator features."""
     flag = features[..., 10]  # (..., C, K): 1 in present views of keypoints with an estimate
     has = flag.max(axis=-2)  # (..., K)
@@ -170,7 +170,7 @@ def initial_estimate(features: jax.Array, per_keypoint: bool) -> jax.Array:
       (..., K, 3); zeros (the rig centre) for keypoints no view sees of a person without any
       initial estimate.
     """
-    xyz, has, anchor = _initial_estimate(features)
+    xyz, has, anchor = initial_estimate_parts(features)
     anchor = jnp.broadcast_to(anchor[..., None, :], xyz.shape)
     if not per_keypoint:
         return anchor
@@ -255,7 +255,7 @@ class ViewPooledMLP(nnx.Module):
             ],
             axis=-1,
         )
-        xyz, has, anchor = _initial_estimate(features)  # (..., K, 3), (..., K), (..., 3)
+        xyz, has, anchor = initial_estimate_parts(features)  # (..., K, 3), (..., K), (..., 3)
         seen = features[..., 0]  # (..., C, K)
         present = seen.max(axis=-1) > 0  # (..., C)
         # The view's camera: the same in every visible keypoint's slot, zero elsewhere.
@@ -274,10 +274,10 @@ class ViewPooledMLP(nnx.Module):
         h = per_view
         for layer in self.encode:
             h = jax.nn.leaky_relu(layer(h), self.slope)
-        pooled = _masked_pool(h, present)  # (..., 2W)
+        pooled = masked_view_pool(h, present)  # (..., 2W)
         context = jnp.broadcast_to(pooled[..., None, :], h.shape[:-1] + pooled.shape[-1:])
         h = jax.nn.leaky_relu(self.relate(jnp.concatenate([h, context], -1)), self.slope)
-        pooled = _masked_pool(h, present)
+        pooled = masked_view_pool(h, present)
         rel = jnp.where(has[..., None] > 0, xyz - anchor[..., None, :], 0.0)
         batch = features.shape[:-3]
         g = jnp.concatenate(
@@ -290,7 +290,7 @@ class ViewPooledMLP(nnx.Module):
         return out @ q  # back to the world frame
 
 
-def _masked_pool(h: jax.Array, present: jax.Array) -> jax.Array:
+def masked_view_pool(h: jax.Array, present: jax.Array) -> jax.Array:
     """Mean and max of (..., C, W) over the present views (..., C): (..., 2W); zeros without any."""
     m = present[..., None].astype(h.dtype)
     mean = jnp.sum(h * m, axis=-2) / jnp.maximum(m.sum(-2), 1.0)
