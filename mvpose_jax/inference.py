@@ -33,6 +33,7 @@ from mvpose_jax.progress import progress_bar
 from mvpose_jax.proposals import CombinedConfig, Proposals
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
+from mvpose_jax.temporal import cached_temporal, for_rig, refine_tracks
 from mvpose_jax.tracking import TrackingConfig, track_frames
 from mvpose_jax.tracking import initial_state as tracker_initial_state
 from mvpose_jax.trained import Estimator, Matcher
@@ -80,6 +81,10 @@ class PipelineConfig:
       filtering: with ``tracking``, each track's keypoints are filtered.
       chunk_frames: frames per chunk (memory is bounded by it; results do not depend on it
         except through tracking's restarts on resume).
+      temporal: with ``tracking``, the folder of a learned temporal model
+        (`temporal.save_temporal`): each chunk's tracks are refined by it (`temporal.refine_tracks`,
+        method "blend": robust triangulation where it reconstructs a keypoint, the model
+        elsewhere) before any filter; tracks are cut at chunk boundaries. None: no such stage.
     """
 
     matching: MatchingConfig = MatchingConfig()
@@ -87,6 +92,7 @@ class PipelineConfig:
     tracking: TrackingConfig | None = None
     filtering: FilterConfig = FilterConfig()
     chunk_frames: int = 256
+    temporal: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The config as plain JSON-able values (the manifest's and the model folder's record)."""
@@ -108,6 +114,7 @@ class PipelineConfig:
             tracking=None if tracking is None else TrackingConfig(**tracking),
             filtering=FilterConfig(**f),
             chunk_frames=int(d.get("chunk_frames", 256)),
+            temporal=d.get("temporal"),
         )
 
     @classmethod
@@ -229,6 +236,14 @@ def stream_pipeline(
     else:
         estimator = None  # a triangulation: the estimator is neither checked nor used
 
+    temporal = None
+    if config.temporal is not None:
+        if config.tracking is None:
+            raise InputError(
+                "the temporal stage refines tracks: it needs tracking", field="temporal"
+            )
+        temporal = for_rig(cached_temporal(str(config.temporal)), prop_rig)
+
     checked_keypoints: list[int] = []
 
     def check(det: Detections) -> None:
@@ -304,6 +319,10 @@ def stream_pipeline(
                     tracker, smoother, det, members, poses, start, fps, prop_rig, config
                 )
                 seconds["tracking"] = time.perf_counter() - t2
+                if temporal is not None:
+                    t3 = time.perf_counter()
+                    poses = _temporal_chunk(temporal, prop_rig, det, members, poses, track, config)
+                    seconds["temporal"] = time.perf_counter() - t3
             yield (
                 start,
                 PipelineResult(poses, conf, members, identity, prop_cams, seconds, track),
@@ -342,6 +361,31 @@ def _track_chunk(tracker, smoother, det, members, poses, start, fps, rig, config
         smoother = one_euro_keep(smoother, tracker.ids)
         poses = poses._replace(xyz=np.where(kv[..., None], xyz, poses.xyz).astype(np.float32))
     return tracker, smoother, track, poses
+
+
+def _temporal_chunk(model, rig, det, members, poses, track, config: PipelineConfig) -> Poses3D:
+    """One chunk's tracked people refined by the temporal model: every keypoint of each person
+    (robust triangulation where it reconstructs one, the model elsewhere)."""
+    xy, score = group_people(det.xy, det.score, members)
+    valid = np.asarray(poses.valid, bool)
+    if not valid.any():
+        return poses
+    xyz, _ = refine_tracks(
+        model,
+        rig,
+        xy,
+        score,
+        track,
+        valid,
+        method="blend",
+        outlier_px=config.lifting.outlier_px,
+        view_outlier_px=config.lifting.view_outlier_px,
+    )
+    return Poses3D(
+        np.where(valid[..., None, None], xyz, poses.xyz).astype(np.float32),
+        poses.valid,
+        np.asarray(poses.keypoint_valid, bool) | valid[..., None],
+    )
 
 
 def _chunks_of(detections: Detections, chunk_frames: int) -> Iterator[tuple[int, Detections]]:

@@ -25,6 +25,7 @@ COMMANDS = [
     "convert",
     "train-matcher",
     "train-estimator",
+    "train-temporal",
     "adapt",
     "infer",
     "smooth",
@@ -1155,3 +1156,43 @@ def test_the_shipped_pretrained_estimator_runs_on_any_rig_and_fine_tunes(files, 
     tuned = load_estimator(out, load_rig("panoptic5"))
     assert tuned.config.mlp.views == "pooled"
     capsys.readouterr()
+
+
+def test_train_temporal_then_infer_with_it_and_fine_tune_on_the_recording(tmp_path, capsys):
+    """`train-temporal` on single-person recordings, `infer --temporal` with it (every keypoint of
+    each tracked person; robust triangulation's keypoints unchanged), then `train-temporal
+    --multi-person --start` fine-tunes it on the multi-person recording's own tracks."""
+    from mvpose_jax.synthetic import generate_single_person_recordings
+    from mvpose_jax.temporal import cached_temporal
+
+    rig = load_rig("panoptic5")
+    for i, rec in enumerate(
+        generate_single_person_recordings(rig, num_recordings=3, num_frames=20, seed=5)
+    ):
+        save_recording(rec, tmp_path / "train" / f"walk_{i}.npz")
+    scene = generate_recording(rig, num_people=2, num_frames=20, seed=6)
+    save_recording(scene, tmp_path / "scene.npz")
+    model = tmp_path / "temporal"
+    train = ["train-temporal", "--rig", "panoptic5", "--window", "8", "--steps", "3"]
+    assert main([*train, "--train", str(tmp_path / "train"), "--out", str(model)]) == 0
+    assert "infer --temporal" in capsys.readouterr().out
+    assert cached_temporal(str(model)).config.window == 8
+    base = ["infer", "--rig", "panoptic5", "--detections", str(tmp_path / "scene.npz")]
+    base += ["--method", "robust", "--filter", "none", "--fill-gap-s", "0", "--outlier-m", "0"]
+    assert main([*base, "--out", str(tmp_path / "robust")]) == 0
+    assert main([*base, "--temporal", str(model), "--out", str(tmp_path / "temporal")]) == 0
+    a = load_poses(tmp_path / "robust").poses
+    b = load_poses(tmp_path / "temporal").poses
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert b.keypoint_valid[b.valid].all() and not a.keypoint_valid[a.valid].all()
+    kept = a.keypoint_valid & a.valid[..., None]
+    np.testing.assert_allclose(b.xyz[kept], a.xyz[kept], atol=1e-4)
+    tuned = tmp_path / "tuned"
+    args = [*train, "--train", str(tmp_path / "scene.npz"), "--multi-person"]
+    assert main([*args, "--start", str(model), "--out", str(tuned)]) == 0
+    assert cached_temporal(str(tuned)).config.window == 8
+    capsys.readouterr()
+    assert main([*base, "--temporal", str(model), "--no-track", "--out", str(tmp_path / "x")]) == 2
+    assert "--temporal" in capsys.readouterr().err
+    assert main([*base, "--temporal", str(tmp_path / "none"), "--out", str(tmp_path / "y")]) == 2
+    assert "temporal model" in capsys.readouterr().err

@@ -77,6 +77,13 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
         metavar="MODEL",
         help="--method confident: a view-confidence model folder (docs/view_confidence.md)",
     )
+    p.add_argument(
+        "--temporal",
+        metavar="MODEL",
+        help="a learned temporal model folder (`mvpose-jax train-temporal`, docs/temporal.md): "
+        "each track's keypoints that robust triangulation cannot place are predicted from its "
+        "other views and frames, before the filter (needs tracking)",
+    )
     add_proposal_arguments(p)
     p.add_argument(
         "--chunk-frames",
@@ -327,6 +334,8 @@ _OPTION_OF_SETTING = {
     "pipeline.lifting.outlier_px": "--outlier-px",
     "pipeline.lifting.view_outlier_px": "--view-outlier-px",
     "pipeline.lifting.confidence": "--confidence",
+    "pipeline.temporal": "--temporal",
+    "temporal": "--temporal",
     "pipeline.tracked": "--no-track",
     "pipeline.tracking.max_gap_s": "--max-gap-s",
     "pipeline.filtering.name": "--filter",
@@ -366,6 +375,8 @@ def pipeline_config(args: argparse.Namespace):
         raise InputError(
             "--method confident and --confidence MODEL go together", field="--confidence"
         )
+    if args.temporal and args.no_track:
+        raise InputError("the temporal stage refines tracks: drop --no-track", field="--temporal")
     if args.chunk_frames < 1:
         raise InputError("must be at least 1", field="--chunk-frames")
     proposal_mode(args.proposals, args.threshold, bool(args.matcher))
@@ -385,6 +396,7 @@ def pipeline_config(args: argparse.Namespace):
             args.filter, one_euro, args.cutoff_hz, args.fill_gap_s, args.outlier_m or None
         ),
         chunk_frames=args.chunk_frames,
+        temporal=args.temporal,
     )
 
 

@@ -10,8 +10,10 @@ from mvpose_jax.cli.registry import command
 from mvpose_jax.jobs.train import (
     EstimatorJob,
     MatcherJob,
+    TemporalJob,
     train_estimator_job,
     train_matcher_job,
+    train_temporal_job,
 )
 
 
@@ -142,4 +144,45 @@ def _train_estimator(args: argparse.Namespace) -> int:
         f"({done.seconds:.0f} s); checkpoints in {args.out}"
     )
     print_dev_quality(done.dev_quality)
+    return 0
+
+
+def _train_temporal_arguments(p: argparse.ArgumentParser) -> None:
+    add_training_arguments(
+        p, dev_help="validation recordings (default: the last 10%% of --train's windows)"
+    )
+    p.add_argument("--steps", type=int, default=1500, help="training steps (default 1500)")
+    p.add_argument(
+        "--learning-rate", type=float, default=1e-3, help="Adam's step size (default 1e-3)"
+    )
+    p.add_argument("--window", type=int, default=32, help="frames per window (default 32)")
+    p.add_argument("--start", metavar="MODEL", help="a temporal model folder to fine-tune")
+    p.add_argument(
+        "--multi-person",
+        action="store_true",
+        help="the recordings hold several people (e.g. your own recording, to fine-tune on): "
+        "the geometric pipeline tracks them and the model trains on its tracks",
+    )
+
+
+@command(
+    "train-temporal",
+    "Train the learned temporal stage from recordings (no 3D labels); `infer --temporal`.",
+    _train_temporal_arguments,
+)
+def _train_temporal(args: argparse.Namespace) -> int:
+    job = TemporalJob(
+        run=training_run(args),
+        steps=args.steps,
+        learning_rate=args.learning_rate,
+        window=args.window,
+        start=args.start,
+        multi_person=args.multi_person,
+    )
+    done = train_temporal_job(job)
+    print(
+        f"{done.train_windows} training and {done.dev_windows} dev windows; dev loss "
+        f"{done.initial_dev_loss:.2f} -> {done.dev_loss:.2f} (step {done.best_step}, "
+        f"{done.seconds:.0f} s); model in {args.out}, used by `infer --temporal {args.out}`"
+    )
     return 0

@@ -284,6 +284,137 @@ def train_estimator_job(job: EstimatorJob) -> EstimatorTrained:
     )
 
 
+@dataclasses.dataclass(frozen=True)
+class TemporalJob:
+    """A temporal model's training (`temporal_training.fit_temporal`).
+
+    Attributes:
+      run: data and folder (one device; no resuming: a run is minutes).
+      steps, learning_rate, window: the training and the window (frames).
+      start: a temporal model folder to fine-tune (None: a new model).
+      multi_person: the recordings hold several people: the geometric pipeline (epipolar
+        proposals, robust triangulation, tracking) finds and tracks them, and the model trains
+        on its tracks (a user's own recording); else each frame's main skeleton per view is the
+        one person (single-person recordings, e.g. `mvpose-jax generate --detector-like`).
+    """
+
+    run: TrainingRun
+    steps: int = 1500
+    learning_rate: float = 1e-3
+    window: int = 32
+    start: str | None = None
+    multi_person: bool = False
+
+
+class TemporalTrained(NamedTuple):
+    """A temporal model's training: windows, dev losses (before and after), steps, folder."""
+
+    train_windows: int
+    dev_windows: int
+    initial_dev_loss: float
+    dev_loss: float
+    best_step: int
+    seconds: float
+    out: str
+
+
+def _tracked_windows(rig, recordings, window: int):
+    """Windows of the people the geometric pipeline tracks in multi-person recordings."""
+    from mvpose_jax.data.recording import recording_fps
+    from mvpose_jax.inference import run_pipeline
+    from mvpose_jax.lifting import group_people
+    from mvpose_jax.temporal_training import windows_of_tracks
+    from mvpose_jax.tracking import TrackingConfig
+
+    parts = []
+    for rec in recordings:
+        det = rec.detections
+        fps = recording_fps(rec.timestamps) if rec.timestamps is not None else 30.0
+        res = run_pipeline(rig, det, method="robust", tracking=TrackingConfig(), fps=fps)
+        xy, score = group_people(det.xy, det.score, res.members)
+        parts.append(windows_of_tracks(xy, score, res.track, res.poses.valid, window))
+    return parts
+
+
+def train_temporal_job(job: TemporalJob) -> TemporalTrained:
+    """Trains (or fine-tunes) a temporal model into ``job.run.out``."""
+    import time
+
+    import numpy as np
+
+    from mvpose_jax.data.recording import select_cameras
+    from mvpose_jax.temporal import TemporalConfig, load_temporal, save_temporal
+    from mvpose_jax.temporal_training import (
+        TemporalBatch,
+        TemporalTrainConfig,
+        fit_temporal,
+        windows_of_recordings,
+    )
+
+    run = job.run
+    if run.resume or run.devices not in (None, 1) or run.num_processes:
+        raise InputError(
+            "train-temporal runs on one device and is not resumed (a run is minutes)",
+            field="--resume" if run.resume else "--devices",
+        )
+    t0 = time.perf_counter()
+    rig = _begin(run)
+
+    layouts = set()
+
+    def windows(path: str) -> TemporalBatch:
+        recs = recordings_in(path, run.layout, run.source_layout)
+        if not recs:
+            raise InputError("no recordings here", file=path)
+        layouts.update(r.layout for r in recs)
+        if len(layouts) > 1:
+            raise InputError(
+                f"recordings of several layouts {sorted(layouts)}: give --layout", file=path
+            )
+        recs = [select_cameras(r, list(rig.names), file=path) for r in recs]
+        if job.multi_person:
+            parts = _tracked_windows(rig, recs, job.window)
+            return TemporalBatch(*(np.concatenate(a) for a in zip(*parts, strict=True)))
+        return windows_of_recordings(recs, job.window)
+
+    train = windows(run.train)
+    if run.dev:
+        dev = windows(run.dev)
+    else:  # the last tenth of the windows
+        n = max(1, len(train.present) // 10)
+        train, dev = (
+            TemporalBatch(*(a[:-n] for a in train)),
+            TemporalBatch(*(a[-n:] for a in train)),
+        )
+    if len(train.present) == 0 or len(dev.present) == 0:
+        raise InputError(
+            f"too few frames for windows of {job.window}: {len(train.present)} training and "
+            f"{len(dev.present)} dev windows",
+            file=run.train,
+        )
+    start = load_temporal(job.start, rig) if job.start else None
+    (layout,) = layouts
+    model, record = fit_temporal(
+        rig,
+        train,
+        dev,
+        TemporalConfig(window=job.window, layout=layout),
+        TemporalTrainConfig(steps=job.steps, learning_rate=job.learning_rate, seed=run.seed),
+        start=start,
+        progress=True,
+    )
+    save_temporal(run.out, model, record)
+    return TemporalTrained(
+        record["train_windows"],
+        record["dev_windows"],
+        record["initial_dev_loss"],
+        record["dev_loss"],
+        record["best_step"],
+        time.perf_counter() - t0,
+        run.out,
+    )
+
+
 def write_model_pipeline(folder: str, *, matcher: bool) -> None:
     """Writes into a model folder the `PipelineConfig` ``infer`` runs with it and no other
     option (`jobs.infer.resolve_pipeline` of `jobs.infer.INFER_PIPELINE`): a matcher's with the
