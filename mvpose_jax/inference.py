@@ -34,7 +34,14 @@ from mvpose_jax.proposals import CombinedConfig, Proposals
 from mvpose_jax.skeletons import Detections, Poses3D
 from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
 from mvpose_jax.temporal import cached_temporal, for_rig, refine_tracks
-from mvpose_jax.tracking import TrackingConfig, track_frames
+from mvpose_jax.tracking import (
+    AssociationConfig,
+    TrackingConfig,
+    associate_skeletons,
+    regroup,
+    track_anchors,
+    track_frames,
+)
 from mvpose_jax.tracking import initial_state as tracker_initial_state
 from mvpose_jax.trained import Estimator, Matcher
 
@@ -85,6 +92,11 @@ class PipelineConfig:
         (`temporal.save_temporal`): each chunk's tracks are refined by it (`temporal.refine_tracks`,
         method "blend": robust triangulation where it reconstructs a keypoint, the model
         elsewhere) before any filter; tracks are cut at chunk boundaries. None: no such stage.
+      association: with ``tracking``, track-level association: after the chunk is tracked, each
+        2D skeleton joins the tracked person (of the chunk, or of the last frames before it) it
+        fits in its view (`tracking.associate_skeletons`); the people are regrouped, lifted and
+        tracked again. A person the proposals split over two groups is one again; one they
+        merged from two people's skeletons is parted. None: the proposals' groups stand.
     """
 
     matching: MatchingConfig = MatchingConfig()
@@ -93,6 +105,7 @@ class PipelineConfig:
     filtering: FilterConfig = FilterConfig()
     chunk_frames: int = 256
     temporal: str | None = None
+    association: AssociationConfig | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The config as plain JSON-able values (the manifest's and the model folder's record)."""
@@ -115,6 +128,9 @@ class PipelineConfig:
             filtering=FilterConfig(**f),
             chunk_frames=int(d.get("chunk_frames", 256)),
             temporal=d.get("temporal"),
+            association=None
+            if d.get("association") is None
+            else AssociationConfig(**d["association"]),
         )
 
     @classmethod
@@ -236,6 +252,8 @@ def stream_pipeline(
     else:
         estimator = None  # a triangulation: the estimator is neither checked nor used
 
+    if config.association is not None and config.tracking is None:
+        raise InputError("track-level association needs tracking", field="association")
     temporal = None
     if config.temporal is not None:
         if config.tracking is None:
@@ -290,23 +308,27 @@ def stream_pipeline(
             grouped = propose(prop_rig, det, config.matching, matcher=matcher)
             members = _members_table(grouped, stop - start, len(prop_cams))
             t1 = time.perf_counter()
-            poses, conf = poses_of_members(
-                prop_rig,
-                det,
-                members,
-                estimator=estimator,
-                method=method,
-                min_views=config.matching.min_views,
-                outlier_px=config.lifting.outlier_px,
-                view_outlier_px=config.lifting.view_outlier_px,
-                layout=layout,
-                max_spread_m=config.lifting.max_spread_m,
-                confidence=config.lifting.confidence,
-            )
+
+            def lift(members, det=det):
+                poses, conf = poses_of_members(
+                    prop_rig,
+                    det,
+                    members,
+                    estimator=estimator,
+                    method=method,
+                    min_views=config.matching.min_views,
+                    outlier_px=config.lifting.outlier_px,
+                    view_outlier_px=config.lifting.view_outlier_px,
+                    layout=layout,
+                    max_spread_m=config.lifting.max_spread_m,
+                    confidence=config.lifting.confidence,
+                )
+                # A person is kept only where the 3D stage produced one; its members say so.
+                members = np.where(poses.valid[..., None], members, -1).astype(np.int32)
+                return poses, conf, members
+
+            poses, conf, members = lift(members)
             t2 = time.perf_counter()
-            # A person is kept only where the 3D stage produced one; its members say so too.
-            members = np.where(poses.valid[..., None], members, -1).astype(np.int32)
-            identity = _identity_from_members(members, det.score.shape[:3])
             seconds, track = {"proposals": t1 - t0, "poses": t2 - t1}, None
             if config.tracking is not None:
                 if tracker is None:
@@ -315,14 +337,27 @@ def stream_pipeline(
                         tracker_initial_state(K, len(prop_cams)), next_id=first_track_id
                     )
                     smoother = one_euro_initial(K)
+                before = (tracker, smoother)
                 tracker, smoother, track, poses = _track_chunk(
-                    tracker, smoother, det, members, poses, start, fps, prop_rig, config
+                    *before, det, members, poses, start, fps, prop_rig, config
                 )
+                if config.association is not None:
+                    # Track-level association: the skeletons regrouped by the tracked people
+                    # they fit, then lifted and tracked again from the same tracker state.
+                    regrouped = _regrouped(
+                        before[0], det, members, poses, track, start, fps, prop_rig, config
+                    )
+                    if regrouped is not None:
+                        poses, conf, members = lift(regrouped)
+                        tracker, smoother, track, poses = _track_chunk(
+                            *before, det, members, poses, start, fps, prop_rig, config
+                        )
                 seconds["tracking"] = time.perf_counter() - t2
                 if temporal is not None:
                     t3 = time.perf_counter()
                     poses = _temporal_chunk(temporal, prop_rig, det, members, poses, track, config)
                     seconds["temporal"] = time.perf_counter() - t3
+            identity = _identity_from_members(members, det.score.shape[:3])
             yield (
                 start,
                 PipelineResult(poses, conf, members, identity, prop_cams, seconds, track),
@@ -361,6 +396,27 @@ def _track_chunk(tracker, smoother, det, members, poses, start, fps, rig, config
         smoother = one_euro_keep(smoother, tracker.ids)
         poses = poses._replace(xyz=np.where(kv[..., None], xyz, poses.xyz).astype(np.float32))
     return tracker, smoother, track, poses
+
+
+def _regrouped(tracker, det, members, poses, track, start, fps, rig, config: PipelineConfig):
+    """The chunk's skeletons grouped by the tracked people they fit (`tracking.track_anchors`,
+    `tracking.associate_skeletons`, `tracking.regroup`); None where that changes nothing."""
+    times = (start + np.arange(len(members))) / fps
+    anchor_xyz, anchor_ok = track_anchors(
+        tracker,
+        times=times,
+        track=track,
+        valid=poses.valid,
+        xyz=poses.xyz,
+        keypoint_valid=poses.keypoint_valid,
+        config=config.tracking,
+        association=config.association,
+    )
+    owner = associate_skeletons(rig, det.xy, det.score, anchor_xyz, anchor_ok, config.association)
+    if not (owner >= 0).any():
+        return None
+    regrouped = regroup(members, owner, anchor_xyz.shape[1])
+    return regrouped
 
 
 def _temporal_chunk(model, rig, det, members, poses, track, config: PipelineConfig) -> Poses3D:

@@ -39,7 +39,8 @@ import numba
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mvpose_jax.cameras import Rig
+from mvpose_jax.cameras import Rig, point_depths, project_points
+from mvpose_jax.triangulate import nanmedian_along
 
 # A cost larger than any gate: "no match" for the assignment.
 _NO_MATCH = 1e6
@@ -759,3 +760,167 @@ def track_frames(
             alive = set(state.serial[state.ids < 0].tolist())
             pending = {k: v for k, v in pending.items() if k in alive}
     return state, track
+
+
+# =========================================================================== track-level association
+
+
+@dataclasses.dataclass(frozen=True)
+class AssociationConfig:
+    """Skeletons grouped by the tracked people they fit (`associate_skeletons`, `regroup`).
+
+    Attributes:
+      gate: a skeleton joins a tracked person when the median distance of its keypoints to the
+        person's projected keypoints is under this share of the person's image size (the
+        diagonal of the projected keypoints' box).
+      min_keypoints: fewer keypoints in common than this: the skeleton cannot join.
+      hold_frames: a tracked person absent from a frame is held there from its nearest frame
+        within this many (a person the grouping split or lost for a frame or two).
+    """
+
+    gate: float = 0.15
+    min_keypoints: int = 3
+    hold_frames: int = 3
+
+
+def track_anchors(
+    state: TrackerState,
+    *,
+    times: np.ndarray,
+    track: np.ndarray,
+    valid: np.ndarray,
+    xyz: np.ndarray,
+    keypoint_valid: np.ndarray,
+    config: TrackingConfig,
+    association: AssociationConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The tracked people of a chunk of F frames, as anchors for `associate_skeletons`.
+
+    Two sources: the chunk's own tracked people (ids >= 0; each held in frames it misses from its
+    nearest frame within ``hold_frames``), and the confirmed tracks of ``state`` (the tracker
+    before the chunk: the people of the last frames) that the chunk does not hold, moved by
+    their velocity to each frame's time while unseen for at most ``config.max_gap_s``. A live
+    stream (one frame a chunk) has only the second source.
+
+    Args:
+      state: the tracker's state before the chunk.
+      times: (F,) seconds; track (F, G) ids of the chunk's people (-1 none); valid (F, G);
+        xyz (F, G, K, 3); keypoint_valid (F, G, K).
+    Returns:
+      anchor xyz (F, A, K, 3) metres and keypoint validity (F, A, K).
+    """
+    track = np.where(np.asarray(valid, bool), np.asarray(track), -1)
+    F, G, K = np.shape(keypoint_valid)
+    ids = np.unique(track[track >= 0])
+    out = np.zeros((F, len(ids), K, 3))
+    ok = np.zeros((F, len(ids), K), bool)
+    f, g = np.nonzero(track >= 0)
+    a = np.searchsorted(ids, track[f, g])
+    out[f, a] = np.asarray(xyz)[f, g]
+    ok[f, a] = np.asarray(keypoint_valid, bool)[f, g]
+    present = np.zeros((F, len(ids)), bool)
+    present[f, a] = True
+    held_from = np.where(present, np.arange(F)[:, None], -1)
+    distance = np.where(present, 0, association.hold_frames + 1)
+    for step in range(1, association.hold_frames + 1):
+        for shift in (step, -step):  # nearest first, the earlier frame on a tie
+            src = np.arange(F) - shift
+            inside = (src >= 0) & (src < F)
+            take = inside[:, None] & (distance > step) & present[np.clip(src, 0, F - 1)]
+            held_from = np.where(take, np.clip(src, 0, F - 1)[:, None], held_from)
+            distance = np.where(take, step, distance)
+    fh, ah = np.nonzero((held_from >= 0) & ~present)
+    out[fh, ah] = out[held_from[fh, ah], ah]
+    ok[fh, ah] = ok[held_from[fh, ah], ah]
+    # The tracker's people of the last frames that the chunk does not hold.
+    old = (state.ids >= 0) & ~np.isin(state.ids, ids)
+    if old.any():
+        dt = np.asarray(times, np.float64)[:, None] - state.last_time[old][None]  # (F, T)
+        live = (dt >= 0) & (dt <= config.max_gap_s)
+        moved = state.xyz[old][None] + state.velocity[old][None, :, None, :] * dt[..., None, None]
+        out = np.concatenate([out, np.where(live[..., None, None], moved, 0.0)], axis=1)
+        ok = np.concatenate([ok, live[..., None] & state.keypoint_valid[old][None]], axis=1)
+    return out, ok
+
+
+def associate_skeletons(
+    rig: Rig,
+    xy: np.ndarray,
+    score: np.ndarray,
+    anchor_xyz: np.ndarray,
+    anchor_ok: np.ndarray,
+    config: AssociationConfig = AssociationConfig(),
+) -> np.ndarray:
+    """Each 2D skeleton's tracked person: the anchor it fits best in its view, one skeleton per
+    anchor and view (greedy by distance, within the gate).
+
+    Args:
+      rig: the C cameras; xy (F, C, P, K, 2) pixels; score (F, C, P, K), 0 = missing.
+      anchor_xyz: (F, A, K, 3) metres; anchor_ok (F, A, K) (`track_anchors`).
+    Returns:
+      (F, C, P) int: the anchor of each skeleton, -1 none.
+    """
+    F, C, P, K = np.shape(score)
+    A = anchor_xyz.shape[1]
+    owner = np.full((F, C, P), -1, np.int64)
+    if A == 0 or P == 0:
+        return owner
+    pts = np.asarray(anchor_xyz, np.float32)
+    px = np.moveaxis(np.asarray(project_points(rig, pts)), 0, 2)  # (F, A, C, K, 2)
+    front = np.moveaxis(np.asarray(point_depths(rig, pts)) > 0, 0, 2)  # (F, A, C, K)
+    usable = np.asarray(anchor_ok, bool)[:, :, None, :] & front  # (F, A, C, K)
+    lo = np.where(usable[..., None], px, np.inf).min(axis=3)
+    hi = np.where(usable[..., None], px, -np.inf).max(axis=3)
+    size = np.linalg.norm(hi - lo, axis=-1)  # (F, A, C), inf/nan where nothing projects
+    d = np.linalg.norm(
+        np.asarray(xy)[:, :, :, None] - np.moveaxis(px, 1, 2)[:, :, None], axis=-1
+    )  # (F, C, P, A, K)
+    both = (np.asarray(score) > 0)[:, :, :, None, :] & np.moveaxis(usable, 1, 2)[:, :, None]
+    med = nanmedian_along(np.where(both, d, np.nan), axis=-1)  # (F, C, P, A)
+    rel = med / np.moveaxis(size, 1, 2)[:, :, None, :]
+    fits = (both.sum(-1) >= config.min_keypoints) & (rel < config.gate) & np.isfinite(rel)
+    cost = np.where(fits, rel, np.inf)
+    flat = cost.reshape(F * C, P * A)
+    own = owner.reshape(F * C, P)
+    for _ in range(min(P, A)):
+        best = flat.argmin(axis=1)
+        found = np.isfinite(flat[np.arange(F * C), best])
+        if not found.any():
+            break
+        r = np.nonzero(found)[0]
+        p, a = np.divmod(best[r], A)
+        own[r, p] = a
+        block = flat.reshape(F * C, P, A)
+        block[r, p, :] = np.inf
+        block[r, :, a] = np.inf
+    return own.reshape(F, C, P)
+
+
+def regroup(members: np.ndarray, owner: np.ndarray, num_anchors: int) -> np.ndarray:
+    """People from skeletons' anchors first, then what is left of the given people.
+
+    Args:
+      members: (F, G, C) each person's skeleton per camera, -1 none.
+      owner: (F, C, P) each skeleton's anchor (-1 none), `associate_skeletons`.
+    Returns:
+      (F, G', C): the anchors' people (one per anchor with a skeleton in the frame), then the
+      given people without the skeletons an anchor took, compacted to the front of each frame.
+    """
+    F, G, C = members.shape
+    P = owner.shape[2]
+    anchored = np.full((F, num_anchors, C), -1, np.int64)
+    f, c, p = np.nonzero(owner >= 0)
+    anchored[f, owner[f, c, p], c] = p
+    m = np.asarray(members, np.int64)
+    taken = np.take_along_axis(
+        np.concatenate([owner, np.full((F, C, 1), -1)], axis=2),
+        np.where(m >= 0, m, P).transpose(0, 2, 1),
+        axis=2,
+    ).transpose(0, 2, 1)  # (F, G, C): the anchor that took each member, -1 none
+    left = np.where(taken >= 0, -1, m)
+    both = np.concatenate([anchored, left], axis=1)
+    filled = (both >= 0).any(-1)
+    order = np.argsort(~filled, axis=1, kind="stable")
+    both = np.take_along_axis(both, order[..., None], axis=1)
+    width = max(1, int(filled.sum(1).max(initial=0)))
+    return both[:, :width].astype(np.int32)

@@ -1159,6 +1159,7 @@ def test_the_shipped_pretrained_estimator_runs_on_any_rig_and_fine_tunes(files, 
 
 
 def test_train_temporal_then_infer_with_it_and_fine_tune_on_the_recording(tmp_path, capsys):
+    # (and `infer --associate`, the other stage that works on tracked people)
     """`train-temporal` on single-person recordings, `infer --temporal` with it (every keypoint of
     each tracked person; robust triangulation's keypoints unchanged), then `train-temporal
     --multi-person --start` fine-tunes it on the multi-person recording's own tracks."""
@@ -1196,3 +1197,10 @@ def test_train_temporal_then_infer_with_it_and_fine_tune_on_the_recording(tmp_pa
     assert "--temporal" in capsys.readouterr().err
     assert main([*base, "--temporal", str(tmp_path / "none"), "--out", str(tmp_path / "y")]) == 2
     assert "temporal model" in capsys.readouterr().err
+    # Track-level association: these people are grouped right already, so nothing changes.
+    assert main([*base, "--associate", "--out", str(tmp_path / "assoc")]) == 0
+    c = load_poses(tmp_path / "assoc").poses
+    np.testing.assert_array_equal(c.valid.sum(1), a.valid.sum(1))
+    capsys.readouterr()
+    assert main([*base, "--associate", "--no-track", "--out", str(tmp_path / "z")]) == 2
+    assert "--associate" in capsys.readouterr().err

@@ -205,3 +205,24 @@ def test_refine_tracks_blends_with_robust_triangulation_and_round_trips(
         refine_tracks(model, rig, xy, score, track, valid, method="mean")
     with pytest.raises(InputError, match="temporal model"):
         load_temporal(tmp_path / "nothing", rig)
+
+
+@pytest.mark.slow
+def test_experiment_smoke_writes_its_tables(tmp_path):
+    """``python -m experiments.temporal --scale smoke --parts synthetic``: every row on both
+    splits, the choice made on validation, the chosen variant over seeds on test."""
+    import json
+
+    from experiments.temporal import VARIANTS, main
+
+    main(["--out", str(tmp_path), "--scale", "smoke", "--parts", "synthetic"])
+    report = json.loads((tmp_path / "temporal.json").read_text())
+    syn = report["synthetic"]
+    for split in ("validation", "test"):
+        rows = syn["tables"][split]
+        assert {"robust triangulation", "blend", "blend + Butterworth"} <= set(rows)
+        assert all(f"temporal ({v}), blend + Butterworth" in rows for v in VARIANTS)
+        assert all(np.isfinite(r["mpjpe_mm"]) for r in rows.values())
+    assert syn["chosen_on_validation"] in syn["tables"]["validation"]
+    assert syn["chosen_variant"] in VARIANTS and len(syn["test_over_seeds"]["seeds"]) == 2
+    assert "### test scenes" in (tmp_path / "temporal.md").read_text()

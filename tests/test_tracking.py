@@ -379,3 +379,113 @@ def test_the_compiled_costs_equal_their_definition():
     for row, got in zip(range(5), _row_medians(values, mask), strict=True):
         kept = np.sort(values[row][mask[row]])
         assert got == (kept[(len(kept) - 1) // 2] if len(kept) else np.inf)
+
+
+# ------------------------------------------------------------------- track-level association
+
+
+def _projections(rig, people):
+    """Exact skeletons of (G, F, K, 3) people in every camera: xy (F, C, G, K, 2), score."""
+    from mvpose_jax.cameras import project_points
+
+    xyz = np.moveaxis(np.asarray(people, np.float32), 0, 1)  # (F, G, K, 3)
+    xy = np.moveaxis(np.asarray(project_points(rig, xyz)), 0, 1)  # (F, C, G, K, 2)
+    return xy.astype(np.float32), np.ones(xy.shape[:-1], np.float32)
+
+
+def test_anchors_hold_missing_frames_and_predict_the_last_frames_tracks():
+    from mvpose_jax.tracking import AssociationConfig, track_anchors
+
+    F, G, K = 6, 2, len(BODY)
+    a = _walk([0, 0, 0], [1, 0, 0], F)
+    xyz = np.zeros((F, G, K, 3))
+    xyz[:, 0] = a
+    valid = np.zeros((F, G), bool)
+    valid[:, 0] = True
+    valid[3, 0] = False  # missed in frame 3: held from frame 2 (the earlier on a tie)
+    track = np.where(valid, 5, -1)
+    # A confirmed track of the last frames, seen at t = -0.1 s, walking at 1 m/s along y.
+    state = dataclasses.replace(
+        initial_state(K),
+        ids=np.array([9]),
+        xyz=BODY[None] + np.array([3.0, 0, 0]),
+        keypoint_valid=np.ones((1, K), bool),
+        velocity=np.array([[0.0, 1.0, 0.0]]),
+        last_time=np.array([-0.1]),
+    )
+    times = np.arange(F) / FPS
+    out, ok = track_anchors(
+        state,
+        times=times,
+        track=track,
+        valid=valid,
+        xyz=xyz,
+        keypoint_valid=np.ones((F, G, K), bool),
+        config=TrackingConfig(max_gap_s=1.0),
+        association=AssociationConfig(hold_frames=1),
+    )
+    assert out.shape == (F, 2, K, 3) and ok.all()
+    np.testing.assert_allclose(out[[0, 1, 2, 4, 5], 0], a[[0, 1, 2, 4, 5]])
+    np.testing.assert_allclose(out[3, 0], a[2])
+    expected = BODY[None] + np.array([3.0, 0, 0]) + (times + 0.1)[:, None, None] * [0, 1, 0]
+    np.testing.assert_allclose(out[:, 1], expected)
+
+
+def test_skeletons_join_the_tracked_person_they_fit_and_split_people_are_regrouped():
+    from mvpose_jax.tracking import AssociationConfig, associate_skeletons, regroup
+
+    rig = load_rig("panoptic5")
+    F, C = 3, rig.num_cameras
+    people = np.stack([_walk([0.5, 0.0, 0.0], [0, 0, 0], F), _walk([-0.5, 0.5, 0.0], [0, 0, 0], F)])
+    people = people[..., [0, 2, 1]] * np.array([1, -1, 1])  # panoptic5 is y-down
+    xy, score = _projections(rig, people)
+    # A third skeleton far from both in camera 0 (a false positive) fits nobody.
+    far = np.concatenate([xy, xy[:, :, :1] + 400.0], axis=2)
+    sc = np.concatenate([score, score[:, :, :1]], axis=2)
+    owner = associate_skeletons(
+        rig, far, sc, np.moveaxis(people, 0, 1), np.ones((F, 2, len(BODY)), bool)
+    )
+    np.testing.assert_array_equal(owner[:, :, :2], np.broadcast_to([0, 1], (F, C, 2)))
+    assert (owner[:, :, 2] == -1).all()
+    # The proposals split person 0 over two groups (cameras 0-2 and 3-4); person 1 is whole.
+    members = np.full((F, 3, C), -1)
+    members[:, 0, :3] = 0
+    members[:, 1, 3:] = 0
+    members[:, 2, :] = 1
+    regrouped = regroup(members, owner[:, :, :2], 2)
+    assert regrouped.shape == (F, 2, C)
+    np.testing.assert_array_equal(regrouped[:, 0], 0)
+    np.testing.assert_array_equal(regrouped[:, 1], 1)
+    # Nothing fits within a tiny gate: nobody is taken.
+    none = associate_skeletons(
+        rig,
+        xy + 3.0,
+        score,
+        np.moveaxis(people, 0, 1),
+        np.ones((F, 2, len(BODY)), bool),
+        AssociationConfig(gate=1e-3),
+    )
+    assert (none == -1).all()
+
+
+def test_association_mends_a_grouping_that_splits_people():
+    """Epipolar proposals with a far too strict cutoff split people; track-level association
+    gives them back, live and offline."""
+    from mvpose_jax.cameras import up_vector
+    from mvpose_jax.inference import PipelineConfig
+    from mvpose_jax.metrics import pose_metrics
+    from mvpose_jax.tracking import AssociationConfig
+
+    rig = load_rig("panoptic5")
+    rec = generate_recording(rig, num_people=3, num_frames=40, seed=7)
+    scores = {}
+    for assoc in (None, AssociationConfig()):
+        for chunk in (40, 1):
+            config = PipelineConfig.of(
+                method="robust", tracking=TrackingConfig(), half_score_px=4.0, chunk_frames=chunk
+            )
+            res = run_pipeline(rig, rec.detections, dataclasses.replace(config, association=assoc))
+            m = pose_metrics(res.poses, rec.ground_truth, up=up_vector(rig))
+            scores[(assoc is not None, chunk)] = m["pcp"]
+    for chunk in (40, 1):
+        assert scores[(True, chunk)] > scores[(False, chunk)] + 10

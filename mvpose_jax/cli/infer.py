@@ -84,6 +84,13 @@ def add_pipeline_arguments(p: argparse.ArgumentParser) -> None:
         "each track's keypoints that robust triangulation cannot place are predicted from its "
         "other views and frames, before the filter (needs tracking)",
     )
+    p.add_argument(
+        "--associate",
+        action="store_true",
+        help="track-level association: after tracking, each 2D skeleton joins the tracked person "
+        "it fits in its view, and people are regrouped, lifted and tracked again (mends people "
+        "the grouping split or merged; needs tracking)",
+    )
     add_proposal_arguments(p)
     p.add_argument(
         "--chunk-frames",
@@ -335,6 +342,11 @@ _OPTION_OF_SETTING = {
     "pipeline.lifting.view_outlier_px": "--view-outlier-px",
     "pipeline.lifting.confidence": "--confidence",
     "pipeline.temporal": "--temporal",
+    "pipeline.association": "--associate",
+    "pipeline.association.gate": "--associate",
+    "pipeline.association.min_keypoints": "--associate",
+    "pipeline.association.hold_frames": "--associate",
+    "association": "--associate",
     "temporal": "--temporal",
     "pipeline.tracked": "--no-track",
     "pipeline.tracking.max_gap_s": "--max-gap-s",
@@ -361,7 +373,7 @@ def pipeline_config(args: argparse.Namespace):
     from mvpose_jax.inference import FilterConfig, PipelineConfig
     from mvpose_jax.lifting import LiftingConfig
     from mvpose_jax.matching import MatchingConfig
-    from mvpose_jax.tracking import TrackingConfig
+    from mvpose_jax.tracking import AssociationConfig, TrackingConfig
 
     needs_estimator = args.method and stages.lookup("lifting", args.method).needs_estimator
     if needs_estimator and not args.estimator:
@@ -375,6 +387,8 @@ def pipeline_config(args: argparse.Namespace):
         raise InputError(
             "--method confident and --confidence MODEL go together", field="--confidence"
         )
+    if args.associate and args.no_track:
+        raise InputError("association is with tracked people: drop --no-track", field="--associate")
     if args.temporal and args.no_track:
         raise InputError("the temporal stage refines tracks: drop --no-track", field="--temporal")
     if args.chunk_frames < 1:
@@ -397,6 +411,7 @@ def pipeline_config(args: argparse.Namespace):
         ),
         chunk_frames=args.chunk_frames,
         temporal=args.temporal,
+        association=AssociationConfig() if args.associate else None,
     )
 
 

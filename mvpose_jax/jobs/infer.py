@@ -216,8 +216,9 @@ def resume_record(config: PipelineConfig, inputs: dict[str, Any]) -> dict[str, A
         lift.pop("max_spread_m")
     if lift["method"] != "confident":
         lift.pop("confidence")
-    if d["temporal"] is None:
-        d.pop("temporal")  # as manifests written before the stage existed
+    for stage in ("temporal", "association"):
+        if d[stage] is None:
+            d.pop(stage)  # as manifests written before the stage existed
     filt = d.pop("filtering")
     if d["tracking"] is not None and config.filtering.streaming:
         d["filtering"] = {"name": filt["name"], "one_euro": filt["one_euro"]}
