@@ -1,0 +1,158 @@
+"""Track-level association on real footage (issue 37, item 4):
+``python -m experiments.association --out DIR [--models DIR] [--smoke]``.
+
+The Pose2Sim demo's two-person trial (no labels): each grouping with and without track-level
+association (`PipelineConfig.association`: after a chunk is tracked, each 2D skeleton joins the
+tracked person it fits in its view, and the people are lifted and tracked again), as
+``infer --session`` runs it, tracked and unfiltered (no Butterworth, no gap filling, no outlier
+rejection: the grouping and the 3D stage are compared, not the filter). The models are those of
+the rig trained on synthetic recordings with the floor measured from the trial's people
+(`real_models.synthetic_models`, loaded from ``--models`` when it holds them). Each row gets the
+label-free score (`label_free.label_free_score`): people per frame against the geometric
+grouping's, and the share of every skeleton's keypoints the result's projection puts within
+20 px. Also live (one frame a chunk: only the tracked people of the last frames are anchors).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+from experiments import pose2sim_demo as demo
+from experiments.real_models import synthetic_models
+from experiments.records import report_json
+from mvpose_jax.data.files import atomic_write_text
+from mvpose_jax.data.pose2sim import find_trials
+from mvpose_jax.data.poses import load_poses
+from mvpose_jax.floor import estimate_floor_from_detections
+from mvpose_jax.inference import FilterConfig
+from mvpose_jax.jobs.infer import INFER_PIPELINE, run_infer
+from mvpose_jax.jobs.session import SessionConfig, trial_config
+from mvpose_jax.lifting import LiftingConfig
+from mvpose_jax.tracking import AssociationConfig
+
+# (row, models used, proposals, 3D method)
+GROUPINGS = (
+    ("geometric: epipolar + robust", False, "epipolar", "robust"),
+    ("paper: GAT + MLP", True, "gat", "mlp"),
+    ("GAT repaired + MLP", True, "gat-repaired", "mlp"),
+    ("default: combined + blend", True, "combined", "blend"),
+)
+UNFILTERED = FilterConfig("none", fill_gap_s=0.0, outlier_m=None)
+
+
+def result_of(trial, out: Path, frames, models, proposals, method, association, chunk_frames):
+    """One row's poses, as ``infer --session`` makes them, with its wall time in seconds."""
+    pipeline = dataclasses.replace(
+        INFER_PIPELINE,
+        matching=dataclasses.replace(INFER_PIPELINE.matching, proposals=proposals),
+        lifting=LiftingConfig(method),
+        filtering=UNFILTERED,
+        association=association,
+        chunk_frames=chunk_frames,
+    )
+    session = SessionConfig(
+        str(trial.folder),
+        str(out),
+        pipeline,
+        matcher=None if models is None else str(models / "matcher"),
+        estimator=None if models is None else str(models / "estimator"),
+        trc=False,
+        progress=False,
+    )
+    config = trial_config(session, trial)
+    if frames is not None:
+        config = dataclasses.replace(config, frames=(0, frames))
+    t0 = time.perf_counter()
+    written = run_infer(config).written
+    return load_poses(written.npz), time.perf_counter() - t0
+
+
+def run(data: Path, out: Path, models: Path | None, smoke: bool) -> dict:
+    trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[demo.MULTI_TRIAL]
+    frames = demo.SMOKE_FRAMES if smoke else None
+    rig, det = demo.raw_detections(trial, frames)
+    if models is None:
+        models = out / "models"
+    # The floor from every frame of the trial (a smoke run's few frames cannot measure it).
+    floor = estimate_floor_from_detections(
+        rig, demo.raw_detections(trial, None)[1], layout=demo.LAYOUT
+    )
+    synthetic_models(rig, floor, models, smoke=smoke)
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, needs_models, proposals, method in GROUPINGS:
+            for assoc in (None, AssociationConfig()):
+                modes = ((256, "offline"), (1, "live")) if assoc is not None else ((256, ""),)
+                for chunk, mode in modes:
+                    label = name + (f" + association ({mode})" if assoc is not None else "")
+                    res, seconds = result_of(
+                        trial,
+                        Path(tmp) / f"{len(rows)}",
+                        frames,
+                        models if needs_models else None,
+                        proposals,
+                        method,
+                        assoc,
+                        chunk,
+                    )
+                    numbers = demo.score_row(res, rig, det)
+                    rows[label] = {
+                        k: numbers[k]
+                        for k in (
+                            "people_per_frame",
+                            "views_median_people",
+                            "within_20px_all_skeletons",
+                            "median_px",
+                            "tracks",
+                            "short_tracks",
+                        )
+                    } | {"seconds": seconds}
+    return {
+        "trial": demo.MULTI_TRIAL,
+        "frames": int(det.score.shape[0]),
+        "split": demo.SPLIT,
+        "models": str(models),
+        "association": dataclasses.asdict(AssociationConfig()),
+        "filter": "none (no gap filling, no outlier rejection), tracked",
+        "rows": rows,
+    }
+
+
+def _markdown(report: dict) -> str:
+    lines = [
+        f"## {report['trial']} ({report['frames']} frames), tracked, unfiltered\n",
+        "| grouping | people per frame | share within 20 px (all skeletons) % | median px | tracks "
+        "(short) |",
+        "|---|---|---|---|---|",
+    ]
+    for row, v in report["rows"].items():
+        lines.append(
+            f"| {row} | {v['people_per_frame']:.2f} | {100 * v['within_20px_all_skeletons']:.1f} "
+            f"| {v['median_px']:.1f} | {v['tracks']} ({v['short_tracks']}) |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, type=Path)
+    ap.add_argument("--models", type=Path, help="the demo rig's models (trained when missing)")
+    ap.add_argument("--data", type=Path, default=demo.DEFAULT_DATA, help="the Pose2Sim demo")
+    ap.add_argument("--smoke", action="store_true")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    report = run(args.data, args.out, args.models, args.smoke)
+    report["command"] = "python -m experiments.association " + " ".join(argv or [])
+    report["seconds"] = time.time() - t0
+    atomic_write_text(args.out / "association.json", report_json(report))
+    atomic_write_text(args.out / "association.md", _markdown(report))
+    print(_markdown(report))
+
+
+if __name__ == "__main__":
+    main()
