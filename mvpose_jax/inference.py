@@ -416,7 +416,20 @@ def _regrouped(tracker, det, members, poses, track, start, fps, rig, config: Pip
     if not (owner >= 0).any():
         return None
     regrouped = regroup(members, owner, anchor_xyz.shape[1])
-    return regrouped
+    return None if _same_groups(members, regrouped) else regrouped
+
+
+def _same_groups(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two (F, G, C) person tables hold the same people in every frame (in any slot
+    order; empty slots ignored)."""
+
+    def people(m: np.ndarray) -> np.ndarray:
+        f, g = np.nonzero((m >= 0).any(-1))
+        rows = np.concatenate([f[:, None], m[f, g]], axis=1)
+        return rows[np.lexsort(rows.T[::-1])]
+
+    pa, pb = people(np.asarray(a)), people(np.asarray(b))
+    return pa.shape == pb.shape and bool((pa == pb).all())
 
 
 def _temporal_chunk(model, rig, det, members, poses, track, config: PipelineConfig) -> Poses3D:
