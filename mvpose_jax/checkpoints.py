@@ -9,6 +9,7 @@ optimiser state, step) so a killed run resumes exactly; inference restores the p
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -216,3 +217,24 @@ class Checkpoints:
 def _path_names(path) -> tuple[str, ...]:
     """A pytree path as plain names (attribute, key or index), comparable across containers."""
     return tuple(str(getattr(k, "name", getattr(k, "key", getattr(k, "idx", k)))) for k in path)
+
+
+def save_params_folder(
+    folder: str | Path, params, config: dict, files: dict[str, str], val_loss: float = 0.0
+) -> Path:
+    """A trained model's folder: its parameters alone (``folder/best``, step 0, no optimiser)
+    with ``config``, and ``files`` (name -> text, e.g. its JSON config), written beside
+    ``folder`` and moved into place: never half written, and an older model there is replaced
+    whole (orbax skips a step a folder already holds, so saving over it would keep the old
+    parameters)."""
+    folder = Path(folder)
+    partial = folder.with_name(folder.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    state = TrainState(np.zeros((), np.int32), params, ())
+    Checkpoints(partial).save_best(state, config, float(val_loss))
+    for name, text in files.items():
+        (partial / name).write_text(text)
+    if folder.exists():
+        shutil.rmtree(folder)
+    partial.rename(folder)
+    return folder

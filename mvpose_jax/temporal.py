@@ -31,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import shutil
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -41,9 +40,8 @@ import numpy as np
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, up_vector
-from mvpose_jax.checkpoints import Checkpoints
+from mvpose_jax.checkpoints import Checkpoints, save_params_folder
 from mvpose_jax.compiled import bound_model_fn
-from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import assemble_features, estimator_inputs, rig_agnostic_frame
 from mvpose_jax.graphs import next_quarter_bucket
@@ -400,23 +398,13 @@ def refine_tracks(
 
 
 def save_temporal(folder: str | Path, model: TemporalModel, record: dict) -> Path:
-    """Writes the parameters (orbax, ``folder/best``), the config and the training record.
-
-    The model is written beside ``folder`` and moved into place: a folder is never half
-    written, and an older model there is replaced whole."""
-    from mvpose_jax.checkpoints import TrainState
-
-    folder = Path(folder)
-    partial = folder.with_name(folder.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
+    """Writes the parameters (orbax, ``folder/best``), the config and the training record
+    (`checkpoints.save_params_folder`: never half written, an older model replaced whole)."""
     config = dataclasses.asdict(model.config) | {"num_keypoints": model.num_keypoints}
-    state = TrainState(jnp.zeros((), jnp.int32), model.params, ())
-    Checkpoints(partial).save_best(state, config, float(record.get("dev_loss", 0.0)))
-    atomic_write_text(partial / CONFIG_FILE, json.dumps(config | {"record": record}, indent=1))
-    if folder.exists():
-        shutil.rmtree(folder)
-    partial.rename(folder)
-    return folder
+    text = json.dumps(config | {"record": record}, indent=1)
+    return save_params_folder(
+        folder, model.params, config, {CONFIG_FILE: text}, record.get("dev_loss", 0.0)
+    )
 
 
 def _blank(d: dict) -> TemporalModel:

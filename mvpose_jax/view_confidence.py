@@ -36,8 +36,7 @@ import numpy as np
 from flax import nnx
 
 from mvpose_jax.cameras import Rig, project_points_per_camera
-from mvpose_jax.checkpoints import Checkpoints
-from mvpose_jax.data.files import atomic_write_text
+from mvpose_jax.checkpoints import Checkpoints, save_params_folder
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Layout, get_layout
 from mvpose_jax.triangulate import (
@@ -269,15 +268,11 @@ def triangulate_confident(
 
 
 def save_view_confidence(folder: str | Path, model: ViewConfidence, val_loss: float) -> Path:
-    """Writes the parameters (orbax, ``folder/best``) and the config (JSON) to ``folder``."""
-    from mvpose_jax.checkpoints import TrainState
-
-    folder = Path(folder)
+    """Writes the parameters (orbax, ``folder/best``) and the config (JSON) to ``folder``
+    (`checkpoints.save_params_folder`: never half written, an older model replaced whole)."""
     config = dataclasses.asdict(model.config)
-    state = TrainState(jnp.zeros((), jnp.int32), model.params, ())
-    Checkpoints(folder).save_best(state, config, val_loss)
-    atomic_write_text(folder / CONFIG_FILE, json.dumps(config, indent=1))
-    return folder
+    text = json.dumps(config, indent=1)
+    return save_params_folder(folder, model.params, config, {CONFIG_FILE: text}, val_loss)
 
 
 def load_view_confidence(folder: str | Path) -> ViewConfidence:

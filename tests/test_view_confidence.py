@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
@@ -125,6 +126,16 @@ def test_save_load_round_trip_and_stage(rig, trained, tmp_path):
     a = inlier_probability(model, rig, dev.xy[:8], dev.score[:8])
     b = inlier_probability(loaded, rig, dev.xy[:8], dev.score[:8])
     np.testing.assert_allclose(a, b, atol=1e-6)
+    # Saved again over it, another model replaces it whole (orbax alone kept the old step 0).
+    again = tmp_path / "again"
+    save_view_confidence(again, model, record["dev_loss"])
+    other = model._replace(params=jax.tree.map(lambda p: p * 0.5, model.params))
+    save_view_confidence(again, other, record["dev_loss"])
+    c = inlier_probability(load_view_confidence(again), rig, dev.xy[:8], dev.score[:8])
+    d = inlier_probability(other, rig, dev.xy[:8], dev.score[:8])
+    np.testing.assert_allclose(c, d, atol=1e-6)
+    assert np.abs(np.asarray(c) - np.asarray(a)).max() > 1e-4
+    assert not (tmp_path / "again.partial").exists()
     assert stages.lookup("lifting", "confident").needs_estimator is False
     # The registered stage on grouped people (F=1 frame, G people) gives 3D near the truth.
     xy, score = dev.xy[None, :8], dev.score[None, :8]
