@@ -208,14 +208,14 @@ def init_temporal(
 ) -> TemporalModel:
     """An untrained model for ``rig`` (its up turned to +z inside the model)."""
     net = TemporalNet(num_keypoints, config, rngs=nnx.Rngs(seed))
-    net.rotation[...] = jnp.asarray(rotation_to_z_up(up_vector(rig)), jnp.float32)
     graphdef, params, rest = nnx.split(net, nnx.Param, ...)
-    return TemporalModel(graphdef, rest, params, config, num_keypoints)
+    return for_rig(TemporalModel(graphdef, rest, params, config, num_keypoints), rig)
 
 
 def for_rig(model: TemporalModel, rig: Rig) -> TemporalModel:
-    """The model with its frame rotation set for ``rig``'s up."""
-    rest = jax.tree.map(lambda a: a, model.rest)
+    """The model with its frame rotation set for ``rig``'s up (``model`` itself unchanged: a
+    cached model serves several rigs)."""
+    rest = jax.tree.map(lambda a: a, model.rest)  # a copy of the state the rotation lives in
     net = nnx.merge(model.graphdef, model.params, rest)
     net.rotation[...] = jnp.asarray(rotation_to_z_up(up_vector(rig)), jnp.float32)
     graphdef, params, rest = nnx.split(net, nnx.Param, ...)

@@ -226,3 +226,20 @@ def test_experiment_smoke_writes_its_tables(tmp_path):
     assert syn["chosen_on_validation"] in syn["tables"]["validation"]
     assert syn["chosen_variant"] in VARIANTS and len(syn["test_over_seeds"]["seeds"]) == 2
     assert "### test scenes" in (tmp_path / "temporal.md").read_text()
+
+
+def test_for_rig_turns_the_rig_up_to_z_and_leaves_the_model_alone(rig):
+    from mvpose_jax.cameras import up_vector
+    from mvpose_jax.synthetic.rigs import random_rig
+    from mvpose_jax.temporal import for_rig
+
+    def rotation(m):
+        return np.asarray(nnx.merge(m.graphdef, m.params, m.rest).rotation[...])
+
+    model = init_temporal(18, SMALL, rig=rig)
+    q = rotation(model)
+    np.testing.assert_allclose(q @ up_vector(rig), [0, 0, 1], atol=1e-6)
+    other, _ = random_rig("ring", seed=1)  # z-up
+    turned = for_rig(model, other)
+    np.testing.assert_allclose(rotation(turned), np.eye(3), atol=1e-6)
+    np.testing.assert_array_equal(rotation(model), q)
