@@ -31,11 +31,9 @@ from mvpose_jax.cameras import up_vector
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text
 from mvpose_jax.data.pose2sim import find_trials
-from mvpose_jax.data.poses import load_poses
 from mvpose_jax.floor import estimate_floor_from_detections
 from mvpose_jax.inference import FilterConfig, PipelineConfig, run_pipeline
-from mvpose_jax.jobs.infer import INFER_PIPELINE, run_infer
-from mvpose_jax.jobs.session import SessionConfig, trial_config
+from mvpose_jax.jobs.infer import INFER_PIPELINE
 from mvpose_jax.lifting import LiftingConfig
 from mvpose_jax.metrics import pose_metrics
 from mvpose_jax.synthetic import generate_recording
@@ -61,21 +59,7 @@ def result_of(trial, out: Path, frames, models, proposals, method, association, 
         association=association,
         chunk_frames=chunk_frames,
     )
-    session = SessionConfig(
-        str(trial.folder),
-        str(out),
-        pipeline,
-        matcher=None if models is None else str(models / "matcher"),
-        estimator=None if models is None else str(models / "estimator"),
-        trc=False,
-        progress=False,
-    )
-    config = trial_config(session, trial)
-    if frames is not None:
-        config = dataclasses.replace(config, frames=(0, frames))
-    t0 = time.perf_counter()
-    written = run_infer(config).written
-    return load_poses(written.npz), time.perf_counter() - t0
+    return demo.our_result(trial, None, out, frames, models=models, pipeline=pipeline)
 
 
 GATES = (0.1, 0.15, 0.25)

@@ -67,6 +67,7 @@ from mvpose_jax.data.pose2sim import Pose2SimTrial, find_trials
 from mvpose_jax.data.poses import PoseResults, load_poses
 from mvpose_jax.errors import InputError
 from mvpose_jax.floor import estimate_floor_from_detections
+from mvpose_jax.inference import PipelineConfig
 from mvpose_jax.jobs.common import read_dev_quality
 from mvpose_jax.jobs.infer import INFER_PIPELINE, run_infer
 from mvpose_jax.jobs.score import summary_lines
@@ -372,15 +373,18 @@ def our_result(
     *,
     models: Path | None = None,
     proposals: str | None = None,
+    pipeline: PipelineConfig | None = None,
 ) -> tuple[PoseResults, float]:
     """Our pipeline on one trial as ``infer --session`` runs it, with ``--method`` (None: the
     job's default) and, with ``models`` (a folder of ``matcher/`` and ``estimator/``), ``--matcher
-    --estimator`` and ``--proposals``; returns the poses and the job's wall time in seconds."""
-    pipeline = dataclasses.replace(
-        INFER_PIPELINE,
-        matching=dataclasses.replace(INFER_PIPELINE.matching, proposals=proposals),
-        lifting=LiftingConfig(method),
-    )
+    --estimator`` and ``--proposals``; or, given ``pipeline``, that whole config (``method`` and
+    ``proposals`` unused). Returns the poses and the job's wall time in seconds."""
+    if pipeline is None:
+        pipeline = dataclasses.replace(
+            INFER_PIPELINE,
+            matching=dataclasses.replace(INFER_PIPELINE.matching, proposals=proposals),
+            lifting=LiftingConfig(method),
+        )
     session = SessionConfig(
         str(trial.folder),
         str(out),

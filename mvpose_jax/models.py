@@ -207,6 +207,22 @@ def rotation_to_z_up(up) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
+def turned_features(features: jax.Array, q: jax.Array) -> jax.Array:
+    """Estimator features (..., 14) with their world vectors (camera centre, ray, initial 3D)
+    turned by the rotation ``q`` (3, 3) into a model's frame (`FrameRotation`)."""
+    turn = lambda v: v @ q.T  # noqa: E731  (row vectors)
+    return jnp.concatenate(
+        [
+            features[..., :4],
+            turn(features[..., 4:7]),
+            turn(features[..., 7:10]),
+            features[..., 10:11],
+            turn(features[..., 11:14]),
+        ],
+        axis=-1,
+    )
+
+
 class ViewPooledMLP(nnx.Module):
     """A 3D estimator for any rig: (..., C, K, 14) features -> (..., K, 3), any C, any order.
 
@@ -244,17 +260,7 @@ class ViewPooledMLP(nnx.Module):
 
     def __call__(self, features: jax.Array) -> jax.Array:
         q = self.rotation[...]
-        turn = lambda v: v @ q.T  # noqa: E731  (world -> model frame, row vectors)
-        features = jnp.concatenate(
-            [
-                features[..., :4],
-                turn(features[..., 4:7]),
-                turn(features[..., 7:10]),
-                features[..., 10:11],
-                turn(features[..., 11:14]),
-            ],
-            axis=-1,
-        )
+        features = turned_features(features, q)
         xyz, has, anchor = initial_estimate_parts(features)  # (..., K, 3), (..., K), (..., 3)
         seen = features[..., 0]  # (..., C, K)
         present = seen.max(axis=-1) > 0  # (..., C)

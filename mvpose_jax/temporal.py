@@ -51,6 +51,7 @@ from mvpose_jax.models import (
     initial_estimate_parts,
     masked_view_pool,
     rotation_to_z_up,
+    turned_features,
 )
 from mvpose_jax.skeletons import get_layout, leg_chains
 from mvpose_jax.triangulate import (
@@ -132,17 +133,7 @@ class TemporalNet(nnx.Module):
 
     def __call__(self, features: jax.Array, present: jax.Array) -> jax.Array:
         q = self.rotation[...]
-        turn = lambda v: v @ q.T  # noqa: E731  (world -> model frame, row vectors)
-        features = jnp.concatenate(
-            [
-                features[..., :4],
-                turn(features[..., 4:7]),
-                turn(features[..., 7:10]),
-                features[..., 10:11],
-                turn(features[..., 11:14]),
-            ],
-            axis=-1,
-        )
+        features = turned_features(features, q)
         B, T, C, K, _ = features.shape
         xyz, has, anchor = initial_estimate_parts(features)  # (B,T,K,3), (B,T,K), (B,T,3)
         seen = features[..., 0]  # (B, T, C, K)

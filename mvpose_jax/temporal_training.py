@@ -32,6 +32,7 @@ from mvpose_jax.cameras import Rig, project_points
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.features import main_skeletons
 from mvpose_jax.losses import masked_mean
+from mvpose_jax.pretraining import REFERENCE_FOCAL_PX  # the loss's pixel unit
 from mvpose_jax.progress import progress_bar
 from mvpose_jax.skeletons import get_layout
 from mvpose_jax.temporal import (
@@ -44,8 +45,6 @@ from mvpose_jax.temporal import (
 from mvpose_jax.train import init_train_state, make_optimizer, make_train_step
 from mvpose_jax.trained import TrainConfig
 
-# The reprojection loss's pixel unit: a pixel of a camera of this focal length.
-REFERENCE_FOCAL_PX = 1000.0
 _CM = 0.01
 
 
