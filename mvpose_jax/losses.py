@@ -19,6 +19,21 @@ def masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
     return jnp.sum(values * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
+def keypoint_l1(px: jax.Array, xy: jax.Array, seen: jax.Array) -> jax.Array:
+    """Manhattan distance of each projected keypoint to its detection, 0 where none.
+
+    Args:
+      px: (..., K, 2) projected keypoints, pixels.
+      xy: (..., K, 2) detected keypoints, pixels (junk allowed where not seen).
+      seen: (..., K) bool, the keypoint was detected.
+    Returns:
+      (..., K) pixels.
+    """
+    # Double-where: missing detections may hold junk, keep it out of values and gradients.
+    diff = jnp.where(seen[..., None], px - jnp.where(seen[..., None], xy, 0.0), 0.0)
+    return jnp.abs(diff).sum(-1)
+
+
 def reprojection_error_l1(rig: Rig, xyz: jax.Array, xy: jax.Array, score: jax.Array) -> jax.Array:
     """Per-sample Manhattan reprojection error, summed over cameras and detected keypoints.
 
@@ -31,10 +46,7 @@ def reprojection_error_l1(rig: Rig, xyz: jax.Array, xy: jax.Array, score: jax.Ar
       (N,) e_d in pixels.
     """
     px = jnp.moveaxis(project_points(rig, xyz), 0, 1)  # (N, C_t, K, 2)
-    seen = score > 0
-    # Double-where: missing detections may hold junk, keep it out of values and gradients.
-    diff = jnp.where(seen[..., None], px - jnp.where(seen[..., None], xy, 0.0), 0.0)
-    return jnp.sum(jnp.abs(diff), axis=(1, 2, 3))
+    return jnp.sum(keypoint_l1(px, xy, score > 0), axis=(1, 2))
 
 
 def reprojection_loss(rig: Rig, xyz: jax.Array, xy: jax.Array, score: jax.Array) -> jax.Array:

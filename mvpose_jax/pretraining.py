@@ -38,7 +38,7 @@ from mvpose_jax.features import (
     estimator_inputs,
     rig_agnostic_frame,
 )
-from mvpose_jax.losses import masked_mean
+from mvpose_jax.losses import keypoint_l1, masked_mean
 from mvpose_jax.models import estimator_model
 from mvpose_jax.train import (
     FitResult,
@@ -136,10 +136,8 @@ def _person_error(rig: Rig, xyz, xy, score):
     `REFERENCE_FOCAL_PX` (each camera's pixels scaled by it over the camera's own focal length),
     so that people of a 640-pixel camera weigh as much as those of a 4K one."""
     scale = REFERENCE_FOCAL_PX / rig.K[:, 0, 0]  # (C,)
-    px = project_points(rig, xyz)  # (C, K, 2)
-    seen = score > 0
-    diff = jnp.where(seen[..., None], px - jnp.where(seen[..., None], xy, 0.0), 0.0)
-    return jnp.sum(jnp.abs(diff).sum(axis=(1, 2)) * scale)
+    per_camera = keypoint_l1(project_points(rig, xyz), xy, score > 0).sum(-1)  # (C,)
+    return jnp.sum(per_camera * scale)
 
 
 def pooled_loss_fn(num_augment: int, loss_power: float):

@@ -31,7 +31,7 @@ from flax import nnx
 from mvpose_jax.cameras import Rig, project_points
 from mvpose_jax.data.recording import Recording
 from mvpose_jax.features import main_skeletons
-from mvpose_jax.losses import masked_mean
+from mvpose_jax.losses import keypoint_l1, masked_mean
 from mvpose_jax.pretraining import REFERENCE_FOCAL_PX  # the loss's pixel unit
 from mvpose_jax.progress import progress_bar
 from mvpose_jax.skeletons import get_layout
@@ -199,10 +199,9 @@ def window_terms(
     px = jnp.moveaxis(project_points(rig, xyz), 0, 2)  # (B, T, C, K, 2)
     w = batch.score
     seen = w > 0
-    diff = jnp.where(seen[..., None], px - jnp.where(seen[..., None], batch.xy, 0.0), 0.0)
     # Truncated: a detector's gross error (a swapped limb, a keypoint of someone else) or a
     # point near a camera's plane weighs no more than max_error_px, and pulls on nothing.
-    l1 = jnp.minimum(jnp.abs(diff).sum(-1) * scale[None, None, :, None], max_error_px)
+    l1 = jnp.minimum(keypoint_l1(px, batch.xy, seen) * scale[None, None, :, None], max_error_px)
     frame_err = jnp.sum(w * l1, axis=(2, 3)) / jnp.maximum(w.sum(axis=(2, 3)), 1e-6)  # (B, T)
     here = batch.present & seen.any(axis=(2, 3))
     hw = here.astype(xyz.dtype)
