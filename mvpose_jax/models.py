@@ -463,12 +463,10 @@ class GATLayer(nnx.Module):
         shift = jax.lax.stop_gradient(
             jnp.maximum(shift, jax.ops.segment_max(jnp.where(m, to_det_b, low), sb, n))
         )
-        # Masked before exp, not after: an overflowing exp off the match nodes would make the
-        # where's gradient 0 * inf.
         e_own = jnp.exp(own - shift)
-        e_ma, e_mb = (jnp.exp(jnp.where(m, x - shift, low)) for x in (to_match_a, to_match_b))
-        e_da = jnp.exp(jnp.where(m, to_det_a - shift[ga], low))
-        e_db = jnp.exp(jnp.where(m, to_det_b - shift[gb], low))
+        e_ma, e_mb = (jnp.where(m, jnp.exp(x - shift), 0.0) for x in (to_match_a, to_match_b))
+        e_da = jnp.where(m, jnp.exp(to_det_a - shift[ga]), 0.0)
+        e_db = jnp.where(m, jnp.exp(to_det_b - shift[gb]), 0.0)
         total = (
             e_own
             + e_ma
