@@ -546,10 +546,9 @@ def _breakdown(rig, det, members, n, matcher, estimator, size, frames, t_pp, t_3
 
     def attention_only(params, b, z):
         model = nnx.merge(matcher.graphdef, params, matcher.rest)
-        h = model.layers[0].attend_matching(z, b.pair, b.is_match)
+        h = model.layers[0].attend(z, b.graphs)
         for layer in model.layers[1:]:
-            z = layer.project(jax.nn.leaky_relu(h, model.between_slope))
-            h = layer.attend_matching(z, b.pair, b.is_match)
+            h = layer(jax.nn.leaky_relu(h, model.between_slope), b.graphs)
         return h
 
     attention_fn = jax.jit(attention_only)

@@ -428,57 +428,6 @@ class GATLayer(nnx.Module):
         )  # (N, heads, head_dim)
         return out.reshape(num_nodes, self.heads * self.head_dim)
 
-    def attend_matching(self, z: jax.Array, pair: jax.Array, is_match: jax.Array) -> jax.Array:
-        """`attend` on a matching graph, from its match nodes' pairs instead of its edge lists.
-
-        The same function as `attend` over `graphs.build_graphs`' edges, typed by node kind: a
-        match node's in-edges are its self-loop and its two detections, a dense softmax of three;
-        a detection's are its self-loop and the match nodes it belongs to, each of which sends to
-        it from its own row, so that only the detections' sums are scatters. The padded edge list
-        (self-loops plus four edges per match node) is never gathered: on the 5-view training
-        batches a training step is a fifth faster. The per-node shift of the softmax is the max
-        logit, held constant under differentiation (exact: a softmax does not depend on it).
-
-        Args:
-          z: (N, heads, head_dim) projected features.
-          pair: (N, 2) int the two detection nodes of each match node (anything elsewhere).
-          is_match: (N,) bool, real match nodes.
-        Returns:
-          (N, heads * head_dim).
-        """
-        n = z.shape[0]
-        src = (z * self.attn_src[...][None]).sum(-1)  # (N, heads): a_l . z of each node
-        dst = (z * self.attn_dst[...][None]).sum(-1)
-        logit = functools.partial(jax.nn.leaky_relu, negative_slope=self.slope)
-        m = is_match[:, None]
-        # Gather ids (any valid row off the match nodes) and scatter ids (n: dropped).
-        ga, gb = (jnp.where(is_match, pair[:, i], 0) for i in (0, 1))
-        sa, sb = (jnp.where(is_match, pair[:, i], n) for i in (0, 1))
-        own = logit(src + dst)  # self-loops
-        to_match_a, to_match_b = logit(src[ga] + dst), logit(src[gb] + dst)  # detection -> match
-        to_det_a, to_det_b = logit(src + dst[ga]), logit(src + dst[gb])  # match -> detection
-        low = jnp.finfo(z.dtype).min
-        shift = jnp.maximum(own, jnp.where(m, jnp.maximum(to_match_a, to_match_b), low))
-        shift = jnp.maximum(shift, jax.ops.segment_max(jnp.where(m, to_det_a, low), sa, n))
-        shift = jax.lax.stop_gradient(
-            jnp.maximum(shift, jax.ops.segment_max(jnp.where(m, to_det_b, low), sb, n))
-        )
-        e_own = jnp.exp(own - shift)
-        e_ma, e_mb = (jnp.where(m, jnp.exp(x - shift), 0.0) for x in (to_match_a, to_match_b))
-        e_da = jnp.where(m, jnp.exp(to_det_a - shift[ga]), 0.0)
-        e_db = jnp.where(m, jnp.exp(to_det_b - shift[gb]), 0.0)
-        total = (
-            e_own
-            + e_ma
-            + e_mb
-            + jax.ops.segment_sum(e_da, sa, n)
-            + jax.ops.segment_sum(e_db, sb, n)
-        )
-        out = e_own[..., None] * z + e_ma[..., None] * z[ga] + e_mb[..., None] * z[gb]
-        out = out + jax.ops.segment_sum(e_da[..., None] * z, sa, n)
-        out = out + jax.ops.segment_sum(e_db[..., None] * z, sb, n)
-        return (out / total[..., None]).reshape(n, self.heads * self.head_dim)
-
     def __call__(self, h: jax.Array, graphs: jraph.GraphsTuple) -> jax.Array:
         return self.attend(self.project(h), graphs)
 
@@ -491,8 +440,7 @@ class MatchingGAT(nnx.Module):
     and padding nodes carry only a one-hot, so their ``z`` is one of two rows computed once; the
     square ``W1`` multiplies detection rows only (`graphs.GraphBatch.det_features`), stored
     (out, in) so that the product of the wide matrix with a few rows streams it once
-    (benchmarks/README.md). The attention layers read the graph's structure from the match
-    nodes' pairs (`GATLayer.attend_matching`); `dense_forward` runs them on the edge lists.
+    (benchmarks/README.md).
     """
 
     def __init__(self, num_cameras: int, num_keypoints: int, config: GATConfig, *, rngs: nnx.Rngs):
@@ -530,11 +478,10 @@ class MatchingGAT(nnx.Module):
         return z.reshape(z.shape[:-1] + (layer.heads, layer.head_dim))
 
     def __call__(self, batch: GraphBatch) -> jax.Array:
-        pair, is_match = batch.pair, batch.is_match
-        h = self.layers[0].attend_matching(self.first_projection(batch), pair, is_match)
+        graphs = batch.graphs
+        h = self.layers[0].attend(self.first_projection(batch), graphs)
         for layer in self.layers[1:]:
-            z = layer.project(jax.nn.leaky_relu(h, self.between_slope))
-            h = layer.attend_matching(z, pair, is_match)
+            h = layer(jax.nn.leaky_relu(h, self.between_slope), graphs)
         return jax.nn.sigmoid(h[:, 0])
 
     def dense_forward(self, node_features: jax.Array, graphs: jraph.GraphsTuple) -> jax.Array:
