@@ -18,7 +18,7 @@ import numpy as np
 
 from experiments.config import SPLITS, Scale
 from experiments.data import Data, make_data, make_shifted_scenes, true_members
-from experiments.fitting import combined_config, fit_estimator, fit_matcher
+from experiments.fitting import combined_config, fit_estimator, fit_matcher, free_compiled_programs
 from experiments.records import run_record, save_partial
 from experiments.tables import diff_mean_sd, has_value, mean_sd, seeds_line
 from mvpose_jax.adapt import AdaptConfig, MatcherAdaptConfig, adapt_estimator, adapt_matcher
@@ -188,6 +188,7 @@ def run(
     shifted = {name: make_shifted_scenes(rig, sc, data_seed, SHIFTS[name]) for name in names}
     runs = []
     for seed in seeds:
+        free_compiled_programs()  # the last seed's evaluation programs
         data = make_data(rig, {}, sc, seed, progress)
         print(f"== seed {seed}: matcher, 5 views", flush=True)
         matcher, fit = fit_matcher(data, sc, rig.names, seed, progress)

@@ -12,11 +12,13 @@ DIR/matcher --estimator DIR/estimator`` runs them), and ``fit.json``, the matche
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 import time
 from pathlib import Path
 from typing import NamedTuple
 
+import jax
 import numpy as np
 
 from experiments.config import SCALES, Scale
@@ -49,6 +51,19 @@ from mvpose_jax.trained import (
 )
 
 
+def free_compiled_programs() -> None:
+    """Drops every compiled program of the process (the next call of a function compiles again).
+
+    Each XLA:CPU executable holds its own memory maps, and one experiment process compiles
+    thousands: every model's training step at each padded shape, then the pipelines' programs
+    at each chunk shape. Kept all along, they reached Linux's default ``vm.max_map_count``
+    (65,530) within one seed of paper-panoptic, and the next compile died ("LLVM ERROR: Unable
+    to allocate section memory"). Called after each training, whose programs nothing else runs,
+    and before each training seed's evaluation."""
+    gc.collect()  # programs held only by dead closures (a finished model's train step)
+    jax.clear_caches()
+
+
 def fit_matcher(
     data: Data, sc: Scale, cameras, seed: int, progress: bool, folder: Path | None = None
 ) -> tuple[Matcher, dict]:
@@ -75,6 +90,7 @@ def fit_matcher(
         data.rig, data.train, data.dev, config, checkpoint_dir=folder, progress=progress
     )
     seconds = time.perf_counter() - t0
+    free_compiled_programs()
     # Both matchers' settings are chosen by one rule on multi-person frames composed from the dev
     # recordings (no scene, no label beyond the composition's own): the GAT's proposal threshold
     # (the paper's is 0.5) and the epipolar matcher's distance cutoff.
@@ -167,8 +183,10 @@ def fit_estimator(
         checkpoint_dir=folder,
         progress=progress,
     )
+    seconds = round(time.perf_counter() - t0, 1)
+    free_compiled_programs()
     return est, {
-        "train_seconds": round(time.perf_counter() - t0, 1),
+        "train_seconds": seconds,
         "train_steps": fit.steps,
         "train_people": int(len(xy)),
         "best_val_loss": fit.best_val_loss,

@@ -15,7 +15,7 @@ import numpy as np
 from experiments.config import SPLITS, Scale
 from experiments.data import Data, make_data, make_scenes, true_members
 from experiments.figures import training_curves
-from experiments.fitting import fit_estimator, fit_matcher
+from experiments.fitting import fit_estimator, fit_matcher, free_compiled_programs
 from experiments.matching import matching_rows, matching_table
 from experiments.paper import PAPER_TABLE4, PAPER_TABLE7, ROBOT
 from experiments.records import run_record, save_partial
@@ -44,6 +44,7 @@ def run(
         "M_2/2": (ROBOT, ROBOT),
     }
     for i, seed in enumerate(seeds):
+        free_compiled_programs()  # the last seed's evaluation programs
         data = make_data(rig, scenes, sc, seed, progress)
         res = run_record(seed, data_seed, sc) | {
             "matching": {s: {} for s in SPLITS},

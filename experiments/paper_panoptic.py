@@ -24,7 +24,7 @@ import numpy as np
 from experiments.config import SPLITS, TRACKING_SPLITS, Scale
 from experiments.data import Data, make_data, make_scenes, make_tracking_scenes, true_members
 from experiments.figures import sample_figures, training_curves
-from experiments.fitting import fit_estimator, fit_matcher
+from experiments.fitting import fit_estimator, fit_matcher, free_compiled_programs
 from experiments.matching import matching_rows, matching_table
 from experiments.paper import PAPER_TABLE3, PAPER_TABLE6
 from experiments.records import run_record, save_partial
@@ -100,6 +100,7 @@ def run(
     views = {2: rig.names[:2], 3: rig.names[:3], 5: rig.names}
     runs = []
     for i, seed in enumerate(seeds):
+        free_compiled_programs()  # the last seed's evaluation programs
         data = make_data(rig, scenes, sc, seed, progress)
         res = run_record(seed, data_seed, sc) | {
             "matching": {s: {} for s in SPLITS},
