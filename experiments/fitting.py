@@ -56,10 +56,11 @@ def free_compiled_programs() -> None:
 
     Each XLA:CPU executable holds its own memory maps, and one experiment process compiles
     thousands: every model's training step at each padded shape, then the pipelines' programs
-    at each chunk shape. Kept all along, they reached Linux's default ``vm.max_map_count``
-    (65,530) within one seed of paper-panoptic, and the next compile died ("LLVM ERROR: Unable
-    to allocate section memory"). Called after each training, whose programs nothing else runs,
-    and before each training seed's evaluation."""
+    at each chunk shape. Kept all along, they brought one seed of paper-panoptic close to Linux's
+    default ``vm.max_map_count`` (65,530); with slightly larger programs it passed it, and the
+    next compile died ("LLVM ERROR: Unable to allocate section memory"). Called after each
+    training, whose programs nothing else runs, and at the start of each training seed (the
+    previous seed's evaluation programs)."""
     gc.collect()  # programs held only by dead closures (a finished model's train step)
     jax.clear_caches()
 
