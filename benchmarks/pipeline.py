@@ -1,6 +1,6 @@
 """The ``pipeline`` group: what users run, timed through the library's public API.
 
-Five pipelines (`PIPELINES`), each through `inference.stream_pipeline` / `inference.run_pipeline`
+Six pipelines (`PIPELINES`), each through `inference.stream_pipeline` / `inference.run_pipeline`
 with a `PipelineConfig`, as ``mvpose-jax infer`` builds them:
 
 * ``default``: `jobs.infer.INFER_PIPELINE` with a matcher and an estimator, as `infer`
@@ -13,7 +13,10 @@ with a `PipelineConfig`, as ``mvpose-jax infer`` builds them:
 * ``dlt``: epipolar proposals and DLT, untracked;
 * ``pretrained``: ``infer --estimator pretrained`` (the rig-agnostic estimator shipped in the
   package, no training on the rig): epipolar proposals, the blend, tracking and the Butterworth
-  filter.
+  filter;
+* ``shipped``: ``infer --matcher pretrained --estimator pretrained`` (both rig-agnostic models
+  shipped in the package, no training on the rig), as `infer` resolves it: the combined
+  matcher at the shipped folder's settings, the blend, tracking and the Butterworth filter.
 
 Models are the CLI's default sizes (`GATConfig()`, `MLPConfig.quick()`), per rig: trained for a
 few steps on synthetic single-person recordings of the scene's rig in the full tier, random
@@ -95,7 +98,7 @@ from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.estimator_training import train_estimator
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import PipelineConfig, PipelineResult, run_pipeline, stream_pipeline
-from mvpose_jax.jobs.infer import INFER_PIPELINE
+from mvpose_jax.jobs.infer import INFER_PIPELINE, resolve_pipeline
 from mvpose_jax.jobs.session import SessionConfig, trial_config
 from mvpose_jax.lifting import LiftingConfig
 from mvpose_jax.matcher_settings import MatcherSettings, choose_matcher_settings
@@ -114,10 +117,11 @@ from mvpose_jax.trained import (
     MatcherConfig,
     TrainConfig,
     load_estimator,
+    load_matcher,
 )
 
 # geometric first: the others' yardstick
-PIPELINES = ("geometric", "default", "paper", "dlt", "pretrained")
+PIPELINES = ("geometric", "default", "paper", "dlt", "pretrained", "shipped")
 MODES = ("live", "offline")
 STAGES = ("matching", "proposals", "3d", "tracking", "filtering", "other")
 CHUNK_FRAMES = 256
@@ -326,12 +330,17 @@ class RigModels:
     seconds: float
     steps: int
     pretrained: Estimator  # the package's rig-agnostic estimator, set up for the rig
+    pretrained_matcher: Matcher  # the package's rig-agnostic matcher, set up for the rig
 
     def for_pipeline(self, needs: bool | str) -> RigModels | None:
         """What a pipeline of `pipeline_configs` runs with: these models (True), none (False),
-        or the pretrained estimator alone ("pretrained")."""
+        the pretrained estimator alone ("pretrained"), or both shipped models ("shipped")."""
         if needs == "pretrained":
             return dataclasses.replace(self, matcher=None, estimator=self.pretrained)
+        if needs == "shipped":
+            return dataclasses.replace(
+                self, matcher=self.pretrained_matcher, estimator=self.pretrained
+            )
         return self if needs else None
 
 
@@ -379,7 +388,15 @@ def train_models(rig: Rig, tier: PipelineTier, seed: int = 0) -> RigModels:
         )
     settings = choose_matcher_settings(matcher, dev, num_samples=64, seed=seed)
     seconds = time.perf_counter() - t0
-    return RigModels(matcher, estimator, settings, seconds, steps, load_estimator(PRETRAINED, rig))
+    return RigModels(
+        matcher,
+        estimator,
+        settings,
+        seconds,
+        steps,
+        load_estimator(PRETRAINED, rig),
+        load_matcher(PRETRAINED, rig),
+    )
 
 
 def pipeline_configs(
@@ -388,7 +405,8 @@ def pipeline_configs(
     """{name: (config, the models it needs)} of `PIPELINES`, each as `infer` resolves it for a
     matcher folder holding ``settings`` (None: a folder without chosen settings: the GAT at the
     paper's 0.5, `CombinedConfig()`). Needs: True (the rig's matcher and estimator), False
-    (none) or "pretrained" (the shipped estimator alone, `RigModels.for_pipeline`)."""
+    (none), "pretrained" (the shipped estimator alone) or "shipped" (both shipped models,
+    `RigModels.for_pipeline`)."""
     infer_matching = INFER_PIPELINE.matching
     threshold = settings.threshold if settings is not None else 0.5
     combined = settings.combined if settings is not None else CombinedConfig()
@@ -434,6 +452,11 @@ def pipeline_configs(
                 lifting=dataclasses.replace(INFER_PIPELINE.lifting, method="blend"),
             ),
             "pretrained",
+        ),
+        # `infer --matcher pretrained --estimator pretrained`, resolved as infer resolves it.
+        "shipped": (
+            resolve_pipeline(INFER_PIPELINE, PRETRAINED, estimator=True),
+            "shipped",
         ),
     }
 

@@ -92,18 +92,27 @@ def fit_matcher(
     )
     seconds = time.perf_counter() - t0
     free_compiled_programs()
+    return matcher, {
+        "train_seconds": round(seconds, 1),
+        "train_steps": fit.steps,
+        "best_val_loss": fit.best_val_loss,
+        "history": fit.history,
+        **choose_settings_on_dev(matcher, data, sc.threshold_frames, seed, folder),
+    }
+
+
+def choose_settings_on_dev(
+    matcher: Matcher, data: Data, num_frames: int, seed: int, folder: Path | None = None
+) -> dict:
+    """A trained matcher's proposal settings, chosen on ``num_frames`` multi-person frames
+    composed from the dev recordings of ``data`` (and written into its model ``folder`` when
+    given): the GAT's threshold, the epipolar matcher's cutoff and the combined matcher's
+    threshold at that cutoff; returns them with the ARI of every candidate."""
     # Both matchers' settings are chosen by one rule on multi-person frames composed from the dev
     # recordings (no scene, no label beyond the composition's own): the GAT's proposal threshold
     # (the paper's is 0.5) and the epipolar matcher's distance cutoff.
     composed, identity = composed_frames(
-        matcher.rig,
-        data.dev,
-        num_samples=sc.threshold_frames,
-        seed=seed,
-        max_people=config.max_people,
-        subset_probability=config.subset_probability,
-        min_views=config.min_views,
-        keypoint_dropout=config.keypoint_dropout,
+        matcher.rig, data.dev, num_samples=num_frames, seed=seed, **matcher.config.composition()
     )
     gat_rows, gat_scores = gat_match_table(matcher, composed)
     threshold, ari = choose_proposal_threshold(gat_rows, gat_scores, identity, composed.count)
@@ -132,11 +141,7 @@ def fit_matcher(
             combined=dataclasses.replace(combined, threshold=combined_threshold),
             combined_ari=ari_comb,
         )
-    return matcher, {
-        "train_seconds": round(seconds, 1),
-        "train_steps": fit.steps,
-        "best_val_loss": fit.best_val_loss,
-        "history": fit.history,
+    return {
         "threshold": threshold,
         "dev_ari_by_threshold": {str(k): round(v, 5) for k, v in ari.items()},
         "geometric_cutoff_px": cutoff,

@@ -332,41 +332,54 @@ def save(report: dict, out: Path) -> None:
 
 
 def ship(models: Path, report: dict) -> Path:
-    """Writes the pretrained estimator's parameters (no optimiser state), config and report as
-    the package's shipped model (`trained.pretrained_estimator_folder`), replacing the one there;
-    returns its folder."""
+    """Writes the pretrained estimator into the package (`ship_model`)."""
+    return ship_model(models, "estimator", report, "pretrain")
+
+
+def ship_model(models: Path, kind: str, report: dict, experiment: str) -> Path:
+    """Writes a pretrained ``kind`` ("estimator" or "matcher") model folder's parameters (no
+    optimiser state), config, chosen proposal settings (a matcher's) and report as the
+    package's shipped model (`trained.pretrained_folder`), replacing the one there; returns its
+    folder. ``experiment``: the module that made it (for the report's command)."""
     import shutil
 
     import jax
     from flax import nnx
 
     import mvpose_jax
-    from mvpose_jax.models import estimator_model
-    from mvpose_jax.trained import ModelFolder, estimator_config_from_dict
+    from mvpose_jax.models import estimator_model, matcher_model
+    from mvpose_jax.trained import (
+        ModelFolder,
+        estimator_config_from_dict,
+        matcher_config_from_dict,
+    )
 
     source = ModelFolder(models)
     config = source.read_config("best")
-    mlp = estimator_config_from_dict(config).mlp
-    _, params, _ = nnx.split(
-        estimator_model(0, config["num_keypoints"], mlp, rngs=nnx.Rngs(0)), nnx.Param, ...
-    )
+    K = config["num_keypoints"]
+    if kind == "estimator":
+        model = estimator_model(0, K, estimator_config_from_dict(config).mlp, rngs=nnx.Rngs(0))
+    else:
+        model = matcher_model(0, K, matcher_config_from_dict(config).gat, rngs=nnx.Rngs(0))
+    _, params, _ = nnx.split(model, nnx.Param, ...)
     params = source.restore_params(jax.eval_shape(lambda: params))
-    target = Path(mvpose_jax.__file__).resolve().parent / "pretrained" / "estimator"
-    fresh = target.with_name(".estimator.new")
+    target = Path(mvpose_jax.__file__).resolve().parent / "pretrained" / kind
+    fresh = target.with_name(f".{kind}.new")
     shutil.rmtree(fresh, ignore_errors=True)
     p = report["pretraining"]
     with ModelFolder.create(fresh) as folder:
         folder.save_params(params, p["steps"], config, p["best_val_loss"])
+        folder.copy_proposal_settings(source)
         folder.write_pretrain_report(
             {
-                "command": "python -m experiments.pretrain --scale "
+                "command": f"python -m experiments.{experiment} --scale "
                 f"{report['scale']} --seed {report['seed']} --ship",
                 **{k: v for k, v in report.items() if k != "pretraining"},
                 "pretraining": {k: v for k, v in p.items() if k != "history"},
             }
         )
     if target.exists():
-        old = target.with_name(".estimator.old")
+        old = target.with_name(f".{kind}.old")
         shutil.rmtree(old, ignore_errors=True)
         target.rename(old)
         fresh.rename(target)
@@ -378,12 +391,22 @@ def ship(models: Path, report: dict) -> Path:
 
 def combine(paths: list[Path], out: Path) -> list[str]:
     """``DIR/pretrain_seeds.md`` from the ``pretrain.json`` of several training seeds' runs."""
-    reports = [json.loads((p / "pretrain.json").read_text()) for p in paths]
+    return combine_seeds(
+        paths, out, "pretrain", "# One 3D estimator for any rig, over training seeds", seeds_table
+    )
+
+
+def combine_seeds(paths: list[Path], out: Path, name: str, title: str, seeds_table, note=()):
+    """``OUT/NAME_seeds.md`` from the ``NAME.json`` reports of several training seeds' runs
+    (``seeds_table(reports, split)``'s lines for the test then the validation scenes, after
+    ``title`` and the lines ``note``); returns its lines."""
+    reports = [json.loads((p / f"{name}.json").read_text()) for p in paths]
     if len({r["scenes_seed"] for r in reports}) != 1:
         raise SystemExit("the runs were evaluated on different scenes (--scenes-seed)")
     lines = [
-        "# One 3D estimator for any rig, over training seeds",
+        title,
         "",
+        *note,
         *seeds_table(reports, "test"),
         "",
         "Validation scenes:",
@@ -391,14 +414,30 @@ def combine(paths: list[Path], out: Path) -> list[str]:
         *seeds_table(reports, "validation"),
         "",
     ]
-    atomic_write_text(out / "pretrain_seeds.md", "\n".join(lines))
+    atomic_write_text(out / f"{name}_seeds.md", "\n".join(lines))
     return lines
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", required=True, type=Path, help="folder for pretrain.md/.json, models")
-    p.add_argument("--scale", default="quick", choices=sorted(PRETRAIN_SCALES))
+    experiment_main(
+        argv,
+        description=__doc__.split("\n\n")[0],
+        scales=PRETRAIN_SCALES,
+        run=run,
+        table=table,
+        combine=combine,
+        ship=lambda out, report: ship(out / "models" / "pretrained", report),
+        kind="estimator",
+        markdown="pretrain.md",
+    )
+
+
+def experiment_main(argv, *, description, scales, run, table, combine, ship, kind, markdown):
+    """The command line of a pretraining experiment (this one's, `experiments.pretrain_matcher`'s):
+    run one training seed (and ``--ship`` its model), or ``--combine`` several seeds' runs."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--out", required=True, type=Path, help="folder for the tables and models")
+    p.add_argument("--scale", default="quick", choices=sorted(scales))
     p.add_argument("--seed", type=int, default=0, help="training seed")
     p.add_argument("--scenes-seed", type=int, default=0, help="seed of the evaluation scenes")
     p.add_argument(
@@ -410,8 +449,8 @@ def main(argv=None) -> None:
     p.add_argument(
         "--ship",
         action="store_true",
-        help="also write the pretrained estimator into the package (mvpose_jax/pretrained/"
-        "estimator: what `infer --estimator pretrained` loads)",
+        help=f"also write the pretrained {kind} into the package (mvpose_jax/pretrained/{kind}: "
+        f"what `infer --{kind} pretrained` loads)",
     )
     p.add_argument(
         "--combine",
@@ -419,7 +458,7 @@ def main(argv=None) -> None:
         type=Path,
         metavar="RUN",
         help="instead of running: the mean and spread over the given runs' folders (one "
-        "training seed each) into OUT/pretrain_seeds.md",
+        "training seed each), into OUT",
     )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -429,7 +468,7 @@ def main(argv=None) -> None:
         return
     t0 = time.perf_counter()
     report = run(
-        PRETRAIN_SCALES[args.scale],
+        scales[args.scale],
         args.seed,
         args.scenes_seed,
         args.out,
@@ -439,8 +478,8 @@ def main(argv=None) -> None:
     report["scale"] = args.scale
     print("\n".join(table(report)))
     if args.ship:
-        print(f"shipped: {ship(args.out / 'models' / 'pretrained', report)}")
-    print(f"{args.out / 'pretrain.md'} ({time.perf_counter() - t0:.0f} s)")
+        print(f"shipped: {ship(args.out, report)}")
+    print(f"{args.out / markdown} ({time.perf_counter() - t0:.0f} s)")
 
 
 if __name__ == "__main__":

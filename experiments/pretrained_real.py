@@ -1,12 +1,14 @@
-"""The shipped rig-agnostic estimator on real footage: ``python -m experiments.pretrained_real
---out DIR [--models MODELS]``.
+"""The shipped rig-agnostic estimator and matcher on real footage: ``python -m
+experiments.pretrained_real --out DIR [--models MODELS]``.
 
 Beside the geometric default and the estimator trained on synthetic recordings of each real rig
 (what a user gets today after training, `real_models.synthetic_models`), with the same proposals:
 
 * MVOR days 1-2 (labelled, 3 cameras): the MVOR protocol (annotated people missed, MPJPE,
   PCK3D@150) of epipolar proposals + robust triangulation, + the blend and + the estimator alone
-  (``mlp``), and of the true groupings + each estimator;
+  (``mlp``), of each matcher's GAT proposals + robust triangulation, of the combined matcher +
+  the blend with each pair of models (`infer --matcher M --estimator E`), and of the true
+  groupings + each estimator;
 * the Pose2Sim demo's two-person trial (no labels, 4 cameras): the label-free yardstick
   (`label_free.label_free_score`: share of all skeletons within 20 px, people per frame).
 
@@ -32,20 +34,47 @@ from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.floor import estimate_floor_from_detections
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import members_from_identity
-from mvpose_jax.trained import PRETRAINED, load_estimator
-
-# (row, grouping, 3D method, estimator: None, "rig" (trained on the rig's synthetic recordings)
-# or "pretrained" (shipped))
-ROWS = (
-    ("geometric default (epipolar + robust)", "epipolar", "robust", None),
-    ("epipolar + blend, rig's estimator", "epipolar", "blend", "rig"),
-    ("epipolar + blend, pretrained", "epipolar", "blend", "pretrained"),
-    ("epipolar + MLP, rig's estimator", "epipolar", "mlp", "rig"),
-    ("epipolar + MLP, pretrained", "epipolar", "mlp", "pretrained"),
-    ("true groups + robust", "true", "robust", None),
-    ("true groups + MLP, rig's estimator", "true", "mlp", "rig"),
-    ("true groups + MLP, pretrained", "true", "mlp", "pretrained"),
+from mvpose_jax.trained import (
+    PRETRAINED,
+    load_estimator,
+    load_matcher,
+    read_combined_config,
+    read_proposal_threshold,
 )
+
+# (row, grouping, 3D method, estimator, matcher): estimator and matcher None, "rig" (trained on
+# the rig's synthetic recordings) or "pretrained" (shipped); the matcher's proposals at the
+# settings chosen with it (the rig's: on its composed dev frames; the shipped one's: on frames
+# composed on its dev rigs).
+ROWS = (
+    ("geometric default (epipolar + robust)", "epipolar", "robust", None, None),
+    ("epipolar + blend, rig's estimator", "epipolar", "blend", "rig", None),
+    ("epipolar + blend, pretrained", "epipolar", "blend", "pretrained", None),
+    ("epipolar + MLP, rig's estimator", "epipolar", "mlp", "rig", None),
+    ("epipolar + MLP, pretrained", "epipolar", "mlp", "pretrained", None),
+    ("GAT + robust, rig's matcher", "gat", "robust", None, "rig"),
+    ("GAT + robust, pretrained matcher", "gat", "robust", None, "pretrained"),
+    ("combined + blend, rig's models", "combined", "blend", "rig", "rig"),
+    ("combined + blend, pretrained models", "combined", "blend", "pretrained", "pretrained"),
+    ("true groups + robust", "true", "robust", None, None),
+    ("true groups + MLP, rig's estimator", "true", "mlp", "rig", None),
+    ("true groups + MLP, pretrained", "true", "mlp", "pretrained", None),
+)
+
+
+def row_settings(method: str, estimator, matcher, grouping: str) -> dict:
+    """A row's `run_pipeline` settings: its models, and its matcher's (``(matcher, folder)``)
+    proposal settings as ``infer --matcher FOLDER`` reads them from the folder."""
+    settings = {"method": method}
+    if estimator is not None:
+        settings["estimator"] = estimator
+    if matcher is not None:
+        settings["matcher"], folder = matcher
+        if grouping == "gat":
+            settings["threshold"] = read_proposal_threshold(folder)
+        elif grouping == "combined":
+            settings["combined"] = read_combined_config(folder)
+    return settings
 
 
 def mvor_rows(root: Path, models: Path, pretrained: str, smoke: bool) -> dict:
@@ -53,16 +82,23 @@ def mvor_rows(root: Path, models: Path, pretrained: str, smoke: bool) -> dict:
     floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
     rig_models = synthetic_models(data.rig, floor, models / "mvor-synthetic", smoke=smoke)
     estimators = {"rig": rig_models.estimator, "pretrained": load_estimator(pretrained, data.rig)}
+    matchers = {
+        "rig": (rig_models.matcher, models / "mvor-synthetic" / "matcher"),
+        "pretrained": (load_matcher(PRETRAINED, data.rig), PRETRAINED),
+    }
     if smoke:
         data = select_frames(data, smoke_frames(data))
     identity = true_identity(data)
     members = members_from_identity(identity, data.gt.valid.shape[1])
     views = (members >= 0).sum(-1)
     rows = {}
-    for name, grouping, method, which in ROWS:
-        settings = {"method": method}
-        if which:
-            settings["estimator"] = estimators[which]
+    for name, grouping, method, which, matcher in ROWS:
+        settings = row_settings(
+            method,
+            estimators[which] if which else None,
+            matchers[matcher] if matcher else None,
+            grouping,
+        )
         result = pipeline_result(data, grouping, settings, identity, members)
         joints = poses_to_joints(result.poses, data.layout)
         rows[name] = evaluate(joints, data, unreachable=views < MIN_VIEWS)["overall"]
@@ -77,17 +113,23 @@ def demo_rows(data: Path, models: Path, pretrained: str, smoke: bool) -> dict:
         "rig": load_estimator(folder / "estimator", rig),
         "pretrained": load_estimator(pretrained, rig),
     }
+    matchers = {
+        "rig": (load_matcher(folder / "matcher", rig), folder / "matcher"),
+        "pretrained": (load_matcher(PRETRAINED, rig), PRETRAINED),
+    }
     rows = {}
-    for name, grouping, method, which in ROWS:
-        if grouping != "epipolar":
+    for name, grouping, method, which, matcher in ROWS:
+        if grouping == "true":
             continue  # no true groupings without labels
-        r = run_pipeline(
-            rig,
-            det,
-            estimator=estimators[which] if which else None,
-            layout=demo.LAYOUT,
-            method=method,
+        settings = row_settings(
+            method,
+            estimators[which] if which else None,
+            matchers[matcher] if matcher else None,
+            grouping,
         )
+        if grouping != "epipolar":
+            settings["proposals"] = grouping
+        r = run_pipeline(rig, det, layout=demo.LAYOUT, **settings)
         result = PoseResults(
             r.poses, r.confidence, r.members, r.identity, r.cameras, demo.LAYOUT, None, None
         )
@@ -97,7 +139,7 @@ def demo_rows(data: Path, models: Path, pretrained: str, smoke: bool) -> dict:
 
 def markdown(report: dict) -> str:
     lines = [
-        "# The shipped rig-agnostic estimator on real footage",
+        "# The shipped rig-agnostic estimator and matcher on real footage",
         "",
         "Evaluation only, untracked and unfiltered. The rig's estimator: trained on synthetic "
         "recordings of that rig (the recipe of `experiments.real`).",

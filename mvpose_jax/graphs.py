@@ -120,12 +120,15 @@ def graph_budget(num_dets: int, num_matches: int, num_graphs: int) -> Budget:
     return Budget(nodes=nodes, dets=dets, edges=5 * nodes, graphs=num_graphs + 1)
 
 
-def detection_features(rig: Rig, xy: np.ndarray, score: np.ndarray) -> np.ndarray:
+def detection_features(
+    rig: Rig, xy: np.ndarray, score: np.ndarray, normalisation=None
+) -> np.ndarray:
     """The 10 numbers per keypoint of every skeleton (`features.keypoint_features`), flattened.
 
     Args:
       rig: the C cameras of the views.
       xy: (F, C, P, K, 2) pixels; score: (F, C, P, K), 0 = missing.
+      normalisation: (centre, radius) of the world vectors' frame; default the rig's own.
     Returns:
       (F, C, P, K*10) float32 numpy.
     """
@@ -133,15 +136,17 @@ def detection_features(rig: Rig, xy: np.ndarray, score: np.ndarray) -> np.ndarra
     # and together they cost more than the features of a frame.
     # np.array: a writable copy, as before (np.asarray of a jax.Array is read-only).
     return np.array(
-        _detection_features(rig, np.asarray(xy, np.float32), np.asarray(score, np.float32))
+        _detection_features(
+            rig, np.asarray(xy, np.float32), np.asarray(score, np.float32), normalisation
+        )
     )
 
 
 @jax.jit
-def _detection_features(rig: Rig, xy: jax.Array, score: jax.Array) -> jax.Array:
+def _detection_features(rig: Rig, xy: jax.Array, score: jax.Array, normalisation) -> jax.Array:
     F, C, P, K = score.shape
     feats = keypoint_features(
-        rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)
+        rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0), normalisation
     )  # (C, F, P, K, 10)
     return jnp.moveaxis(feats, 0, 1).reshape(F, C, P, K * NUM_KEYPOINT_FEATURES)
 
@@ -331,13 +336,15 @@ class SkeletonPool:
         return len(self.starts)
 
 
-def make_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
+def make_pool(rig: Rig, recordings: Sequence[Recording], normalisation=None) -> SkeletonPool:
     """Pools single-person recordings for `compose_samples`.
 
     Args:
       rig: the inference cameras C_i; every recording must have them (by name; others are
         dropped, order follows the rig).
       recordings: R >= 1 single-person recordings.
+      normalisation: (centre, radius) of the features' world vectors (default the rig's own;
+        a rig-agnostic matcher pretrains in metres, `features.rig_agnostic_frame`).
     Raises:
       InputError when a recording lacks a camera or has no frames, or keypoint counts differ.
     """
@@ -366,7 +373,7 @@ def make_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
         # The view's main skeleton: the one with most keypoints (ties: the first listed).
         best = n_kp.argmax(-1)
         is_main = (np.arange(score.shape[2])[None, None] == best[..., None]) & ok
-        feats.append(detection_features(rig, xy, score))
+        feats.append(detection_features(rig, xy, score, normalisation))
         raw_xy.append(xy)
         raw_score.append(np.where(ok[..., None], score, 0.0))
         valid.append(ok)

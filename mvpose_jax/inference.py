@@ -20,7 +20,6 @@ from flax import nnx
 from mvpose_jax import stages
 from mvpose_jax.cameras import Rig
 from mvpose_jax.errors import InputError
-from mvpose_jax.features import NUM_KEYPOINT_FEATURES
 from mvpose_jax.lifting import (
     LiftingConfig,
     _camera_columns,
@@ -563,8 +562,7 @@ def _estimator_keypoints(estimator: Estimator) -> int:
 
 
 def _matcher_keypoints(matcher: Matcher) -> int:
-    model = nnx.merge(matcher.graphdef, matcher.params, matcher.rest)
-    return (model.in_dim - 2) // (matcher.rig.num_cameras * NUM_KEYPOINT_FEATURES)
+    return nnx.merge(matcher.graphdef, matcher.params, matcher.rest).num_keypoints
 
 
 def _members_table(proposals: Proposals, num_frames: int, num_cameras: int) -> np.ndarray:

@@ -92,16 +92,12 @@ def _composed_for(
     matcher: Matcher, recordings: Sequence, *, num_samples: int, seed: int
 ) -> tuple[Detections, np.ndarray]:
     """`composed_frames` on the matcher's cameras with the matcher's own composition settings."""
-    cfg = matcher.config
     return composed_frames(
         matcher.rig,
         recordings,
         num_samples=num_samples,
         seed=seed,
-        max_people=cfg.max_people,
-        subset_probability=cfg.subset_probability,
-        min_views=cfg.min_views,
-        keypoint_dropout=cfg.keypoint_dropout,
+        **matcher.config.composition(),
     )
 
 

@@ -344,14 +344,23 @@ class GATConfig:
       inner_slope: LeakyReLU slope inside each layer's projection ``W2·LeakyReLU(W1·h)`` and in the
         attention logits (paper/original code 0.15).
       between_slope: LeakyReLU slope between layers (0.01).
+      views: how the cameras enter. "slots" (the paper): each detection node's features sit in
+        its camera's slot, so the network is tied to its cameras' number and order. "pooled":
+        `RigAgnosticGAT`, one network for any rig.
+      encoder_widths: "pooled" only: the layers that encode a detection node's skeleton and a
+        match node's pair geometry before the attention layers.
     """
 
     widths: tuple[int, ...] = PAPER_GAT_WIDTHS
     heads: tuple[int, ...] = PAPER_GAT_HEADS
     inner_slope: float = 0.15
     between_slope: float = 0.01
+    views: str = "slots"
+    encoder_widths: tuple[int, ...] = (128, 64)
 
     def __post_init__(self):
+        if self.views not in ("slots", "pooled"):
+            raise ValueError(f"GATConfig.views must be slots or pooled, not {self.views!r}")
         if len(self.widths) != len(self.heads) or not self.widths:
             raise ValueError("GATConfig: widths and heads need the same, non-zero length")
         if self.widths[-1] != 1 or self.heads[-1] != 1:
@@ -364,6 +373,11 @@ class GATConfig:
     def quick(cls) -> GATConfig:
         """Three attention layers instead of five, for fast runs and tests."""
         return cls(widths=(24, 24, 1), heads=(4, 4, 1))
+
+    @classmethod
+    def pooled(cls) -> GATConfig:
+        """The rig-agnostic matcher's sizes (`RigAgnosticGAT`)."""
+        return cls(widths=(64, 64, 32, 1), heads=(8, 8, 4, 1), views="pooled")
 
 
 class GATLayer(nnx.Module):
@@ -446,6 +460,9 @@ class MatchingGAT(nnx.Module):
     def __init__(self, num_cameras: int, num_keypoints: int, config: GATConfig, *, rngs: nnx.Rngs):
         from mvpose_jax.features import NUM_KEYPOINT_FEATURES
 
+        if config.views != "slots":
+            raise ValueError("MatchingGAT needs GATConfig(views='slots'); see matcher_model")
+        self.num_keypoints = num_keypoints
         self.in_dim = 2 + num_cameras * num_keypoints * NUM_KEYPOINT_FEATURES
         self.between_slope = config.between_slope
         dims = (self.in_dim,) + tuple(config.widths[:-1])
@@ -492,6 +509,177 @@ class MatchingGAT(nnx.Module):
                 h = jax.nn.leaky_relu(h, self.between_slope)
             h = layer(h, graphs)
         return jax.nn.sigmoid(h[:, 0])
+
+
+class FrameScale(nnx.Variable):
+    """Metres per unit of a model's inputs' world coordinates (not trained): the rig's radius
+    for features in the rig-normalised frame (`features.keypoint_features`), 1 for features
+    already in metres; set when a rig-agnostic matcher is loaded for a rig."""
+
+
+# Per keypoint of a cross-view skeleton pair (`pair_geometry`).
+NUM_PAIR_FEATURES = 9
+
+
+def closest_ray_points(
+    c1: jax.Array, d1: jax.Array, c2: jax.Array, d2: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Depths along two rays (centres ``c``, unit directions ``d``, (..., 3)) of their points of
+    closest approach, and the gap between those points: (s (...), t (...), gap (...)), in the
+    units of the centres. Near-parallel rays take the foot of ``c1``'s perpendicular."""
+    w0 = c1 - c2
+    b = jnp.sum(d1 * d2, -1)
+    d = jnp.sum(d1 * w0, -1)
+    e = jnp.sum(d2 * w0, -1)
+    denom = 1.0 - b * b
+    parallel = denom < 1e-6
+    safe = jnp.where(parallel, 1.0, denom)
+    s = jnp.where(parallel, 0.0, (b * e - d) / safe)
+    t = jnp.where(parallel, e, (e - b * d) / safe)
+    gap = jnp.linalg.norm(w0 + s[..., None] * d1 - t[..., None] * d2, axis=-1)
+    return s, t, gap
+
+
+def pair_geometry(a: jax.Array, b: jax.Array, q: jax.Array, scale: jax.Array) -> jax.Array:
+    """What two skeletons of different views say about being one person, per keypoint, the
+    same whichever is first; rig-agnostic (metres and angles in a z-up frame).
+
+    Args:
+      a, b: (..., K, 10) the two skeletons' keypoint features (`features.keypoint_features`).
+      q: (3, 3) rotation into the model's z-up frame; scale: metres per input unit.
+    Returns:
+      (..., K, `NUM_PAIR_FEATURES`): both seen; the rays' gap as an angle (gap over the nearer
+      depth; two soft scales, 1 and 5 degrees) and in metres (10 and 50 cm); the height of
+      their meeting point above the rig's centre; the nearer and the farther depth (negative:
+      behind a camera); the product of the scores. All zero where either view misses the
+      keypoint.
+    """
+    both = a[..., 0] * b[..., 0]
+    ca, cb = (a[..., 4:7] @ q.T) * scale, (b[..., 4:7] @ q.T) * scale
+    da, db = a[..., 7:10] @ q.T, b[..., 7:10] @ q.T
+    s, t, gap = closest_ray_points(ca, da, cb, db)
+    near, far = jnp.minimum(s, t), jnp.maximum(s, t)
+    angle = gap / jnp.maximum(near, 0.1)
+    height = 0.5 * (ca[..., 2] + s * da[..., 2] + cb[..., 2] + t * db[..., 2])
+    feats = jnp.stack(
+        [
+            both,
+            jnp.tanh(angle / 0.0175),
+            jnp.tanh(angle / 0.0873),
+            jnp.tanh(gap / 0.1),
+            jnp.tanh(gap / 0.5),
+            jnp.clip(height, -6.0, 6.0) / 2.0,
+            jnp.clip(near, -3.0, 30.0) / 5.0,
+            jnp.clip(far, -3.0, 30.0) / 5.0,
+            a[..., 3] * b[..., 3],
+        ],
+        axis=-1,
+    )
+    return jnp.where(both[..., None] > 0, feats, 0.0)
+
+
+class RigAgnosticGAT(nnx.Module):
+    """A skeleton matcher for any rig: a `GraphBatch` -> (N,) scores in [0, 1], any number and
+    order of cameras.
+
+    The paper's GAT reads a detection's features in its camera's slot, so it learns each camera
+    pair's geometry separately and is tied to its rig. Here nothing depends on which slot a
+    detection sits in (the slots are summed; only the node's own is non-zero):
+
+    * a detection node is its skeleton (visible, x, y, score and ray of each keypoint) and its
+      camera's centre, in metres from the rig's centre, through an encoder shared by all views;
+    * a match node, empty in the paper, carries its pair's geometry (`pair_geometry`: how far
+      the two views' rays through each keypoint pass from each other, where they meet), through
+      a second encoder;
+    * the paper's attention layers (`GATLayer`) then pass messages over the same graph, so that
+      a pair's score can depend on the detections' other candidate pairs.
+
+    World vectors are read after `FrameRotation` and `FrameScale` (set per rig when loaded,
+    `trained.rig_agnostic_matcher`): the model works in metres in a z-up world, as it was
+    trained.
+    """
+
+    def __init__(self, num_keypoints: int, config: GATConfig, *, rngs: nnx.Rngs):
+        if config.views != "pooled":
+            raise ValueError("RigAgnosticGAT needs GATConfig(views='pooled')")
+        K = self.num_keypoints = num_keypoints
+        self.between_slope = config.between_slope
+        self.slope = config.inner_slope
+        enc = tuple(config.encoder_widths)
+        det = (K * 7 + 3,) + enc
+        self.encode_detection = nnx.List(
+            [nnx.Linear(a, b, rngs=rngs) for a, b in zip(det[:-1], det[1:], strict=True)]
+        )
+        pair = (K * NUM_PAIR_FEATURES + 1,) + enc
+        self.encode_pair = nnx.List(
+            [nnx.Linear(a, b, rngs=rngs) for a, b in zip(pair[:-1], pair[1:], strict=True)]
+        )
+        dims = (enc[-1] + 2,) + tuple(config.widths[:-1])
+        self.layers = nnx.List(
+            [
+                GATLayer(d, w, h, config.inner_slope, rngs=rngs)
+                for d, w, h in zip(dims, config.widths, config.heads, strict=True)
+            ]
+        )
+        self.rotation = FrameRotation(jnp.eye(3, dtype=jnp.float32))
+        self.scale = FrameScale(jnp.ones((), jnp.float32))
+
+    def _mlp(self, layers, h: jax.Array) -> jax.Array:
+        for layer in layers:
+            h = jax.nn.leaky_relu(layer(h), self.slope)
+        return h
+
+    def __call__(self, batch: GraphBatch) -> jax.Array:
+        from mvpose_jax.features import NUM_KEYPOINT_FEATURES
+
+        q, scale = self.rotation[...], self.scale[...]
+        K = self.num_keypoints
+        D = batch.det_features.shape[0]
+        # Only the detection's own camera slot is non-zero: the sum is that slot.
+        rows = batch.det_features.reshape(D, -1, K, NUM_KEYPOINT_FEATURES).sum(1)  # (D, K, 10)
+        seen = rows[..., 0]
+        camera = (
+            jnp.sum(rows[..., 4:7] * seen[..., None], -2)
+            / jnp.maximum(seen.sum(-1), 1.0)[..., None]
+        )
+        per_view = jnp.concatenate(
+            [
+                rows[..., :4].reshape(D, -1),
+                (rows[..., 7:10] @ q.T).reshape(D, -1),
+                (camera @ q.T) * scale,
+            ],
+            -1,
+        )
+        h_det = self._mlp(self.encode_detection, per_view)  # (D, E)
+        # Each match node's two detection rows (padding rows point at a padding node).
+        N = batch.node_mask.shape[0]
+        row_of_node = jnp.zeros(N, jnp.int32).at[batch.det_node].set(jnp.arange(D, dtype=jnp.int32))
+        ends = row_of_node[jnp.maximum(batch.pair, 0)]  # (N, 2)
+        geometry = pair_geometry(rows[ends[:, 0]], rows[ends[:, 1]], q, scale)  # (N, K, 9)
+        shared = geometry[..., 0].mean(-1, keepdims=True)
+        h_pair = self._mlp(
+            self.encode_pair, jnp.concatenate([geometry.reshape(N, -1), shared], -1)
+        )  # (N, E)
+        is_match = (batch.is_match & batch.node_mask)[:, None]
+        h = jnp.where(is_match, h_pair, 0.0)
+        h = h.at[batch.det_node].set(jnp.where(batch.det_mask[:, None], h_det, h[batch.det_node]))
+        h = jnp.concatenate([h, batch.graphs.nodes], -1)  # with the [detection, match] one-hot
+        graphs = batch.graphs
+        for i, layer in enumerate(self.layers):
+            if i:
+                h = jax.nn.leaky_relu(h, self.between_slope)
+            h = layer(h, graphs)
+        return jax.nn.sigmoid(h[:, 0])
+
+
+def matcher_model(
+    num_cameras: int, num_keypoints: int, config: GATConfig, *, rngs: nnx.Rngs
+) -> nnx.Module:
+    """The matcher ``config.views`` names: `MatchingGAT` (per-camera slots, the paper's) or
+    `RigAgnosticGAT` (any rig; ``num_cameras`` is then unused)."""
+    if config.views == "pooled":
+        return RigAgnosticGAT(num_keypoints, config, rngs=rngs)
+    return MatchingGAT(num_cameras, num_keypoints, config, rngs=rngs)
 
 
 @functools.partial(jax.jit, static_argnums=0)

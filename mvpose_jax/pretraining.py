@@ -1,5 +1,6 @@
-"""One 3D estimator for many rigs (`pretrain_estimator`): the paper's training without labels,
-over people recorded by rigs of every kind, for `models.ViewPooledMLP`.
+"""One 3D estimator and one skeleton matcher for many rigs (`pretrain_estimator`,
+`pretrain_matcher`): the paper's training without labels, over people recorded by rigs of every
+kind, for `models.ViewPooledMLP` and `models.RigAgnosticGAT`.
 
 The recipe is `estimator_training`'s (reprojection loss over all of a person's views, view-subset
 augmentation, initial 3D from the kept views), with two changes that a model for any rig needs:
@@ -21,7 +22,7 @@ import functools
 import math
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,13 +34,16 @@ from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
 from mvpose_jax.estimator_training import random_view_subsets
 from mvpose_jax.features import (
+    NUM_KEYPOINT_FEATURES,
     EstimatorInputs,
     assemble_features,
     estimator_inputs,
     rig_agnostic_frame,
 )
+from mvpose_jax.graphs import GraphBatch, SkeletonPool, build_graphs, compose_samples, make_pool
 from mvpose_jax.losses import keypoint_l1, masked_mean
-from mvpose_jax.models import estimator_model
+from mvpose_jax.matcher_training import fit_matcher_model
+from mvpose_jax.models import estimator_model, matcher_model
 from mvpose_jax.train import (
     FitResult,
     fit_resumable,
@@ -47,7 +51,10 @@ from mvpose_jax.train import (
     make_optimizer,
     make_train_step,
 )
-from mvpose_jax.trained import EstimatorConfig
+from mvpose_jax.trained import EstimatorConfig, MatcherConfig
+
+if TYPE_CHECKING:  # annotations only: importing data.recording loads every reader
+    from mvpose_jax.data.recording import Recording
 
 # The loss's pixel unit: a pixel of a camera of this focal length (about a 1080p camera's).
 REFERENCE_FOCAL_PX = 1000.0
@@ -263,5 +270,125 @@ def pretrain_estimator(
         resume=resume,
         desc="pretrain estimator",
         progress=progress,
+    )
+    return (graphdef, rest, jax.device_get(result.state.params)), result
+
+
+# =========================================================================== the matcher
+
+
+def rig_pool(rig: Rig, recordings: Sequence[Recording]) -> SkeletonPool:
+    """Single-person recordings of one rig pooled for `pretrain_matcher`: their skeletons'
+    features in the rig-agnostic frame (the rig's centre, metres; `rig_agnostic_frame`)."""
+    return make_pool(rig, recordings, rig_agnostic_frame(rig))
+
+
+def compose_rig_samples(
+    pools: Sequence[SkeletonPool], rng: np.random.Generator, num_samples: int, **compose
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Training frames of many rigs: each sample draws a rig, then composes its people from
+    that rig's recordings (`graphs.compose_samples`); rigs of fewer cameras or skeletons are
+    padded with empty views and skeletons (no node: padding costs nothing in the graph).
+
+    Returns:
+      features (S, C, Q, K*10), valid (S, C, Q), identity (S, C, Q); C the largest camera
+      bucket (or the largest rig drawn), Q the most skeleton slots drawn.
+    """
+    rigs = rng.integers(len(pools), size=num_samples)
+    parts = []
+    for r in np.unique(rigs):
+        where = np.flatnonzero(rigs == r)
+        parts.append((where, *compose_samples(pools[r], rng, len(where), **compose)))
+    # Camera slots: always the largest bucket, so that the batches' feature width is one shape.
+    C = max([CAMERA_BUCKETS[-1]] + [p[1].shape[1] for p in parts])
+    Q = max(p[1].shape[2] for p in parts)
+    KF = parts[0][1].shape[3]
+    features = np.zeros((num_samples, C, Q, KF), np.float32)
+    valid = np.zeros((num_samples, C, Q), bool)
+    identity = np.full((num_samples, C, Q), -1, np.int64)
+    for where, f, v, i in parts:
+        c, q = f.shape[1:3]
+        features[where, :c, :q] = f
+        valid[where, :c, :q] = v
+        identity[where, :c, :q] = i
+    return features, valid, identity
+
+
+def rig_batches(
+    pools: Sequence[SkeletonPool],
+    rng: np.random.Generator,
+    num_batches: int,
+    graphs_per_batch: int,
+    **compose,
+) -> Iterator[GraphBatch]:
+    """``num_batches`` padded graph batches of frames composed on random rigs."""
+    for _ in range(num_batches):
+        yield build_graphs(*compose_rig_samples(pools, rng, graphs_per_batch, **compose))
+
+
+def pretrain_matcher(
+    train: Sequence[SkeletonPool],
+    dev: Sequence[SkeletonPool],
+    config: MatcherConfig,
+    *,
+    checkpoint_dir: str | Path | None = None,
+    progress: bool = True,
+    resume: bool = False,
+) -> tuple[tuple[Any, Any, Any], FitResult]:
+    """Trains a rig-agnostic skeleton matcher (`models.RigAgnosticGAT`) on many rigs, without
+    labels: the paper's composed frames (`graphs.compose_samples`), each of one random rig.
+
+    Args:
+      train, dev: one `rig_pool` per rig (features in the rig-agnostic frame, z up); dev picks
+        the best checkpoint.
+      config: a `MatcherConfig` whose ``gat.views`` is "pooled" and ``cameras`` None.
+    Returns:
+      ((graphdef, rest, params) of the best model, the `FitResult`);
+      `trained.rig_agnostic_matcher` sets it up for a rig.
+    Raises:
+      InputError: a config that is not rig-agnostic, or no pools.
+    """
+    if config.gat.views != "pooled" or config.cameras:
+        raise InputError(
+            "pretraining needs a rig-agnostic matcher: GATConfig.views='pooled' and no cameras",
+            field="gat.views",
+        )
+    if not train or not dev:
+        raise InputError("no training or dev rigs to pretrain on", field="recordings")
+    K = train[0].features.shape[-1] // NUM_KEYPOINT_FEATURES
+    tcfg = config.train
+    compose = config.composition()
+    num_dev = max(1, math.ceil(config.num_dev_samples / tcfg.batch_size))
+    dev_batches = list(
+        rig_batches(
+            dev, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, tcfg.batch_size, **compose
+        )
+    )
+    model = matcher_model(0, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
+
+    def epoch_batches(epoch):
+        rng = np.random.default_rng([tcfg.seed, epoch])
+        return rig_batches(train, rng, config.steps_per_epoch, tcfg.batch_size, **compose)
+
+    run_config = to_jsonable(dataclasses.asdict(config))
+    run_config.update(
+        num_keypoints=int(K),
+        frame="rig-centre-metres",
+        rigs={"train": len(train), "dev": len(dev)},
+        frames={
+            "train": int(sum(len(p.features) for p in train)),
+            "dev": int(sum(len(p.features) for p in dev)),
+        },
+    )
+    graphdef, rest, result = fit_matcher_model(
+        model,
+        epoch_batches,
+        dev_batches,
+        config,
+        checkpoint_dir=checkpoint_dir,
+        run_config=run_config,
+        progress=progress,
+        resume=resume,
+        desc="pretrain matcher",
     )
     return (graphdef, rest, jax.device_get(result.state.params)), result

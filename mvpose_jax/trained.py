@@ -35,10 +35,10 @@ from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.features import rig_agnostic_frame
 from mvpose_jax.models import (
     GATConfig,
-    MatchingGAT,
     MLPConfig,
     PoseMLP,
     estimator_model,
+    matcher_model,
     rotation_to_z_up,
 )
 from mvpose_jax.proposals import CombinedConfig
@@ -149,17 +149,23 @@ def estimator_config_from_dict(d: dict) -> EstimatorConfig:
 PRETRAINED = "pretrained"
 
 
-def pretrained_estimator_folder() -> Path:
-    """The shipped rig-agnostic estimator's model folder (package data; `experiments.pretrain
-    --ship` writes it). Raises `InputError` when this installation lacks it."""
-    folder = Path(__file__).resolve().parent / "pretrained" / "estimator"
+def pretrained_folder(kind: str) -> Path:
+    """The shipped rig-agnostic ``kind`` ("estimator" or "matcher") model folder (package data,
+    `mvpose_jax/pretrained/KIND`). Raises `InputError` when this installation lacks it."""
+    folder = Path(__file__).resolve().parent / "pretrained" / kind
     if not (folder / "best").is_dir():
+        experiment = {"estimator": "pretrain", "matcher": "pretrain_matcher"}[kind]
         raise InputError(
-            "this installation holds no pretrained estimator (mvpose_jax/pretrained/estimator); "
-            "reinstall the package, or train one: python -m experiments.pretrain --ship",
+            f"this installation holds no pretrained {kind} (mvpose_jax/pretrained/{kind}); "
+            f"reinstall the package, or train one: python -m experiments.{experiment} --ship",
             file=folder,
         )
     return folder
+
+
+def pretrained_estimator_folder() -> Path:
+    """The shipped rig-agnostic estimator's model folder (`experiments.pretrain --ship`)."""
+    return pretrained_folder("estimator")
 
 
 def resolve_estimator_folder(directory: str | Path) -> Path:
@@ -284,6 +290,15 @@ class MatcherConfig:
     def steps_per_epoch(self) -> int:
         return max(1, self.samples_per_epoch // self.train.batch_size)
 
+    def composition(self) -> dict:
+        """How training frames are composed (`graphs.compose_samples`' keyword arguments)."""
+        return dict(
+            max_people=self.max_people,
+            subset_probability=self.subset_probability,
+            min_views=self.min_views,
+            keypoint_dropout=self.keypoint_dropout,
+        )
+
     @classmethod
     def quick(cls, cameras: tuple[str, ...] | None = None) -> MatcherConfig:
         """The small network, a larger step size and short epochs (tests, quick experiments)."""
@@ -310,9 +325,11 @@ class Matcher(NamedTuple):
 def matcher_config_from_dict(d: dict) -> MatcherConfig:
     """Rebuilds a `MatcherConfig` from its saved JSON form (`dataclasses.asdict`)."""
     try:
-        gat = GATConfig(
-            **{**d["gat"], "widths": tuple(d["gat"]["widths"]), "heads": tuple(d["gat"]["heads"])}
-        )
+        gat = dict(d["gat"])
+        for k in ("widths", "heads", "encoder_widths"):
+            if k in gat:
+                gat[k] = tuple(gat[k])
+        gat = GATConfig(**gat)
         fields = {f.name for f in dataclasses.fields(MatcherConfig)} - {"cameras", "gat", "train"}
         return MatcherConfig(
             cameras=None if d["cameras"] is None else tuple(d["cameras"]),
@@ -324,6 +341,16 @@ def matcher_config_from_dict(d: dict) -> MatcherConfig:
         raise InputError(f"not a matcher config ({e})", field="config") from None
 
 
+def pretrained_matcher_folder() -> Path:
+    """The shipped rig-agnostic matcher's model folder (`experiments.pretrain_matcher --ship`)."""
+    return pretrained_folder("matcher")
+
+
+def resolve_matcher_folder(directory: str | Path) -> Path:
+    """``directory``, or the shipped matcher's folder for the name `PRETRAINED`."""
+    return pretrained_matcher_folder() if str(directory) == PRETRAINED else Path(directory)
+
+
 def load_matcher(
     directory: str | Path,
     rig: Rig,
@@ -331,11 +358,13 @@ def load_matcher(
     num_keypoints: int | None = None,
     which: str = "best",
 ) -> Matcher:
-    """Restores a matcher saved by `train_matcher` (from a `ModelFolder`).
+    """Restores a matcher saved by `train_matcher` (from a `ModelFolder`), or `PRETRAINED`: the
+    rig-agnostic matcher shipped in the package, set up for ``rig`` (all its cameras).
 
     ``config`` and ``num_keypoints`` default to those saved with the checkpoint (checkpoints of
     older runs lack the keypoint count and need it passed).
     """
+    directory = resolve_matcher_folder(directory)
     folder = ModelFolder(directory).require(which, "train-matcher")
     if config is None or num_keypoints is None:
         saved = folder.read_config(which)
@@ -347,10 +376,24 @@ def load_matcher(
                 )
             num_keypoints = int(saved["num_keypoints"])
     rig_infer = rig.select(list(config.cameras or rig.names))
-    model = MatchingGAT(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
+    model = matcher_model(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     params = folder.restore_params(jax.eval_shape(lambda: params), which)
+    if config.gat.views == "pooled":
+        return rig_agnostic_matcher(graphdef, rest, params, config, rig_infer)
     return Matcher(graphdef, rest, params, rig_infer, config)
+
+
+def rig_agnostic_matcher(graphdef, rest, params, config: MatcherConfig, rig: Rig) -> Matcher:
+    """A rig-agnostic matcher (`models.RigAgnosticGAT`) set up for ``rig``: its features come in
+    the rig's normalised frame (`features.keypoint_features`), so the model's `FrameScale` is
+    the rig's radius (metres again), and its rotation turns the rig's up
+    (`cameras.up_vector`) to the +z it was trained with."""
+    model = nnx.merge(graphdef, params, rest)
+    model.rotation[...] = jnp.asarray(rotation_to_z_up(up_vector(rig)), jnp.float32)
+    model.scale[...] = jnp.asarray(rig_centre_and_radius(rig)[1], jnp.float32)
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    return Matcher(graphdef, rest, params, rig, config)
 
 
 # =========================================================================== the model folder
@@ -625,10 +668,14 @@ def read_proposal_threshold(folder: str | os.PathLike | None, given: float | Non
     """The proposal threshold: ``given``, else the matcher folder's chosen one, else the paper's 0.5."""
     if given is not None or not folder:
         return 0.5 if given is None else given
-    return ModelFolder(folder).read_proposal_threshold(given)
+    return ModelFolder(resolve_matcher_folder(folder)).read_proposal_threshold(given)
 
 
 def read_combined_config(folder: str | os.PathLike | None) -> CombinedConfig:
     """The combined matcher's settings recorded in a matcher folder (`write_proposal_threshold`),
     else `CombinedConfig`'s defaults."""
-    return ModelFolder(folder).read_combined_config() if folder else CombinedConfig()
+    return (
+        ModelFolder(resolve_matcher_folder(folder)).read_combined_config()
+        if folder
+        else CombinedConfig()
+    )

@@ -1158,6 +1158,43 @@ def test_the_shipped_pretrained_estimator_runs_on_any_rig_and_fine_tunes(files, 
     capsys.readouterr()
 
 
+def test_the_shipped_pretrained_matcher_runs_on_any_rig_and_fine_tunes(files, tmp_path, capsys):
+    """`--matcher pretrained` needs no training: the package's rig-agnostic matcher groups this
+    rig's skeletons (5 cameras, and 3 of them) at its shipped threshold; `train-matcher --start
+    pretrained` fine-tunes it into a folder that loads as the same kind of model."""
+    from mvpose_jax.synthetic import generate_single_person_recordings
+    from mvpose_jax.trained import (
+        PRETRAINED,
+        load_matcher,
+        pretrained_matcher_folder,
+        read_proposal_threshold,
+    )
+
+    import json
+
+    report = json.loads((pretrained_matcher_folder() / "pretrain_report.json").read_text())
+    # infer reads the threshold chosen in pretraining, from the shipped folder.
+    assert read_proposal_threshold(PRETRAINED) == report["pretraining"]["threshold"]
+    base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]
+    for name, extra in (("all", []), ("three", ["--cameras", "trackera", "trackerc", "trackere"])):
+        argv = [*base, *extra, "--matcher", PRETRAINED, "--proposals", "gat"]
+        assert main([*argv, "--out", str(tmp_path / name)]) == 0
+        poses = load_poses(tmp_path / name / "poses.npz").poses
+        assert poses.valid.any() and np.isfinite(poses.xyz[poses.keypoint_valid]).all()
+    recs = generate_single_person_recordings(
+        load_rig("panoptic5"), num_recordings=3, num_frames=6, seed=3
+    )
+    for i, rec in enumerate(recs):
+        save_recording(rec, tmp_path / "train" / f"walk_{i}.npz")
+    out = tmp_path / "tuned"
+    train = ["train-matcher", "--rig", "panoptic5", "--train", str(tmp_path / "train")]
+    train += ["--dev", str(tmp_path / "train"), "--quick", "--max-epochs", "1"]
+    assert main([*train, "--out", str(out), "--start", PRETRAINED]) == 0
+    tuned = load_matcher(out, load_rig("panoptic5"))
+    assert tuned.config.gat.views == "pooled"
+    capsys.readouterr()
+
+
 def test_train_temporal_then_infer_with_it_and_fine_tune_on_the_recording(tmp_path, capsys):
     # (and `infer --associate`, the other stage that works on tracked people)
     """`train-temporal` on single-person recordings, `infer --temporal` with it (every keypoint of

@@ -11,30 +11,60 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from mvpose_jax.cameras import camera_centres, project_points, up_vector
+from mvpose_jax.cameras import (
+    camera_centres,
+    pixel_rays,
+    project_points,
+    rig_centre_and_radius,
+    up_vector,
+)
 from mvpose_jax.data.calibration import load_rig
-from mvpose_jax.features import assemble_features, estimator_inputs, single_person_samples
+from mvpose_jax.errors import InputError
+from mvpose_jax.features import (
+    assemble_features,
+    estimator_inputs,
+    rig_agnostic_frame,
+    single_person_samples,
+)
+from mvpose_jax.graphs import make_pool, match_table, sample_batches
 from mvpose_jax.losses import reprojection_error_l1
+from mvpose_jax.matcher_training import train_matcher
+from mvpose_jax.matching import gat_match_table
 from mvpose_jax.models import (
+    GATConfig,
     MLPConfig,
+    RigAgnosticGAT,
     ViewPooledMLP,
+    closest_ray_points,
     estimator_model,
     initial_estimate,
     rotation_to_z_up,
 )
 from mvpose_jax.pretraining import (
+    CAMERA_BUCKETS,
     REFERENCE_FOCAL_PX,
     RigPeople,
     _person_error,
     bucketed,
+    compose_rig_samples,
     pad_rig,
     pooled_batch,
     pooled_eval,
     pretrain_estimator,
+    pretrain_matcher,
+    rig_pool,
 )
 from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.synthetic.rigs import RIG_FAMILIES, look_at, random_rig
-from mvpose_jax.trained import EstimatorConfig, TrainConfig, load_estimator
+from mvpose_jax.trained import (
+    EstimatorConfig,
+    MatcherConfig,
+    TrainConfig,
+    load_estimator,
+    load_matcher,
+    read_proposal_threshold,
+    rig_agnostic_matcher,
+)
 
 TINY = MLPConfig(widths=(32,), output="residual", views="pooled", view_widths=(32, 32))
 
@@ -269,3 +299,223 @@ def test_pretrain_experiment_smoke(tmp_path):
     text = (tmp_path / "pretrain_seeds.md").read_text()
     diff = rig["test"]["pretrained, blend"]["pcp"] - rig["test"]["per-rig, blend"]["pcp"]
     assert f"| ... minus per-rig, blend | {diff:+.1f} ± 0.0 |" in text
+
+
+# =========================================================================== the rig-agnostic matcher
+
+TINY_GAT = GATConfig(widths=(16, 1), heads=(4, 1), views="pooled", encoder_widths=(32,))
+
+
+def test_closest_ray_points_closed_form_and_opencv():
+    # Skew lines: the x axis, and the line through (5, 0, 1) along y: closest at x = 5, 1 m apart.
+    s, t, gap = closest_ray_points(
+        jnp.array([0.0, 0, 0]),
+        jnp.array([1.0, 0, 0]),
+        jnp.array([5.0, 0, 1]),
+        jnp.array([0.0, 1, 0]),
+    )
+    np.testing.assert_allclose([s, t, gap], [5.0, 0.0, 1.0], atol=1e-6)
+    # Two cameras' rays through one point's pixels meet where OpenCV triangulates it.
+    import cv2
+
+    rig = load_rig("panoptic5")
+    rig = rig.select(list(rig.names[:2]))
+    point = camera_centres(rig).mean(0) + jnp.array([0.3, -0.2, 0.4])
+    px = project_points(rig, point[None])[:, 0]  # (2, 2), no distortion worth the name here
+    rays = pixel_rays(rig, px)
+    c = camera_centres(rig)
+    s, t, gap = closest_ray_points(c[0], rays[0], c[1], rays[1])
+    P = [
+        np.asarray(rig.K[i]) @ np.hstack([rig.R[i], np.asarray(rig.t[i]).reshape(3, 1)])
+        for i in range(2)
+    ]
+    und = [
+        cv2.undistortPoints(
+            np.asarray(px[i], np.float64).reshape(1, 1, 2),
+            np.asarray(rig.K[i], np.float64),
+            np.asarray(rig.dist[i], np.float64),
+            P=np.asarray(rig.K[i], np.float64),
+        ).reshape(2, 1)
+        for i in range(2)
+    ]
+    X = cv2.triangulatePoints(P[0], P[1], und[0], und[1])
+    X = (X[:3] / X[3]).ravel()
+    assert float(gap) < 1e-3
+    np.testing.assert_allclose(np.asarray(c[0] + s * rays[0]), X, atol=2e-3)
+    np.testing.assert_allclose(np.asarray(c[1] + t * rays[1]), X, atol=2e-3)
+
+
+def _matcher_scores(rig, recs, gat_parts, rng_seed=0, pad_cameras=0, frame=None):
+    """{(frame, {(camera name, skeleton), (camera name, skeleton)}): score} of a composed batch."""
+    graphdef, rest, params = gat_parts
+    matcher = rig_agnostic_matcher(graphdef, rest, params, MatcherConfig(gat=TINY_GAT), rig)
+    pool = make_pool(rig, recs, frame)
+    batch = sample_batches(pool, np.random.default_rng(rng_seed), 1, 3, subset_probability=0.0)[0]
+    if pad_cameras:  # empty camera slots after the rig's own
+        det = np.asarray(batch.det_features)
+        batch = batch._replace(
+            det_features=np.concatenate(
+                [
+                    det,
+                    np.zeros(
+                        (det.shape[0], pad_cameras * det.shape[1] // rig.num_cameras), np.float32
+                    ),
+                ],
+                1,
+            )
+        )
+    model = nnx.merge(matcher.graphdef, matcher.params, matcher.rest)
+    if frame is not None:
+        model.scale[...] = 1.0
+    rows, scores = match_table(batch, np.asarray(model(batch)))
+    out = {}
+    for (f, ca, sa, cb, sb), v in zip(rows.tolist(), scores, strict=True):
+        out[(f, frozenset([(rig.names[ca], sa), (rig.names[cb], sb)]))] = float(v)
+    return out
+
+
+@pytest.fixture(scope="module")
+def panoptic_people():
+    rig = load_rig("panoptic5")
+    recs = generate_single_person_recordings(rig, num_recordings=4, num_frames=3, seed=3)
+    model = RigAgnosticGAT(recs[0].num_keypoints, TINY_GAT, rngs=nnx.Rngs(0))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    # Non-trivial attention everywhere: random final-layer weights.
+    params = jax.tree.map(lambda a: a + 0.3 * jax.random.normal(jax.random.key(1), a.shape), params)
+    return rig, recs, (graphdef, rest, params)
+
+
+def test_rig_agnostic_matcher_ignores_camera_order_and_slots(panoptic_people):
+    rig, recs, parts = panoptic_people
+    base = _matcher_scores(rig, recs, parts)
+    assert len(set(np.round(list(base.values()), 4))) > 10  # not a constant
+    # The cameras in another order: every pair scores the same (subset_probability 0 keeps all
+    # views, so the same skeletons are drawn).
+    permuted = _matcher_scores(rig.select([rig.names[i] for i in (3, 0, 4, 1, 2)]), recs, parts)
+    assert permuted.keys() == base.keys()
+    np.testing.assert_allclose([permuted[k] for k in base], list(base.values()), atol=1e-5)
+    # Empty camera slots beside the rig's (padding to a larger rig's width) change nothing.
+    padded = _matcher_scores(rig, recs, parts, pad_cameras=3)
+    np.testing.assert_allclose([padded[k] for k in base], list(base.values()), atol=1e-5)
+    # Features in metres with scale 1 (pretraining's form) score as rig-normalised ones with
+    # the rig's radius (inference's).
+    metres = _matcher_scores(rig, recs, parts, frame=rig_agnostic_frame(rig))
+    np.testing.assert_allclose([metres[k] for k in base], list(base.values()), atol=1e-4)
+
+
+def test_rig_agnostic_matcher_turns_the_rigs_up_to_z(panoptic_people):
+    """A rig turned about a horizontal axis (its up no longer +z) scores as the upright one."""
+    rig, recs, parts = panoptic_people
+    upright = dataclasses.replace(rig, up=tuple(float(x) for x in up_vector(rig)))
+    q = np.asarray(rotation_to_z_up(up_vector(rig)))  # the panoptic world -> z up
+    base = _matcher_scores(dataclasses.replace(_turned(rig, q), up=(0.0, 0.0, 1.0)), recs, parts)
+    # The same scene, in the rig's own (y-down) world.
+    own = _matcher_scores(upright, recs, parts)
+    np.testing.assert_allclose([own[k] for k in base], list(base.values()), atol=1e-4)
+
+
+def _turned(rig, q):
+    """The rig with its world turned by q (points x -> q x): pixels do not change."""
+    R = np.asarray(rig.R) @ q.T
+    return dataclasses.replace(rig, R=jnp.asarray(R, jnp.float32))
+
+
+def _rig_recordings(family, seed, n=4, frames=4):
+    rig, floor = random_rig(family, seed)
+    config = SyntheticConfig().with_scene(up=(0.0, 0.0, 1.0), floor_height=floor)
+    recs = generate_single_person_recordings(
+        rig, num_recordings=n, num_frames=frames, config=config, seed=seed
+    )
+    return rig, recs
+
+
+def test_composed_rig_samples_keep_each_frame_on_one_rig():
+    pair = rig_pool(*_rig_recordings("pair", [4, 0]))  # 2 cameras
+    ring = rig_pool(*_rig_recordings("ring", [4, 1]))
+    feats, valid, identity = compose_rig_samples(
+        [pair, ring], np.random.default_rng(0), 40, max_people=3
+    )
+    assert feats.shape[1] == CAMERA_BUCKETS[-1] and valid.shape == identity.shape
+    ring_cams = ring.valid.shape[1]
+    seen = valid.any(-1)  # (S, C) views with a skeleton
+    on_pair = ~seen[:, 2:].any(1)
+    assert on_pair.any() and (~on_pair).any()  # both rigs drawn
+    assert not seen[:, ring_cams:].any()  # padding views stay empty
+    # A person's skeletons carry the features of one rig's pool: a 2-camera sample's rows are
+    # rows of the pair's pool.
+    rows = feats[on_pair][valid[on_pair]]
+    pool_rows = pair.features[pair.valid]
+    assert all(np.isclose(pool_rows, r).all(-1).any() for r in rows[:10])
+
+
+def test_pretrain_matcher_learns_and_loads_for_any_rig(tmp_path):
+    train = [rig_pool(*_rig_recordings(f, [5, i])) for i, f in enumerate(["ring", "arc", "wall"])]
+    dev = [rig_pool(*_rig_recordings("corners", [6, 0]))]
+    config = MatcherConfig(
+        gat=TINY_GAT,
+        train=TrainConfig(
+            learning_rate=3e-3, batch_size=6, max_steps=80, eval_every=2, patience=100
+        ),
+        samples_per_epoch=60,
+        num_dev_samples=12,
+        max_people=4,
+    )
+    (graphdef, rest, params), fit = pretrain_matcher(
+        train, dev, config, checkpoint_dir=tmp_path / "m", progress=False
+    )
+    assert fit.steps == 80
+    losses = [h["val_loss"] for h in fit.history]
+    assert min(losses[-2:]) < 0.75 * losses[0], losses
+    with pytest.raises(InputError, match="rig-agnostic"):
+        pretrain_matcher(train, dev, MatcherConfig(), progress=False)
+    # One folder, any rig: set up with the rig's radius and up, and it scores the rig's pairs.
+    for name in ("panoptic5", "arplab6"):
+        rig = load_rig(name)
+        matcher = load_matcher(tmp_path / "m", rig)
+        assert matcher.rig.names == rig.names
+        np.testing.assert_allclose(
+            matcher.rest["rotation"][...] @ up_vector(rig), [0, 0, 1], atol=1e-5
+        )
+        np.testing.assert_allclose(
+            matcher.rest["scale"][...], rig_centre_and_radius(rig)[1], rtol=1e-6
+        )
+        recs = generate_single_person_recordings(rig, num_recordings=2, num_frames=2, seed=1)
+        rows, scores = gat_match_table(matcher, recs[0].detections)
+        assert len(rows) and ((scores >= 0) & (scores <= 1)).all()
+    # Fine-tuning on a rig starts from it, and writes a rig-agnostic folder again.
+    rig, recs = _rig_recordings("two-level", [6, 1])
+    start = load_matcher(tmp_path / "m", rig)
+    tune = dataclasses.replace(config, train=dataclasses.replace(config.train, max_steps=3))
+    tuned, fit = train_matcher(
+        rig, recs, recs, tune, progress=False, start=start, checkpoint_dir=tmp_path / "t"
+    )
+    assert fit.steps == 3
+    moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), tuned.params, start.params)
+    assert max(jax.tree.leaves(moved)) > 0
+    again = load_matcher(tmp_path / "t", load_rig("panoptic5"))
+    assert again.config.gat == TINY_GAT
+    with pytest.raises(InputError, match="rig-agnostic"):
+        paper = start._replace(config=MatcherConfig())
+        train_matcher(rig, recs, recs, tune, progress=False, start=paper)
+
+
+def test_pretrain_matcher_experiment_smoke(tmp_path):
+    """``python -m experiments.pretrain_matcher --scale smoke`` on one evaluation rig: the rows
+    it promises, a threshold written beside the model, a folder that loads for another rig."""
+    import json
+
+    from experiments.pretrain_matcher import FINETUNE_RATES, ROWS, main
+
+    main(["--out", str(tmp_path), "--scale", "smoke", "--rigs", "tripods", "--no-progress"])
+    report = json.loads((tmp_path / "pretrain_matcher.json").read_text())
+    (rig,) = report["rigs"].values()
+    assert rig["cameras"] == 2 and rig["held_out_family"]
+    assert rig["finetune_learning_rate"] in FINETUNE_RATES
+    for split in ("validation", "test"):
+        for row in ROWS:
+            assert -1 <= rig[split][row]["ari"] <= 1 and 0 <= rig[split][row]["pcp"] <= 100
+    folder = tmp_path / "models" / "matcher"
+    assert read_proposal_threshold(folder) == report["pretraining"]["threshold"]
+    assert load_matcher(folder, load_rig("arplab6")).rig.num_cameras == 6
+    main(["--out", str(tmp_path), "--combine", str(tmp_path), str(tmp_path)])
+    assert "± 0.0" in (tmp_path / "pretrain_matcher_seeds.md").read_text()

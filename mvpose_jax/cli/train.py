@@ -34,6 +34,13 @@ def _train_matcher_arguments(p: argparse.ArgumentParser) -> None:
         help="missing-keypoint augmentation: largest per-skeleton drop rate (default 0, the paper; "
         "python -m experiments.run uses 0.5)",
     )
+    p.add_argument(
+        "--start",
+        metavar="MODEL",
+        help="fine-tune this rig-agnostic matcher instead of training a new one: a model folder, "
+        "or 'pretrained' (the one shipped in the package, for any rig); its network replaces "
+        "--quick's",
+    )
 
 
 @command(
@@ -50,6 +57,7 @@ def _train_matcher(args: argparse.Namespace) -> int:
         learning_rate=args.learning_rate,
         max_people=args.max_people,
         keypoint_dropout=args.keypoint_dropout,
+        start=args.start,
     )
     done = train_matcher_job(job)
     print(

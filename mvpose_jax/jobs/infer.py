@@ -43,6 +43,7 @@ from mvpose_jax.trained import (
     read_combined_config,
     read_proposal_threshold,
     resolve_estimator_folder,
+    resolve_matcher_folder,
 )
 
 # infer's defaults (those of `mvpose-jax infer`): tracked, Butterworth-filtered, the proposals'
@@ -515,7 +516,7 @@ def _inputs(config: InferConfig, stream, fps: float, pipeline: PipelineConfig) -
         "camera_map": dict(src.camera_map) if src.camera_map else None,
         "source_layout": src.source_layout,
         "frames": list(config.frames) if config.frames is not None else None,
-        "matcher": where(config.matcher),
+        "matcher": where(config.matcher and resolve_matcher_folder(config.matcher)),
         # "pretrained": the shipped folder, so that a reinstalled package's other weights count.
         "estimator": where(config.estimator and resolve_estimator_folder(config.estimator)),
         "adapt": config.adapt is not None,

@@ -61,6 +61,9 @@ class MatcherJob:
       cameras: inference cameras C_i (None: every camera of the rig).
       quick: `MatcherConfig.quick()` instead of the paper's.
       max_epochs, learning_rate, max_people, keypoint_dropout: overrides.
+      start: fine-tune this rig-agnostic matcher (a model folder, or "pretrained": the one
+        shipped in the package) on the rig's cameras instead of training a new network; its
+        network replaces ``quick``'s.
     """
 
     run: TrainingRun
@@ -70,6 +73,7 @@ class MatcherJob:
     learning_rate: float | None = None
     max_people: int | None = None
     keypoint_dropout: float | None = None
+    start: str | None = None
 
 
 class ProposalChoice(NamedTuple):
@@ -102,7 +106,7 @@ def train_matcher_job(job: MatcherJob) -> MatcherTrained:
     from mvpose_jax.matcher_settings import choose_matcher_settings
     from mvpose_jax.matcher_training import train_matcher
     from mvpose_jax.parallel import resolve_num_devices
-    from mvpose_jax.trained import MatcherConfig, write_proposal_threshold
+    from mvpose_jax.trained import MatcherConfig, load_matcher, write_proposal_threshold
 
     run = job.run
     rig = _begin(run)
@@ -132,8 +136,11 @@ def train_matcher_job(job: MatcherJob) -> MatcherTrained:
         )
     train_recs = recordings_in(run.train, run.layout, run.source_layout)
     dev_recs = recordings_in(run.dev, run.layout, run.source_layout)
+    start = None
+    if job.start:
+        start = load_matcher(job.start, rig.select(list(config.cameras or rig.names)))
     matcher, fit = train_matcher(
-        rig, train_recs, dev_recs, config, checkpoint_dir=run.out, resume=run.resume
+        rig, train_recs, dev_recs, config, checkpoint_dir=run.out, resume=run.resume, start=start
     )
     import jax
 
