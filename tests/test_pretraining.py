@@ -482,6 +482,20 @@ def test_pretrain_matcher_learns_and_loads_for_any_rig(tmp_path):
         recs = generate_single_person_recordings(rig, num_recordings=2, num_frames=2, seed=1)
         rows, scores = gat_match_table(matcher, recs[0].detections)
         assert len(rows) and ((scores >= 0) & (scores <= 1)).all()
+    # `adapt` fine-tunes it on a multi-person recording's own pseudo-labels, as any matcher.
+    from mvpose_jax.adapt import MatcherAdaptConfig, adapt_matcher
+    from mvpose_jax.synthetic import generate_recording
+
+    rig = load_rig("panoptic5")
+    scene = generate_recording(rig, num_people=2, num_frames=6, seed=2)
+    small = MatcherAdaptConfig(
+        max_steps=2, check_every=1, batch_frames=2, block_frames=1, holdout_every=3, min_frames=2
+    )
+    adapted, report = adapt_matcher(
+        rig, scene.detections, load_matcher(tmp_path / "m", rig), config=small, progress=False
+    )
+    assert adapted.config.gat.views == "pooled" and report.steps <= 2
+    assert np.isfinite(report.heldout_loss_after)
     # Fine-tuning on a rig starts from it, and writes a rig-agnostic folder again.
     rig, recs = _rig_recordings("two-level", [6, 1])
     start = load_matcher(tmp_path / "m", rig)
