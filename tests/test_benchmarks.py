@@ -179,7 +179,8 @@ def test_smoke_run_times_every_pipeline(smoke_run):
             if (g["scene"], g["mode"], g["pipeline"]) == (r["scene"], r["mode"], "geometric")
         )
         assert r["ratio_to_geometric"] == pytest.approx(r["ms_per_frame"] / geo["ms_per_frame"])
-    assert {r["tracked"] for r in records if r["pipeline"] in ("default", "geometric")} == {True}
+    tracked = ("default", "geometric", "pretrained", "shipped")
+    assert {r["tracked"] for r in records if r["pipeline"] in tracked} == {True}
     assert {r["tracked"] for r in records if r["pipeline"] in ("paper", "dlt")} == {False}
     p2s = result["pose2sim"]
     assert p2s["installed"] == (importlib.util.find_spec("Pose2Sim") is not None)
