@@ -1162,6 +1162,8 @@ def test_the_shipped_pretrained_matcher_runs_on_any_rig_and_fine_tunes(files, tm
     """`--matcher pretrained` needs no training: the package's rig-agnostic matcher groups this
     rig's skeletons (5 cameras, and 3 of them) at its shipped threshold; `train-matcher --start
     pretrained` fine-tunes it into a folder that loads as the same kind of model."""
+    import json
+
     from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.trained import (
         PRETRAINED,
@@ -1169,8 +1171,6 @@ def test_the_shipped_pretrained_matcher_runs_on_any_rig_and_fine_tunes(files, tm
         pretrained_matcher_folder,
         read_proposal_threshold,
     )
-
-    import json
 
     report = json.loads((pretrained_matcher_folder() / "pretrain_report.json").read_text())
     # infer reads the threshold chosen in pretraining, from the shipped folder.
