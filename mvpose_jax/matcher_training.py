@@ -103,6 +103,9 @@ def train_matcher(
     rig_infer = rig.select(list(config.cameras or rig.names))
     train_pool = make_pool(rig_infer, train_recordings)
     dev_pool = make_pool(rig_infer, dev_recordings)
+    K = train_recordings[0].num_keypoints
+    if start is not None and nnx.merge(start.graphdef, start.params, start.rest).num_keypoints != K:
+        raise InputError(f"the starting matcher is not a {K}-keypoint network", field="start")
     compose = config.composition()
     per_batch = tcfg.batch_size
     num_dev = max(1, math.ceil(config.num_dev_samples / per_batch))
@@ -110,20 +113,11 @@ def train_matcher(
         dev_pool, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, per_batch, **compose
     )
 
-    K = train_recordings[0].num_keypoints
     model = matcher_model(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
     if config.gat.views == "pooled":
         # The rig's frame (its features come rig-normalised, the model reads metres, z up).
         graphdef, params, rest = nnx.split(model, nnx.Param, ...)
         if start is not None:
-            if (
-                start.config.gat != config.gat
-                or nnx.merge(start.graphdef, start.params, start.rest).num_keypoints != K
-            ):
-                raise InputError(
-                    f"the starting matcher is not a {K}-keypoint {config.gat} network",
-                    field="start",
-                )
             # A copy: the train step donates its state's buffers, and ``start`` stays usable.
             params = jax.tree.map(jnp.array, start.params)
         framed = rig_agnostic_matcher(graphdef, rest, params, config, rig_infer)

@@ -20,7 +20,7 @@ import jraph
 import numpy as np
 from flax import nnx
 
-from mvpose_jax.features import NUM_ESTIMATOR_FEATURES
+from mvpose_jax.features import NUM_ESTIMATOR_FEATURES, NUM_KEYPOINT_FEATURES
 from mvpose_jax.graphs import DETECTION, MATCH, GraphBatch
 
 PAPER_MLP_WIDTHS = (3072, 3072, 2048, 2048, 1024, 1024, 1024)
@@ -458,8 +458,6 @@ class MatchingGAT(nnx.Module):
     """
 
     def __init__(self, num_cameras: int, num_keypoints: int, config: GATConfig, *, rngs: nnx.Rngs):
-        from mvpose_jax.features import NUM_KEYPOINT_FEATURES
-
         if config.views != "slots":
             raise ValueError("MatchingGAT needs GATConfig(views='slots'); see matcher_model")
         self.num_keypoints = num_keypoints
@@ -630,8 +628,6 @@ class RigAgnosticGAT(nnx.Module):
         return h
 
     def __call__(self, batch: GraphBatch) -> jax.Array:
-        from mvpose_jax.features import NUM_KEYPOINT_FEATURES
-
         q, scale = self.rotation[...], self.scale[...]
         K = self.num_keypoints
         D = batch.det_features.shape[0]

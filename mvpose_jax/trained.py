@@ -163,14 +163,10 @@ def pretrained_folder(kind: str) -> Path:
     return folder
 
 
-def pretrained_estimator_folder() -> Path:
-    """The shipped rig-agnostic estimator's model folder (`experiments.pretrain --ship`)."""
-    return pretrained_folder("estimator")
-
-
-def resolve_estimator_folder(directory: str | Path) -> Path:
-    """``directory``, or the shipped estimator's folder for the name `PRETRAINED`."""
-    return pretrained_estimator_folder() if str(directory) == PRETRAINED else Path(directory)
+def resolve_model_folder(directory: str | Path, kind: str) -> Path:
+    """``directory``, or the shipped ``kind`` ("estimator" or "matcher") folder for the name
+    `PRETRAINED`."""
+    return pretrained_folder(kind) if str(directory) == PRETRAINED else Path(directory)
 
 
 def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Estimator:
@@ -182,7 +178,7 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
       rig: a rig holding the estimator's inference cameras (by name); a rig-agnostic estimator
         takes all of its cameras.
     """
-    directory = resolve_estimator_folder(directory)
+    directory = resolve_model_folder(directory, "estimator")
     folder = ModelFolder(directory).require(which, "train-estimator")
     saved = folder.read_config(which)
     config = estimator_config_from_dict(saved)
@@ -341,16 +337,6 @@ def matcher_config_from_dict(d: dict) -> MatcherConfig:
         raise InputError(f"not a matcher config ({e})", field="config") from None
 
 
-def pretrained_matcher_folder() -> Path:
-    """The shipped rig-agnostic matcher's model folder (`experiments.pretrain_matcher --ship`)."""
-    return pretrained_folder("matcher")
-
-
-def resolve_matcher_folder(directory: str | Path) -> Path:
-    """``directory``, or the shipped matcher's folder for the name `PRETRAINED`."""
-    return pretrained_matcher_folder() if str(directory) == PRETRAINED else Path(directory)
-
-
 def load_matcher(
     directory: str | Path,
     rig: Rig,
@@ -364,7 +350,7 @@ def load_matcher(
     ``config`` and ``num_keypoints`` default to those saved with the checkpoint (checkpoints of
     older runs lack the keypoint count and need it passed).
     """
-    directory = resolve_matcher_folder(directory)
+    directory = resolve_model_folder(directory, "matcher")
     folder = ModelFolder(directory).require(which, "train-matcher")
     if config is None or num_keypoints is None:
         saved = folder.read_config(which)
@@ -668,14 +654,14 @@ def read_proposal_threshold(folder: str | os.PathLike | None, given: float | Non
     """The proposal threshold: ``given``, else the matcher folder's chosen one, else the paper's 0.5."""
     if given is not None or not folder:
         return 0.5 if given is None else given
-    return ModelFolder(resolve_matcher_folder(folder)).read_proposal_threshold(given)
+    return ModelFolder(resolve_model_folder(folder, "matcher")).read_proposal_threshold(given)
 
 
 def read_combined_config(folder: str | os.PathLike | None) -> CombinedConfig:
     """The combined matcher's settings recorded in a matcher folder (`write_proposal_threshold`),
     else `CombinedConfig`'s defaults."""
     return (
-        ModelFolder(resolve_matcher_folder(folder)).read_combined_config()
+        ModelFolder(resolve_model_folder(folder, "matcher")).read_combined_config()
         if folder
         else CombinedConfig()
     )

@@ -1132,9 +1132,9 @@ def test_the_shipped_pretrained_estimator_runs_on_any_rig_and_fine_tunes(files, 
     for this rig (5 cameras) and for a 3-camera subset of it; `train-estimator --start
     pretrained` fine-tunes it into a folder that loads as the same kind of model."""
     from mvpose_jax.synthetic import generate_single_person_recordings
-    from mvpose_jax.trained import PRETRAINED, load_estimator, pretrained_estimator_folder
+    from mvpose_jax.trained import PRETRAINED, load_estimator, pretrained_folder
 
-    assert (pretrained_estimator_folder() / "pretrain_report.json").is_file()
+    assert (pretrained_folder("estimator") / "pretrain_report.json").is_file()
     base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]
     for name, extra in (("all", []), ("three", ["--cameras", "trackera", "trackerc", "trackere"])):
         assert main([*base, *extra, "--estimator", PRETRAINED, "--out", str(tmp_path / name)]) == 0
@@ -1168,11 +1168,11 @@ def test_the_shipped_pretrained_matcher_runs_on_any_rig_and_fine_tunes(files, tm
     from mvpose_jax.trained import (
         PRETRAINED,
         load_matcher,
-        pretrained_matcher_folder,
+        pretrained_folder,
         read_proposal_threshold,
     )
 
-    report = json.loads((pretrained_matcher_folder() / "pretrain_report.json").read_text())
+    report = json.loads((pretrained_folder("matcher") / "pretrain_report.json").read_text())
     # infer reads the threshold chosen in pretraining, from the shipped folder.
     assert read_proposal_threshold(PRETRAINED) == report["pretraining"]["threshold"]
     base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]

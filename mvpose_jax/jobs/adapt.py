@@ -97,7 +97,7 @@ def adapt(job: AdaptJob) -> Adapted:
     """Adapts (the matcher, then) the estimator and writes the model folders."""
     from mvpose_jax.adapt import adapt_estimator, save_adapted_estimator
     from mvpose_jax.data.files import check_writable
-    from mvpose_jax.trained import load_estimator, load_matcher, resolve_estimator_folder
+    from mvpose_jax.trained import load_estimator, load_matcher, resolve_model_folder
 
     out = check_writable(job.out, folder=True)
     if out.exists() and any(out.iterdir()):
@@ -150,7 +150,7 @@ def adapt(job: AdaptJob) -> Adapted:
         combined=combined,
         config=config,
     )
-    report.settings["estimator"] = str(resolve_estimator_folder(job.estimator).resolve())
+    report.settings["estimator"] = str(resolve_model_folder(job.estimator, "estimator").resolve())
     report.settings["detections"] = str(Path(job.detections.path).resolve())
     save_adapted_estimator(job.out, adapted, report)
     from mvpose_jax.trained import ModelFolder

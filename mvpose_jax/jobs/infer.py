@@ -42,8 +42,7 @@ from mvpose_jax.trained import (
     load_matcher,
     read_combined_config,
     read_proposal_threshold,
-    resolve_estimator_folder,
-    resolve_matcher_folder,
+    resolve_model_folder,
 )
 
 # infer's defaults (those of `mvpose-jax infer`): tracked, Butterworth-filtered, the proposals'
@@ -516,9 +515,11 @@ def _inputs(config: InferConfig, stream, fps: float, pipeline: PipelineConfig) -
         "camera_map": dict(src.camera_map) if src.camera_map else None,
         "source_layout": src.source_layout,
         "frames": list(config.frames) if config.frames is not None else None,
-        "matcher": where(config.matcher and resolve_matcher_folder(config.matcher)),
+        "matcher": where(config.matcher and resolve_model_folder(config.matcher, "matcher")),
         # "pretrained": the shipped folder, so that a reinstalled package's other weights count.
-        "estimator": where(config.estimator and resolve_estimator_folder(config.estimator)),
+        "estimator": where(
+            config.estimator and resolve_model_folder(config.estimator, "estimator")
+        ),
         "adapt": config.adapt is not None,
     }
     if pipeline.tracking is not None:
