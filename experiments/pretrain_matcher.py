@@ -147,16 +147,39 @@ def rig_recordings(n: int, sc: MatcherPretrainScale, stream: str, seed: int, pro
 def shipped_threshold(parts, config: MatcherConfig, dev, num_frames: int, seed: int):
     """The proposal threshold of the best per-frame ARI on frames composed on the dev rigs
     (`matcher_settings.choose_matcher_threshold` per rig; each rig's frames weigh alike):
-    (threshold, {threshold: mean ARI})."""
+    (threshold, {threshold: mean ARI}, [(cameras, {threshold: ARI}) per dev rig])."""
     graphdef, rest, params = parts
     totals: dict[float, float] = {}
+    per_rig = []
     for rig, recs in dev:
         matcher = rig_agnostic_matcher(graphdef, rest, params, config, rig)
         _, ari, _ = choose_matcher_threshold(matcher, recs, num_samples=num_frames, seed=seed)
+        per_rig.append((rig.num_cameras, ari))
         for th, a in ari.items():
             totals[th] = totals.get(th, 0.0) + a / len(dev)
     best = max(totals, key=lambda th: (round(totals[th], 6), th == 0.5))
-    return best, totals
+    return best, totals, per_rig
+
+
+# Camera-count groups of the dev rigs, for the question whether one threshold fits every rig.
+CAMERA_GROUPS = ((2, 3), (4, 6), (7, 10))
+
+
+def threshold_by_cameras(per_rig) -> dict:
+    """{"2-3 cameras": {"rigs": n, "best": threshold, "ari": {threshold: mean ARI}}} of the dev
+    rigs in each `CAMERA_GROUPS` group (`shipped_threshold`'s ``per_rig``)."""
+    out = {}
+    for lo, hi in CAMERA_GROUPS:
+        curves = [ari for cams, ari in per_rig if lo <= cams <= hi]
+        if not curves:
+            continue
+        mean = {th: float(np.mean([c[th] for c in curves])) for th in curves[0]}
+        out[f"{lo}-{hi} cameras"] = {
+            "rigs": len(curves),
+            "best": max(mean, key=lambda th: round(mean[th], 6)),
+            "ari": {str(th): round(v, 5) for th, v in mean.items()},
+        }
+    return out
 
 
 def matcher_rows(data, split: str, matchers: dict, cutoff_px: float) -> dict:
@@ -202,7 +225,9 @@ def run(sc: MatcherPretrainScale, seed: int, scenes_seed: int, out: Path, progre
     pretrain_seconds = time.perf_counter() - t0
     del train, train_pools
     free_compiled_programs()
-    threshold, ari_dev = shipped_threshold(parts, config, dev, sc.threshold_frames, seed)
+    threshold, ari_dev, ari_dev_rigs = shipped_threshold(
+        parts, config, dev, sc.threshold_frames, seed
+    )
     write_proposal_threshold(folder, threshold, ari_dev, sc.threshold_frames * len(dev))
     steps = config.train.max_steps
     rig_sc = SCALES[sc.rig_scale]
@@ -224,6 +249,7 @@ def run(sc: MatcherPretrainScale, seed: int, scenes_seed: int, out: Path, progre
             "best_val_loss": fit.best_val_loss,
             "threshold": threshold,
             "dev_ari_by_threshold": {str(k): round(v, 5) for k, v in ari_dev.items()},
+            "dev_ari_by_cameras": threshold_by_cameras(ari_dev_rigs),
             "history": fit.history,
         },
         "finetune_steps": finetune_steps,
@@ -330,6 +356,30 @@ def seeds_table(reports: list[dict], split: str = "test") -> list[str]:
     return lines
 
 
+def cameras_table(pretraining: dict) -> list[str]:
+    """The dev rigs' ARI by threshold, per camera-count group (`threshold_by_cameras`)."""
+    groups = pretraining.get("dev_ari_by_cameras")
+    if not groups:
+        return []
+    ths = list(pretraining["dev_ari_by_threshold"])
+    lines = [
+        "Dev rigs' per-frame ARI by threshold, per camera count (does one threshold fit every "
+        "rig?):",
+        "",
+        "| dev rigs | best | " + " | ".join(ths) + " |",
+        "|---" * (len(ths) + 2) + "|",
+    ]
+    for name, g in groups.items():
+        cells = " | ".join(f"{g['ari'][th]:.4f}" for th in ths)
+        lines.append(f"| {name} ({g['rigs']}) | {g['best']:g} | {cells} |")
+    all_cells = " | ".join(f"{pretraining['dev_ari_by_threshold'][th]:.4f}" for th in ths)
+    lines += [
+        f"| all ({pretraining['rigs']['dev']}) | {pretraining['threshold']:g} | {all_cells} |",
+        "",
+    ]
+    return lines
+
+
 def save(report: dict, out: Path) -> None:
     p = report["pretraining"]
     lines = [
@@ -351,6 +401,7 @@ def save(report: dict, out: Path) -> None:
         "",
         *table(report, "validation"),
         "",
+        *cameras_table(p),
     ]
     atomic_write_text(out / "pretrain_matcher.md", "\n".join(lines))
     atomic_write_text(out / "pretrain_matcher.json", report_json(report))

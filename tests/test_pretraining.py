@@ -529,7 +529,17 @@ def test_pretrain_matcher_experiment_smoke(tmp_path):
         for row in ROWS:
             assert -1 <= rig[split][row]["ari"] <= 1 and 0 <= rig[split][row]["pcp"] <= 100
     folder = tmp_path / "models" / "matcher"
-    assert read_proposal_threshold(folder) == report["pretraining"]["threshold"]
+    pre = report["pretraining"]
+    assert read_proposal_threshold(folder) == pre["threshold"]
+    # Every dev rig lands in one camera-count group, and each group's curve is its rigs' mean.
+    groups = pre["dev_ari_by_cameras"]
+    assert sum(g["rigs"] for g in groups.values()) == pre["rigs"]["dev"]
+    for g in groups.values():
+        assert g["ari"][str(g["best"])] == max(g["ari"].values())
+    if len(groups) == 1:
+        (g,) = groups.values()
+        assert g["ari"] == pytest.approx(pre["dev_ari_by_threshold"], abs=1e-5)
+    assert "per camera count" in (tmp_path / "pretrain_matcher.md").read_text()
     assert load_matcher(folder, load_rig("arplab6")).rig.num_cameras == 6
     main(["--out", str(tmp_path), "--combine", str(tmp_path), str(tmp_path)])
     assert "± 0.0" in (tmp_path / "pretrain_matcher_seeds.md").read_text()
