@@ -169,6 +169,7 @@ class PipelineTier:
       count_frames: frames of the live counting run (offline: the whole recording).
       train_steps: training steps of each model (per rig).
       gat, mlp: model sizes.
+      real_pipelines: the pipelines timed on the real trial (None: every one of `PIPELINES`).
     """
 
     people: tuple[int, ...]
@@ -181,6 +182,7 @@ class PipelineTier:
     train_steps: int
     gat: GATConfig = GATConfig()
     mlp: MLPConfig = MLPConfig.quick()
+    real_pipelines: tuple[str, ...] | None = None
 
 
 PIPELINE_TIERS = {
@@ -188,7 +190,11 @@ PIPELINE_TIERS = {
     # The acceptance scenes only (4 people and the real trial), untrained models: compiling
     # every pipeline for every scene's shapes, and training, are most of a run's time.
     "quick": PipelineTier((4,), 24, 256, 24, 256, 3, 8, 0),
-    "smoke": PipelineTier((2,), 3, 8, 3, 8, 1, 2, 0, gat=GATConfig.quick()),
+    # The real trial's reader and 4-camera shapes with and without models; every pipeline is
+    # timed on the synthetic scene (each pipeline's compiles are most of the smoke run).
+    "smoke": PipelineTier(
+        (2,), 3, 8, 3, 8, 1, 2, 0, gat=GATConfig.quick(), real_pipelines=("geometric", "default")
+    ),
 }
 
 
@@ -621,13 +627,17 @@ def _scene_records(
     models: RigModels,
     tier: PipelineTier,
     fps: float,
+    pipelines: tuple[str, ...] = PIPELINES,
 ) -> list[dict]:
-    """Every (pipeline, mode) record of one scene, with its ratio to ``geometric``."""
+    """Every (pipeline, mode) record of one scene for ``pipelines`` (with "geometric"), with its
+    ratio to ``geometric``."""
+    if "geometric" not in pipelines:
+        raise ValueError("the ratios need the geometric pipeline")
     records = []
     for mode in MODES:
         det = live if mode == "live" else offline
         by_name = {}
-        for name in PIPELINES:
+        for name in pipelines:
             config, needs_models = pipeline_configs(models.settings)[name]
             by_name[name] = time_pipeline(
                 mode,
@@ -641,7 +651,7 @@ def _scene_records(
             )
         geometric = by_name["geometric"]["ms_per_frame"]
         scene_people = people if people is not None else by_name["geometric"]["people_found"]
-        for name in PIPELINES:
+        for name in pipelines:
             r = by_name[name]
             config = pipeline_configs(models.settings)[name][0]
             records.append(
@@ -717,6 +727,7 @@ def pipeline_group(tier_name: str) -> dict:
             real_models,
             tier,
             real_fps,
+            tier.real_pipelines or PIPELINES,
         )
         if pose2sim["installed"]:
             whole = real_scene()  # Pose2Sim runs the whole trial: its frames are the divisor
