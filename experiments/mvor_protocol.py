@@ -119,6 +119,33 @@ def evaluate(
     return out
 
 
+def versus(pred: Poses3D, reference: Poses3D, data: MvorData, *, gate_mm: float = GATE_MM) -> dict:
+    """Two results on the true people both place (issue 37's MPJPE criterion: "no worse than
+    geometry's on the people both place"): each matched by the protocol in both results.
+
+    Returns (overall):
+      people: true people both place; mpjpe_mm, reference_mpjpe_mm: each result's MPJPE over
+      its own produced joints of those people; joints, reference_joints: how many; common_joints
+      and mpjpe_common_mm, reference_mpjpe_common_mm: over the joints both produced.
+    """
+    a = match_truth(pred, data.gt, gate_mm=gate_mm)
+    b = match_truth(reference, data.gt, gate_mm=gate_mm)
+    both = a.matched & b.matched  # (F, H)
+    ea, eb = a.joint_error[both], b.joint_error[both]  # (n, J) metres, NaN: not produced
+    pa, pb = np.isfinite(ea), np.isfinite(eb)
+    common = pa & pb
+    return {
+        "people": int(both.sum()),
+        "mpjpe_mm": _mean_mm(ea[pa]),
+        "reference_mpjpe_mm": _mean_mm(eb[pb]),
+        "joints": int(pa.sum()),
+        "reference_joints": int(pb.sum()),
+        "common_joints": int(common.sum()),
+        "mpjpe_common_mm": _mean_mm(ea[common]),
+        "reference_mpjpe_common_mm": _mean_mm(eb[common]),
+    }
+
+
 def _scores(*, err, annotated, matched, person, limb_hit, limb_counted) -> dict:
     """Pooled scores of a set of frames: err (n, H, J) metres (NaN: none), annotated (n, H, J),
     matched and person (n, H), limb_hit and limb_counted (n, H, L)."""

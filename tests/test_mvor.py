@@ -24,7 +24,7 @@ from experiments.mvor import (
     to_joints,
     true_identity,
 )
-from experiments.mvor_protocol import evaluate
+from experiments.mvor_protocol import evaluate, versus
 from mvpose_jax.data.poses import PoseResults
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D
@@ -270,6 +270,25 @@ def test_protocol_on_known_errors(tiny):
     assert math.isnan(scores["joint_mm"]["l_wrist"]) and scores["pcp_by_limb"]["l_lower_arm"] == 0
 
 
+def test_versus_compares_two_results_on_the_people_both_place(tiny):
+    data = load_mvor(tiny)
+    # The reference misses person (0, 1); the row is 0.1 m off everywhere and lacks wrists.
+    row = _shifted(data, 0.1)
+    kv = np.asarray(row.keypoint_valid).copy()
+    kv[..., JOINTS.index("l_wrist")] = False
+    row = Poses3D(row.xyz, row.valid, kv)
+    reference = _shifted(data, 0.05, drop=[(0, 1)])
+    v = versus(row, reference, data)
+    assert v["people"] == 2  # of the 3 annotated: the reference's miss is not compared
+    assert v["joints"] == 2 * 9 and v["reference_joints"] == 2 * 10 and v["common_joints"] == 18
+    assert v["mpjpe_mm"] == pytest.approx(100.0) and v["reference_mpjpe_mm"] == pytest.approx(50.0)
+    assert v["mpjpe_common_mm"] == pytest.approx(100.0)
+    assert v["reference_mpjpe_common_mm"] == pytest.approx(50.0)
+    # Against itself: every person, every joint, the same error.
+    same = versus(reference, reference, data)
+    assert same["people"] == 2 and same["mpjpe_mm"] == same["reference_mpjpe_mm"]
+
+
 def test_geometric_pipelines_recover_the_tiny_scene(tiny):
     from experiments.real import CORRUPTED, run
 
@@ -279,6 +298,9 @@ def test_geometric_pipelines_recover_the_tiny_scene(tiny):
         assert s["missed"] == 0, name
         assert s["mpjpe_mm"] < 1.0, name
         assert s["pck3d_100"] == 100.0, name
+        # Every row places the three people geometry places, with the same sub-mm error.
+        v = row["vs_geometric"]
+        assert v["people"] == 3 and v["reference_mpjpe_mm"] < 1.0 and v["mpjpe_mm"] < 1.0, name
     joints = poses_to_joints(
         Poses3D(np.zeros((1, 1, 18, 3)), np.ones((1, 1), bool), np.ones((1, 1, 18), bool))
     )
