@@ -28,7 +28,7 @@ import json
 import time
 from pathlib import Path
 
-from experiments.config import SCALES, SPLITS, estimator_config, seed_stream
+from experiments.config import SCALES, SPLITS, Scale, estimator_config, seed_stream
 from experiments.data import make_data, make_scenes, true_members
 from experiments.fitting import fit_estimator
 from experiments.records import report_json
@@ -140,6 +140,28 @@ def evaluation_rigs() -> dict[str, tuple[Rig, float | None]]:
     return rigs
 
 
+def evaluation_data(rigs, rig_sc: Scale, scenes_seed: int, seed: int, progress: bool):
+    """Each evaluation rig (`evaluation_rigs`; all of them, or those named in ``rigs``) with its
+    recordings and multi-person scenes at the per-rig scale ``rig_sc``: yields (name, rig, data)."""
+    for name, (rig, floor) in evaluation_rigs().items():
+        if rigs is not None and name not in rigs:
+            continue
+        print(f"== {name}: {rig.num_cameras} cameras", flush=True)
+        synth = up = None
+        if floor is not None:
+            up = (0.0, 0.0, 1.0)
+            synth = SyntheticConfig().with_scene(up=up, floor_height=floor)
+        scenes = make_scenes(rig, rig_sc, scenes_seed, config=synth)
+        yield name, rig, make_data(rig, scenes, rig_sc, seed, progress, floor_height=floor, up=up)
+
+
+def finetune_config(config, steps: int, learning_rate: float):
+    """``config`` (a model's training config: ``.train`` a `TrainConfig`) with fine-tuning's
+    budget and step size."""
+    train = dataclasses.replace(config.train, max_steps=steps, learning_rate=learning_rate)
+    return dataclasses.replace(config, train=train)
+
+
 def stage_rows(data, split: str, estimators: dict) -> dict:
     """The 3D stage on a split's true groupings (people in 2+ views): robust triangulation, and
     each estimator alone (``mlp``) and in the blend."""
@@ -210,17 +232,7 @@ def run(
         "rig_steps": steps,
         "rigs": {},
     }
-    for name, (rig, floor) in evaluation_rigs().items():
-        if rigs is not None and name not in rigs:
-            continue
-        print(f"== {name}: {rig.num_cameras} cameras", flush=True)
-        synth = None
-        up = None
-        if floor is not None:
-            up = (0.0, 0.0, 1.0)
-            synth = SyntheticConfig().with_scene(up=up, floor_height=floor)
-        scenes = make_scenes(rig, rig_sc, scenes_seed, config=synth)
-        data = make_data(rig, scenes, rig_sc, seed, progress, floor_height=floor, up=up)
+    for name, rig, data in evaluation_data(rigs, rig_sc, scenes_seed, seed, progress):
         per_rig, _ = fit_estimator(data, rig_sc, rig.names, rig.names, seed, progress)
         pretrained = load_estimator(folder, rig)
         xy, score = single_person_samples(data.train, rig.names)
@@ -229,10 +241,7 @@ def run(
         # then the estimator's alone): a pretrained network is already near a good minimum.
         candidates = {}
         for lr in FINETUNE_RATES:
-            tune = dataclasses.replace(
-                config,
-                train=dataclasses.replace(config.train, max_steps=finetune_steps, learning_rate=lr),
-            )
+            tune = finetune_config(config, finetune_steps, lr)
             candidates[lr], _ = train_estimator(
                 rig, xy, score, dev_xy, dev_score, tune, progress=progress, start=pretrained
             )

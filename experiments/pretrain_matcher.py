@@ -34,9 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from experiments.config import SCALES, SPLITS, matcher_config, seed_stream
-from experiments.data import make_data, make_scenes
 from experiments.fitting import choose_settings_on_dev, fit_matcher, free_compiled_programs
-from experiments.pretrain import combine_seeds, evaluation_rigs, experiment_main, ship_model
+from experiments.pretrain import (
+    combine_seeds,
+    evaluation_data,
+    experiment_main,
+    finetune_config,
+    ship_model,
+)
 from experiments.records import report_json
 from experiments.tables import mean_sd, rounded_tree, seeds_line
 from mvpose_jax.cameras import up_vector
@@ -256,25 +261,13 @@ def run(sc: MatcherPretrainScale, seed: int, scenes_seed: int, out: Path, progre
         "rig_steps": steps,
         "rigs": {},
     }
-    for name, (rig, floor) in evaluation_rigs().items():
-        if rigs is not None and name not in rigs:
-            continue
-        print(f"== {name}: {rig.num_cameras} cameras", flush=True)
-        synth = up = None
-        if floor is not None:
-            up = (0.0, 0.0, 1.0)
-            synth = SyntheticConfig().with_scene(up=up, floor_height=floor)
-        scenes = make_scenes(rig, rig_sc, scenes_seed, config=synth)
-        data = make_data(rig, scenes, rig_sc, seed, progress, floor_height=floor, up=up)
+    for name, rig, data in evaluation_data(rigs, rig_sc, scenes_seed, seed, progress):
         per_rig, per_rig_fit = fit_matcher(data, rig_sc, rig.names, seed, progress)
         pretrained = load_matcher(folder, rig)
         own = choose_settings_on_dev(pretrained, data, rig_sc.threshold_frames, seed)
         tuned = {}
         for lr in FINETUNE_RATES:
-            tune = dataclasses.replace(
-                config,
-                train=dataclasses.replace(config.train, max_steps=finetune_steps, learning_rate=lr),
-            )
+            tune = finetune_config(config, finetune_steps, lr)
             m, _ = train_matcher(
                 rig, data.train, data.dev, tune, progress=progress, start=pretrained
             )
