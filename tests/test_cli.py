@@ -1127,24 +1127,36 @@ def test_infer_proposals_option_combined_by_default_with_a_matcher(
         assert "--threshold" in err and "--proposals gat" in err, err
 
 
+def _infer_on_all_and_three_cameras(files, tmp_path, models: list[str]) -> None:
+    """`infer` with ``models`` (shipped, rig-agnostic) on panoptic5's 5 cameras and on 3 of them:
+    people with finite keypoints both times."""
+    base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]
+    for name, extra in (("all", []), ("three", ["--cameras", "trackera", "trackerc", "trackere"])):
+        assert main([*base, *extra, *models, "--out", str(tmp_path / name)]) == 0
+        poses = load_poses(tmp_path / name / "poses.npz").poses
+        assert poses.valid.any() and np.isfinite(poses.xyz[poses.keypoint_valid]).all()
+
+
+def _save_walks(folder, num_recordings: int) -> None:
+    """Single-person panoptic5 recordings (6 frames, seed 3) saved into ``folder``."""
+    from mvpose_jax.synthetic import generate_single_person_recordings
+
+    recs = generate_single_person_recordings(
+        load_rig("panoptic5"), num_recordings=num_recordings, num_frames=6, seed=3
+    )
+    for i, rec in enumerate(recs):
+        save_recording(rec, folder / f"walk_{i}.npz")
+
+
 def test_the_shipped_pretrained_estimator_runs_on_any_rig_and_fine_tunes(files, tmp_path, capsys):
     """`--estimator pretrained` needs no training: it loads the package's rig-agnostic estimator
     for this rig (5 cameras) and for a 3-camera subset of it; `train-estimator --start
     pretrained` fine-tunes it into a folder that loads as the same kind of model."""
-    from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.trained import PRETRAINED, load_estimator, pretrained_folder
 
     assert (pretrained_folder("estimator") / "pretrain_report.json").is_file()
-    base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]
-    for name, extra in (("all", []), ("three", ["--cameras", "trackera", "trackerc", "trackere"])):
-        assert main([*base, *extra, "--estimator", PRETRAINED, "--out", str(tmp_path / name)]) == 0
-        poses = load_poses(tmp_path / name / "poses.npz").poses
-        assert poses.valid.any() and np.isfinite(poses.xyz[poses.keypoint_valid]).all()
-    recs = generate_single_person_recordings(
-        load_rig("panoptic5"), num_recordings=2, num_frames=6, seed=3
-    )
-    for i, rec in enumerate(recs):
-        save_recording(rec, tmp_path / "train" / f"walk_{i}.npz")
+    _infer_on_all_and_three_cameras(files, tmp_path, ["--estimator", PRETRAINED])
+    _save_walks(tmp_path / "train", num_recordings=2)
     out = tmp_path / "tuned"
     train = ["train-estimator", "--rig", "panoptic5", "--train", str(tmp_path / "train")]
     assert (
@@ -1164,7 +1176,6 @@ def test_the_shipped_pretrained_matcher_runs_on_any_rig_and_fine_tunes(files, tm
     pretrained` fine-tunes it into a folder that loads as the same kind of model."""
     import json
 
-    from mvpose_jax.synthetic import generate_single_person_recordings
     from mvpose_jax.trained import (
         PRETRAINED,
         load_matcher,
@@ -1175,17 +1186,10 @@ def test_the_shipped_pretrained_matcher_runs_on_any_rig_and_fine_tunes(files, tm
     report = json.loads((pretrained_folder("matcher") / "pretrain_report.json").read_text())
     # infer reads the threshold chosen in pretraining, from the shipped folder.
     assert read_proposal_threshold(PRETRAINED) == report["pretraining"]["threshold"]
-    base = ["infer", "--rig", "panoptic5", "--detections", str(files["npz"]), "--no-track"]
-    for name, extra in (("all", []), ("three", ["--cameras", "trackera", "trackerc", "trackere"])):
-        argv = [*base, *extra, "--matcher", PRETRAINED, "--proposals", "gat"]
-        assert main([*argv, "--out", str(tmp_path / name)]) == 0
-        poses = load_poses(tmp_path / name / "poses.npz").poses
-        assert poses.valid.any() and np.isfinite(poses.xyz[poses.keypoint_valid]).all()
-    recs = generate_single_person_recordings(
-        load_rig("panoptic5"), num_recordings=3, num_frames=6, seed=3
+    _infer_on_all_and_three_cameras(
+        files, tmp_path, ["--matcher", PRETRAINED, "--proposals", "gat"]
     )
-    for i, rec in enumerate(recs):
-        save_recording(rec, tmp_path / "train" / f"walk_{i}.npz")
+    _save_walks(tmp_path / "train", num_recordings=3)
     out = tmp_path / "tuned"
     train = ["train-matcher", "--rig", "panoptic5", "--train", str(tmp_path / "train")]
     train += ["--dev", str(tmp_path / "train"), "--quick", "--max-epochs", "1"]
