@@ -86,7 +86,9 @@ class PipelineConfig:
         evidence); None: no tracks (and no filter).
       filtering: with ``tracking``, each track's keypoints are filtered.
       chunk_frames: frames per chunk (memory is bounded by it; results do not depend on it
-        except through tracking's restarts on resume).
+        except through tracking: its restarts on resume, and its backfill of a new track's
+        tentative first frames, which stays within a chunk (`TrackingConfig.backfill`): a track
+        confirmed just after a chunk's end leaves that chunk's last frames without its id).
       temporal: with ``tracking``, the folder of a learned temporal model
         (`temporal.save_temporal`): each chunk's tracks are refined by it (`temporal.refine_tracks`,
         method "blend": robust triangulation where it reconstructs a keypoint, the model
@@ -297,11 +299,14 @@ def stream_pipeline(
     try:
         for start, chunk in chunks:
             check(chunk)
-            det = Detections(
-                np.asarray(chunk.xy, np.float32)[:, prop_idx],
-                np.asarray(chunk.score, np.float32)[:, prop_idx],
-                np.asarray(chunk.count)[:, prop_idx],
+            det = _padded_skeletons(
+                Detections(
+                    np.asarray(chunk.xy, np.float32)[:, prop_idx],
+                    np.asarray(chunk.score, np.float32)[:, prop_idx],
+                    np.asarray(chunk.count)[:, prop_idx],
+                )
             )
+            num_skeletons = np.shape(chunk.score)[2]
             stop = start + len(det.count)
             t0 = time.perf_counter()
             grouped = propose(prop_rig, det, config.matching, matcher=matcher)
@@ -356,7 +361,9 @@ def stream_pipeline(
                     t3 = time.perf_counter()
                     poses = _temporal_chunk(temporal, prop_rig, det, members, poses, track, config)
                     seconds["temporal"] = time.perf_counter() - t3
-            identity = _identity_from_members(members, det.score.shape[:3])
+            identity = _identity_from_members(
+                members, (stop - start, len(prop_cams), num_skeletons)
+            )
             yield (
                 start,
                 PipelineResult(poses, conf, members, identity, prop_cams, seconds, track),
@@ -454,6 +461,25 @@ def _temporal_chunk(model, rig, det, members, poses, track, config: PipelineConf
         poses.valid,
         np.asarray(poses.keypoint_valid, bool) | valid[..., None],
     )
+
+
+def skeleton_slots(num_skeletons: int) -> int:
+    """The skeleton slots per camera a chunk is padded to: the next multiple of 4 (at least 4).
+
+    Every stage reads a camera's skeletons up to its count, so empty slots change no result;
+    they keep the compiled programs' shapes few (recordings of 3 to 10 skeletons a camera: 3
+    shapes, not 8), where each new shape costs the jitted stages seconds of compilation."""
+    return 4 * max(1, -(-num_skeletons // 4))
+
+
+def _padded_skeletons(det: Detections) -> Detections:
+    """``det`` with its skeleton axis zero-padded to `skeleton_slots` (counts unchanged)."""
+    P = np.shape(det.score)[2]
+    extra = skeleton_slots(P) - P
+    if extra == 0:
+        return det
+    pad = [(0, 0), (0, 0), (0, extra), (0, 0)]
+    return Detections(np.pad(det.xy, pad + [(0, 0)]), np.pad(det.score, pad), det.count)
 
 
 def _chunks_of(detections: Detections, chunk_frames: int) -> Iterator[tuple[int, Detections]]:

@@ -21,7 +21,7 @@ from mvpose_jax.graphs import (
     detection_features,
     match_table,
 )
-from mvpose_jax.inference import run_pipeline
+from mvpose_jax.inference import run_pipeline, skeleton_slots
 from mvpose_jax.lifting import members_from_identity, poses_of_members
 from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.matching import (
@@ -36,6 +36,7 @@ from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig
 from mvpose_jax.proposals import propose_people
 from mvpose_jax.skeletons import Detections
 from mvpose_jax.synthetic import generate_recording, generate_single_person_recordings
+from mvpose_jax.tracking import TrackingConfig
 from mvpose_jax.trained import EstimatorConfig, MatcherConfig, TrainConfig
 from mvpose_jax.triangulate import skeleton_spread
 from tests.helpers import TINY_GAT as TINY
@@ -147,6 +148,46 @@ def test_chunks_give_the_same_result_as_one_batch(scene):
         np.testing.assert_allclose(a, b, atol=1e-5)
     np.testing.assert_array_equal(whole.members, chunked.members)
     np.testing.assert_array_equal(whole.identity, chunked.identity)
+
+
+def test_skeleton_slots_are_multiples_of_four():
+    assert [skeleton_slots(p) for p in (0, 1, 3, 4, 5, 8, 9, 13)] == [4, 4, 4, 4, 8, 8, 12, 16]
+
+
+@pytest.mark.slow  # the learned default's stages, compiled at two skeleton-slot counts
+def test_padded_skeleton_slots_change_no_result(scene, monkeypatch):
+    """The pipeline pads each camera's skeleton slots (`skeleton_slots`) so that recordings of
+    different sizes share compiled programs: the learned default (combined + blend, tracked)
+    gives bit-identical results with and without it, and identity keeps the input's slots."""
+    from mvpose_jax import inference
+
+    rig, rec = scene
+    det = rec.detections
+    extra = 5 - np.shape(det.score)[2]  # 5 slots: padded to 8
+    assert extra > 0
+    pad = [(0, 0), (0, 0), (0, extra), (0, 0)]
+    det5 = Detections(np.pad(det.xy, pad + [(0, 0)]), np.pad(det.score, pad), det.count)
+    kw = dict(
+        matcher=_untrained_matcher(rig),
+        estimator=untrained_estimator(rig),
+        method="blend",
+        tracking=TrackingConfig(),
+    )
+    assert np.shape(inference._padded_skeletons(det5).score)[2] == 8
+    padded = run_pipeline(rig, det5, **kw)
+    monkeypatch.setattr(inference, "_padded_skeletons", lambda d: d)
+    as_given = run_pipeline(rig, det5, **kw)
+    unpadded = run_pipeline(rig, det, **kw)
+    assert padded.identity.shape == as_given.identity.shape == np.shape(det5.score)[:3]
+    for a, b in zip(padded, as_given, strict=True):
+        if isinstance(a, tuple):
+            for u, v in zip(a, b, strict=True):
+                np.testing.assert_array_equal(u, v)
+        elif isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(padded.members, unpadded.members)
+    np.testing.assert_array_equal(padded.identity[..., : np.shape(det.score)[2]], unpadded.identity)
+    assert (padded.identity[..., np.shape(det.score)[2] :] == -1).all()
 
 
 def test_stream_pipeline_takes_chunks_from_a_reader(scene, tmp_path):
