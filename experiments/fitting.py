@@ -2,8 +2,9 @@
 
 `fit_matcher` and `fit_estimator` train one model on a training seed's data as every experiment
 does (and choose the matcher's proposal settings on frames composed from the dev recordings).
-`cached_models` keeps the seed-0 quick-scale 5-view matcher and estimator of ``panoptic5`` in a
-folder that the side studies share: the model folders ``mvpose-jax train-matcher`` and
+`cached_models` keeps the seed-0 5-view matcher and estimator of ``panoptic5`` (by default at
+the "quick-long" scale, which the side studies' tables were measured with) in a folder that the
+side studies share: the model folders ``mvpose-jax train-matcher`` and
 ``train-estimator`` write (``matcher/``, ``estimator/``; ``mvpose-jax infer --matcher
 DIR/matcher --estimator DIR/estimator`` runs them), and ``fit.json``, the matcher's fit record
 (written last: a folder without it is an unfinished cache).
@@ -225,7 +226,7 @@ def cached_models(
     folder: Path | None,
     *,
     seed: int = 0,
-    scale: str | Scale = "quick",
+    scale: str | Scale = "quick-long",
     progress: bool = True,
     floor_height: float | None = None,
     up: tuple[float, float, float] | None = None,

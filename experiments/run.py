@@ -87,9 +87,11 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--scale",
-        choices=("quick", "paper"),
+        choices=("quick", "quick-long", "paper"),
         default="quick",
-        help="quick: small networks, minutes; paper: the paper's sizes and training lengths",
+        help="quick: small networks, minutes; quick-long: the same with twice the training "
+        "steps (the quick scale's budgets until December 2026); paper: the paper's sizes and "
+        "training lengths",
     )
     ap.add_argument(
         "--smoke", action="store_true", help="a seconds-long run of the same code (tests)"
