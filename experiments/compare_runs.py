@@ -27,7 +27,7 @@ import math
 import statistics
 from pathlib import Path
 
-from experiments.records import runs_from_files
+from experiments.records import RUN_SETTINGS, runs_from_files
 from mvpose_jax.data.files import atomic_write_text
 
 # The leaves compared: what a table reports about quality (not timings or settings).
@@ -184,7 +184,7 @@ def main(argv=None) -> int:
     ap.add_argument("--candidate", type=Path, nargs="+", required=True, metavar="RUNS_JSON")
     ap.add_argument("--out", type=Path, help="write compare.md and compare.json here")
     args = ap.parse_args(argv)
-    none = dict.fromkeys(("scenes_seed", "train_floor_jitter_m", "train_floor_offset_m"))
+    none = dict.fromkeys(RUN_SETTINGS)
     try:
         reference, ref_settings = runs_from_files(args.reference, none)
         candidate, cand_settings = runs_from_files(args.candidate, none)

@@ -223,9 +223,9 @@ SCALES = {
     ),
 }
 
-# The quick scale's budgets until December 2026 (twice today's), which the tables of the
-# other experiments that train quick-scale models were measured with (`fitting.cached_models`
-# keeps them). Matcher steps: ARI on the scenes that are now the validation scenes kept rising
+# The quick scale's budgets until December 2026 (the 2- and 3-view matchers at four times
+# today's steps), which the tables of the other experiments that train quick-scale models were
+# measured with (`fitting.cached_models` keeps them). Matcher steps: ARI on the scenes that are now the validation scenes kept rising
 # with them (2 views: 0.9807 after 8000 steps, 0.9917 after 24000, at threshold 0.5; 3 views
 # after 12000: 0.9854), and few-view graphs are cheap (2 views ~12 ms a step, 5 views ~58 ms).
 SCALES["quick-long"] = dataclasses.replace(

@@ -50,9 +50,9 @@ def tracking_rows(rig, scenes: list, matcher, estimator, fit: dict) -> dict:
     one_view = np.asarray(gt.valid) & (tracking_views(scenes) < 2)
     gt_jitter = jitter(gt.xyz, gt.keypoint_valid, gt.valid, np.where(gt.valid, gt_ids, -1))
     scoring = {"up": up_vector(rig), "person_ids": gt_ids, "layout": layout}
-    # Each scene in one chunk: results do not depend on the chunk size, and a scene's people
-    # then go through the 3D stage in one call, not two of other shapes (each new shape costs
-    # the jitted stages a compilation, most of this section's time).
+    # Each scene in one chunk: a scene's people go through the 3D stage in one call, not two of
+    # other shapes (each new shape costs the jitted stages a compilation, most of this section's
+    # time); tracking's backfill then spans the whole scene (`PipelineConfig.chunk_frames`).
     chunk_frames = max(len(rec.detections.count) for rec in scenes)
     for name, kwargs in pipelines.items():
         per_filter = {f: [] for f in filters}
