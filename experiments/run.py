@@ -42,6 +42,7 @@ import jax
 from experiments.config import SCALES
 from experiments.records import runs_from_files
 from experiments.registry import DEFAULT, EXPERIMENTS
+from mvpose_jax.compiled import enable_compilation_cache
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.synthetic import SHIFTS
 
@@ -150,6 +151,9 @@ def main(argv=None) -> int:
         "or metrics.json; several parts of one multi-seed run are joined) instead of running",
     )
     args = ap.parse_args(argv)
+    # Before the first compile: a second run (another seed, another experiment on the same
+    # scenes) loads the programs this one compiled instead of compiling them again.
+    enable_compilation_cache()
     name = _experiment_name(ap, args)
     scale = "smoke" if args.smoke else args.scale
     out = args.out or Path("results") / name

@@ -22,6 +22,7 @@ from mvpose_jax.cli import batch  # noqa: F401
 # isort: on
 from mvpose_jax.cli.options import SOURCE_LAYOUT_HELP
 from mvpose_jax.cli.registry import _COMMANDS, command
+from mvpose_jax.compiled import enable_compilation_cache
 from mvpose_jax.data.recording import recording_fps as _recording_fps
 from mvpose_jax.errors import MvposeError, MvposeWarning
 from mvpose_jax.jobs.adapt import MATCHER_ADAPT_STEPS
@@ -92,6 +93,8 @@ _python_show_warning = warnings.showwarning
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        # Before the first compile: the next run of a command reuses this one's programs.
+        enable_compilation_cache()
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             return _COMMANDS[args.command][2](args) or 0

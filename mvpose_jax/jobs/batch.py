@@ -513,6 +513,10 @@ class _Worker:
         paid before its first recording."""
         import jax
 
+        from mvpose_jax.compiled import enable_compilation_cache
+
+        # On the driver's machine the driver's folder (inherited); on another, that one's own.
+        enable_compilation_cache()
         jax.devices()
         return time.time()
 
