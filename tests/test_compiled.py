@@ -40,15 +40,11 @@ print(json.dumps({
 """
 
 
-def _run(env_changes: dict[str, str | None], tmp_path: Path) -> dict:
+def _run(env_changes: dict[str, str], tmp_path: Path) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
     env.pop(CACHE_ENV, None)
     env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
-    for k, v in env_changes.items():
-        if v is None:
-            env.pop(k, None)
-        else:
-            env[k] = v
+    env.update(env_changes)
     out = subprocess.run(
         [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True
     )
