@@ -58,6 +58,28 @@ class MatchingConfig:
 FRAMES_PER_CALL = 32
 
 
+def frame_chunks(num_frames: int, frames_per_call: int) -> tuple[list[tuple[int, int]], int]:
+    """``num_frames`` frames cut into the fewest calls of at most ``frames_per_call`` frames, of
+    (nearly) equal length, and the frames every call is padded to: the next power of two of the
+    longest call (capped at ``frames_per_call``).
+
+    Equal calls share one padded shape: cut 32 at a time, 300 frames would end in a call of 12
+    frames, padded to 16 and compiled on its own (a recording's tail costs every jitted stage
+    it meets a compilation of seconds); cut evenly they are ten calls of 30, all padded to 32.
+    The frames of a call are independent graphs and rows, so the cut changes no result.
+
+    Returns:
+      ([(start, stop), ...] in order, the padded frames of every call).
+    """
+    if num_frames <= 0:
+        return [], 0
+    calls = -(-num_frames // frames_per_call)
+    size, longer = divmod(num_frames, calls)  # the first ``longer`` calls take one frame more
+    stops = np.cumsum([size + 1] * longer + [size] * (calls - longer))
+    bounds = list(zip([0, *stops[:-1].tolist()], stops.tolist(), strict=True))
+    return bounds, min(frames_per_call, next_power_of_two(size + (longer > 0)))
+
+
 def _match_scores_fn(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
     return nnx.merge(graphdef, params, rest)(batch)
 
@@ -227,9 +249,10 @@ def gat_match_table(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Match scores of every cross-view skeleton pair of every frame, by the learned matcher.
 
-    Frames go through the network ``frames_per_call`` at a time, as one padded graph batch each
-    (a shorter chunk is padded with empty frames to the next power of two, so jit compiles a
-    handful of shapes for a whole recording, and a single frame is one graph). Features and
+    Frames go through the network at most ``frames_per_call`` at a time, in calls of equal
+    length (`frame_chunks`), each one padded graph batch (padded with empty frames to the next
+    power of two, so jit compiles a handful of shapes for a whole recording, and a single frame
+    is one graph). Features and
     network run as one jit call; the graphs, which depend on the skeleton counts alone, are
     built once per count pattern and kept on the device.
 
@@ -290,10 +313,8 @@ def _gat_tables(
     else:
         scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef)
     rows, scores, means, medians = [], [], [], []
-    for start in range(0, F, frames_per_call):
-        stop = min(F, start + frames_per_call)
-        # A short (or single-frame) chunk is padded only to the next power of two of frames.
-        n_graphs = min(frames_per_call, next_power_of_two(stop - start))
+    bounds, n_graphs = frame_chunks(F, frames_per_call)
+    for start, stop in bounds:
         xy_c, score_c = xy[start:stop], score[start:stop]
         if n_graphs > stop - start:
             xy_c = np.concatenate(
@@ -476,18 +497,15 @@ def _distances_of_rows(
 def _epipolar_dense(
     rig: Rig, detections: Detections, min_shared: int, frames_per_call: int, *, median: bool
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """`_epipolar_distances` of a whole recording, ``frames_per_call`` frames per jit call
-    (shorter chunks padded to the next power of two): mean and (if ``median``) median,
-    (Q, F, P, P) numpy."""
+    """`_epipolar_distances` of a whole recording, at most ``frames_per_call`` frames per jit call
+    (`frame_chunks`): mean and (if ``median``) median, (Q, F, P, P) numpy."""
     xy = np.asarray(detections.xy, np.float32)
     score = np.asarray(detections.score, np.float32)
     F = len(score)
     means, medians = [], []
-    for start in range(0, F, frames_per_call):
-        stop = min(F, start + frames_per_call)
-        pad = [(0, min(frames_per_call, next_power_of_two(stop - start)) - (stop - start))] + [
-            (0, 0)
-        ] * 3
+    bounds, n_frames = frame_chunks(F, frames_per_call)
+    for start, stop in bounds:
+        pad = [(0, n_frames - (stop - start))] + [(0, 0)] * 3
         xy_c = np.moveaxis(np.pad(xy[start:stop], pad + [(0, 0)]), 1, 0)
         sc_c = np.moveaxis(np.pad(score[start:stop], pad), 1, 0)
         mean, med = _epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared, median=median)

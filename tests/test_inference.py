@@ -27,6 +27,7 @@ from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.matching import (
     _match_scores,
     _match_scores_fn,
+    frame_chunks,
     gat_match_table,
     geometric_match_table,
     match_scores,
@@ -497,6 +498,24 @@ def test_bound_model_fn_is_built_once_per_graphdef():
     assert again is not graphdef and bound_model_fn(_match_scores_fn, again) is f
     other, _, _, _ = _train_state(GATConfig(widths=(16, 16, 1), heads=(2, 2, 1)))
     assert bound_model_fn(_match_scores_fn, other) is not f
+
+
+@pytest.mark.parametrize("frames", [1, 5, 12, 31, 32, 33, 300, 1024])
+@pytest.mark.parametrize("per_call", [1, 4, 32])
+def test_frame_chunks_cut_evenly_into_one_padded_shape(frames, per_call):
+    bounds, padded = frame_chunks(frames, per_call)
+    # Every frame once, in order, in as few calls as the cap allows.
+    np.testing.assert_array_equal(
+        np.concatenate([np.arange(a, b) for a, b in bounds]), np.arange(frames)
+    )
+    assert len(bounds) == -(-frames // per_call)
+    lengths = [b - a for a, b in bounds]
+    assert max(lengths) - min(lengths) <= 1
+    # One padded size for all: the next power of two of the longest call, within the cap.
+    assert max(lengths) <= padded <= per_call and padded & (padded - 1) == 0
+    assert padded < 2 * max(lengths)
+    assert frame_chunks(300, 32) == ([(30 * i, 30 * i + 30) for i in range(10)], 32)
+    assert frame_chunks(0, 32) == ([], 0)
 
 
 def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
