@@ -330,11 +330,10 @@ def _greedy_steps(step, state: jax.Array, max_steps: int) -> jax.Array:
 # Below this many rows a batch is evaluated whole: gathering the few rows that need the
 # leave-one-out fits costs more launches than it saves arithmetic (a live frame's people).
 _MIN_ROWS_TO_COMPACT = 256
-# The sizes (fractions of the batch) the needed rows are gathered into, smallest first: about
-# 1.5% of keypoints and 1% of people need them on synthetic scenes, more on real ones. More
-# than the largest, and the whole batch is evaluated (the same arithmetic, row by row: the
-# result does not depend on the path taken).
-_GATHER_FRACTIONS = (32, 4)
+# The needed rows are gathered in blocks of this fraction of the batch: about 1.5% of keypoints
+# and 1% of people need them on synthetic scenes (one block), more on real ones (a block more
+# per 1/32 of the batch).
+_GATHER_FRACTION = 32
 
 
 def _where_needed(need: jax.Array, fn, fill: float, *rows: jax.Array) -> jax.Array:
@@ -343,16 +342,20 @@ def _where_needed(need: jax.Array, fn, fill: float, *rows: jax.Array) -> jax.Arr
 
     The leave-one-out fits are most of robust triangulation's arithmetic (C solves and C^2
     reprojections per row and step), and only rows whose worst error exceeds the threshold use
-    them.
+    them. The needed rows go through ``fn`` in blocks of B / `_GATHER_FRACTION`, in a loop of as
+    many blocks as they fill: the arithmetic follows their number, and the program holds ``fn``
+    once (each copy of it costs robust triangulation's compilation about a second; the former
+    choice between gathers of 1/32, 1/4 and all of the batch held it three times). The same
+    arithmetic per row on every path, so the result does not depend on how many rows need it.
     """
     B = need.shape[0]
 
-    def whole(_):
-        out = fn(*rows)
-        return jnp.where(_expand(need, out), out, fill)
-
     if B < _MIN_ROWS_TO_COMPACT:
         # Usually no row needs them (a live frame's people agree with their views): skipped.
+        def whole(_):
+            out = fn(*rows)
+            return jnp.where(_expand(need, out), out, fill)
+
         out_shape = jax.eval_shape(fn, *rows)
         return jax.lax.cond(
             jnp.any(need),
@@ -361,20 +364,21 @@ def _where_needed(need: jax.Array, fn, fill: float, *rows: jax.Array) -> jax.Arr
             None,
         )
 
-    def gathered(size):
-        def run(_):
-            (idx,) = jnp.nonzero(need, size=size, fill_value=B)  # B: out of range, dropped
-            out = fn(*(jnp.take(r, idx, axis=0, mode="clip") for r in rows))
-            full = jnp.full((B,) + out.shape[1:], fill, out.dtype)
-            return full.at[idx].set(out, mode="drop")
+    size = max(1, B // _GATHER_FRACTION)
+    # The needed rows' indices first, then B (out of range: the scatter drops it).
+    (order,) = jnp.nonzero(need, size=B, fill_value=B)
+    out_shape = jax.eval_shape(fn, *(r[:size] for r in rows))
 
-        return run
+    def block(i, full):
+        # The last block may start earlier than i * size (dynamic_slice keeps it inside the
+        # batch) and repeat rows of the one before: they get the same values again.
+        idx = jax.lax.dynamic_slice_in_dim(order, i * size, size)
+        out = fn(*(jnp.take(r, idx, axis=0, mode="clip") for r in rows))
+        return full.at[idx].set(out, mode="drop")
 
-    # The smallest gather the needed rows fit in, else the whole batch.
-    sizes = [max(1, B // fraction) for fraction in _GATHER_FRACTIONS]
-    count = jnp.sum(need)
-    branch = sum((count > size).astype(jnp.int32) for size in sizes)
-    return jax.lax.switch(branch, [gathered(size) for size in sizes] + [whole], None)
+    full = jnp.full((B,) + out_shape.shape[1:], fill, out_shape.dtype)
+    blocks = (jnp.sum(need) + size - 1) // size
+    return jax.lax.fori_loop(0, blocks, block, full)
 
 
 def _expand(mask: jax.Array, like: jax.Array) -> jax.Array:

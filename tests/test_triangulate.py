@@ -585,7 +585,7 @@ def _wild_scene(num_points: int, wild_fraction: float, seed: int):
 
 @pytest.mark.parametrize("wild_fraction", [0.02, 0.15, 0.8])
 def test_robust_on_the_needed_rows_alone_equals_every_row(monkeypatch, wild_fraction):
-    # 0.02: the needed rows fit the small gather; 0.15 the large one; 0.8: the whole batch.
+    # The needed rows fill one block (0.02), several (0.15), or most of the batch (0.8).
     rig, px, w = _wild_scene(36 * 18, wild_fraction, seed=32)
     gathered = [np.asarray(a) for a in triangulate.triangulate_skeletons_robust(rig, px, w)]
     monkeypatch.setattr(triangulate, "_MIN_ROWS_TO_COMPACT", 10**9)
