@@ -33,7 +33,7 @@ from mvpose_jax.features import (
     estimator_inputs,
 )
 from mvpose_jax.losses import masked_mean, reprojection_error_l1
-from mvpose_jax.models import estimator_model, to_world
+from mvpose_jax.models import estimator_model, initialised, to_world
 from mvpose_jax.parallel import mesh_size, replicate, shard_batch
 from mvpose_jax.trained import (
     Estimator,
@@ -215,7 +215,11 @@ def estimator_training(
     tcfg = config.train
     mesh = training_mesh(tcfg)
     if start is None:
-        model = estimator_model(len(infer_idx), num_keypoints, config.mlp, rngs=nnx.Rngs(tcfg.seed))
+        model = initialised(
+            lambda: estimator_model(
+                len(infer_idx), num_keypoints, config.mlp, rngs=nnx.Rngs(tcfg.seed)
+            )
+        )
         normalisation = None
         if config.mlp.views == "pooled":  # as `trained.rig_agnostic_estimator` loads it
             graphdef, params, rest = nnx.split(model, nnx.Param, ...)

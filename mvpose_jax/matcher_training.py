@@ -21,7 +21,7 @@ from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
 from mvpose_jax.graphs import GraphBatch, make_pool, sample_batches, split_graph_batch
 from mvpose_jax.losses import masked_mean, match_mse
-from mvpose_jax.models import MatchingGAT, matcher_model
+from mvpose_jax.models import MatchingGAT, initialised, matcher_model
 from mvpose_jax.parallel import mesh_size, replicate, shard_batch
 from mvpose_jax.trained import (
     Matcher,
@@ -113,7 +113,9 @@ def train_matcher(
         dev_pool, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, per_batch, **compose
     )
 
-    model = matcher_model(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
+    model = initialised(
+        lambda: matcher_model(rig_infer.num_cameras, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
+    )
     if config.gat.views == "pooled":
         # The rig's frame (its features come rig-normalised, the model reads metres, z up).
         graphdef, params, rest = nnx.split(model, nnx.Param, ...)

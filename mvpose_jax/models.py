@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -312,6 +313,15 @@ def estimator_model(
     if config.views == "pooled":
         return ViewPooledMLP(num_keypoints, config, rngs=rngs)
     return PoseMLP(num_cameras, num_keypoints, config, rngs=rngs)
+
+
+def initialised(make: Callable[[], nnx.Module]) -> nnx.Module:
+    """``make()``'s model with its initial parameters drawn in one jitted program: drawn eagerly,
+    every weight shape compiles random-number programs of its own (about ten a network, a
+    second or more before training starts). The numbers are the same (threefry's bits and the
+    same arithmetic, in or out of one program)."""
+    graphdef, _ = nnx.split(nnx.eval_shape(make))
+    return nnx.merge(graphdef, jax.jit(lambda: nnx.split(make())[1])())
 
 
 def to_world(xyz_normalised: jax.Array, centre: jax.Array, radius: jax.Array) -> jax.Array:

@@ -43,7 +43,7 @@ from mvpose_jax.features import (
 from mvpose_jax.graphs import GraphBatch, SkeletonPool, build_graphs, compose_samples, make_pool
 from mvpose_jax.losses import keypoint_l1, masked_mean
 from mvpose_jax.matcher_training import fit_matcher_model
-from mvpose_jax.models import estimator_model, matcher_model
+from mvpose_jax.models import estimator_model, initialised, matcher_model
 from mvpose_jax.train import (
     FitResult,
     fit_resumable,
@@ -240,7 +240,9 @@ def pretrain_estimator(
     tcfg = config.train
     batch = tcfg.batch_size
     steps_per_epoch = sum(max(1, math.ceil(len(b.available) / batch)) for b in train_data.values())
-    model = estimator_model(CAMERA_BUCKETS[-1], K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
+    model = initialised(
+        lambda: estimator_model(CAMERA_BUCKETS[-1], K, config.mlp, rngs=nnx.Rngs(tcfg.seed))
+    )
     tx = make_optimizer(tcfg, steps_per_epoch)
     graphdef, rest, state = init_train_state(model, tx)
     step = make_train_step(
@@ -364,7 +366,7 @@ def pretrain_matcher(
             dev, np.random.default_rng([tcfg.seed, 1 << 30]), num_dev, tcfg.batch_size, **compose
         )
     )
-    model = matcher_model(0, K, config.gat, rngs=nnx.Rngs(tcfg.seed))
+    model = initialised(lambda: matcher_model(0, K, config.gat, rngs=nnx.Rngs(tcfg.seed)))
 
     def epoch_batches(epoch):
         rng = np.random.default_rng([tcfg.seed, epoch])

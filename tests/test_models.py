@@ -16,7 +16,16 @@ from mvpose_jax.graphs import (
     build_graphs,
     dense_node_features,
 )
-from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP, count_params
+from mvpose_jax.models import (
+    GATConfig,
+    MatchingGAT,
+    MLPConfig,
+    PoseMLP,
+    count_params,
+    estimator_model,
+    initialised,
+    matcher_model,
+)
 from tests.helpers import C, K, random_frames
 from tests.helpers import tiny_matcher_train_state as _train_state
 
@@ -122,3 +131,20 @@ def test_paper_size_mlp_parameter_count(widths, millions):
     expected = sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:], strict=True))
     assert count_params(params) == expected
     assert expected / 1e6 == pytest.approx(millions, abs=0.01)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: matcher_model(3, K, GATConfig.quick(), rngs=nnx.Rngs(5)),
+        lambda: matcher_model(0, K, GATConfig.pooled(), rngs=nnx.Rngs(1)),
+        lambda: estimator_model(C, K, MLPConfig(widths=(64, 32)), rngs=nnx.Rngs(2)),
+        lambda: estimator_model(0, K, MLPConfig.pooled(), rngs=nnx.Rngs(3)),
+    ],
+    ids=["gat", "gat-pooled", "mlp", "mlp-pooled"],
+)
+def test_initialised_draws_the_eager_initial_parameters_bit_for_bit(make):
+    want, got = nnx.state(make()), nnx.state(initialised(make))
+    assert jax.tree.structure(got) == jax.tree.structure(want)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
