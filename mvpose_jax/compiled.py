@@ -34,7 +34,7 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path
     """Keeps XLA's compiled programs on disk, so that the next process skips their compilation.
 
     Most of a short job's time is compilation (`mvpose-jax infer` with models on the Pose2Sim
-    demo: 32 s cold, 10 s with the cache warm; docs/performance.md). jax keys each program by its
+    demo: 30 s cold, 10 s with the cache warm; docs/performance.md). jax keys each program by its
     computation, compile options, jax version and device, so a cached program is the program a
     compile would give: results do not change. Call before the first compilation that should be
     kept (the command line and `experiments.run` call it first thing). The folder is set in the
