@@ -19,7 +19,7 @@ import os
 import shutil
 import tempfile
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -40,6 +40,7 @@ from mvpose_jax.models import (
     estimator_model,
     matcher_model,
     rotation_to_z_up,
+    unfilled,
 )
 from mvpose_jax.proposals import CombinedConfig
 
@@ -185,14 +186,14 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
     if "num_keypoints" not in saved:
         raise InputError("checkpoint config lacks num_keypoints", file=directory, field="config")
     if config.mlp.views == "pooled":
-        graphdef, params, rest = _unfilled_model(
+        graphdef, params, rest = unfilled(
             lambda: estimator_model(0, int(saved["num_keypoints"]), config.mlp, rngs=nnx.Rngs(0))
         )
         params = folder.restore_params(params, which)
         return rig_agnostic_estimator(graphdef, rest, params, config, rig)
     rig_infer = rig.select(list(config.infer_cameras or config.train_cameras or rig.names))
     K = int(saved["num_keypoints"])
-    graphdef, params, rest = _unfilled_model(
+    graphdef, params, rest = unfilled(
         lambda: PoseMLP(rig_infer.num_cameras, K, config.mlp, rngs=nnx.Rngs(0))
     )
     params = folder.restore_params(params, which)
@@ -209,17 +210,6 @@ def load_estimator(directory: str | Path, rig: Rig, which: str = "best") -> Esti
         normalisation = (jnp.asarray(f[:3]), jnp.asarray(f[3]))
     _warn_if_worse_than_triangulation(folder)
     return Estimator(graphdef, rest, params, rig_infer, config, normalisation)
-
-
-def _unfilled_model(make: Callable[[], nnx.Module]) -> tuple[Any, Any, Any]:
-    """``make()``'s model split as (graphdef, params, rest) for loading: its parameters abstract
-    (shapes and dtypes, to restore into), its other state (a rig-agnostic model's frame) as
-    ``make`` sets it. The initial parameters are never drawn: drawn eagerly, each weight shape
-    compiled a random-number program of its own (17 for the shipped models, 3 s of a cold
-    ``infer``); the jitted ``rest`` alone leaves them out of its program."""
-    graphdef, params, _ = nnx.split(nnx.eval_shape(make), nnx.Param, ...)
-    rest = jax.jit(lambda: nnx.split(make(), nnx.Param, ...)[2])()
-    return graphdef, params, rest
 
 
 def rig_agnostic_estimator(graphdef, rest, params, config: EstimatorConfig, rig: Rig) -> Estimator:
@@ -371,7 +361,7 @@ def load_matcher(
                 )
             num_keypoints = int(saved["num_keypoints"])
     rig_infer = rig.select(list(config.cameras or rig.names))
-    graphdef, params, rest = _unfilled_model(
+    graphdef, params, rest = unfilled(
         lambda: matcher_model(rig_infer.num_cameras, num_keypoints, config.gat, rngs=nnx.Rngs(0))
     )
     params = folder.restore_params(params, which)

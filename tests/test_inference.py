@@ -514,6 +514,10 @@ def test_frame_chunks_cut_evenly_into_one_padded_shape(frames, per_call):
     # One padded size for all: the next power of two of the longest call, within the cap.
     assert max(lengths) <= padded <= per_call and padded & (padded - 1) == 0
     assert padded < 2 * max(lengths)
+
+
+def test_frame_chunks_of_a_tracking_scene_and_of_nothing():
+    # 300 frames at 32 a call: ten calls of 30, not nine of 32 and a tail of 12 padded to 16.
     assert frame_chunks(300, 32) == ([(30 * i, 30 * i + 30) for i in range(10)], 32)
     assert frame_chunks(0, 32) == ([], 0)
 
