@@ -90,9 +90,9 @@ def main(argv=None) -> int:
         "--scale",
         choices=("quick", "quick-long", "paper"),
         default="quick",
-        help="quick: small networks, minutes; quick-long: the same with twice the training "
-        "steps (the quick scale's budgets until December 2026); paper: the paper's sizes and "
-        "training lengths",
+        help="quick: small networks, minutes; quick-long: the same networks with the quick "
+        "scale's longer budgets until December 2026 (2- and 3-view matchers 24000 and 20000 "
+        "steps, the estimator 6000); paper: the paper's sizes and training lengths",
     )
     ap.add_argument(
         "--smoke", action="store_true", help="a seconds-long run of the same code (tests)"
