@@ -34,6 +34,7 @@ run gives the same ids as a whole-recording run.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numba
 import numpy as np
@@ -598,8 +599,16 @@ def _assign(cost: np.ndarray, ok: np.ndarray, matched_track: np.ndarray) -> None
     if len(r_idx) == 1 and len(c_idx) == 1:
         matched_track[c_idx[0]] = r_idx[0]
         return
-    sub_ok = ok[np.ix_(r_idx, c_idx)]
-    rows, cols = linear_sum_assignment(np.where(sub_ok, cost[np.ix_(r_idx, c_idx)], _NO_MATCH))
+    if (ok.sum(0) <= 1).all() and (ok.sum(1) <= 1).all():
+        # Each track within the gate of at most one person and each person of at most one
+        # track (people apart, the common case): the allowed pairs are a matching, and the
+        # minimum-cost assignment takes all of them (leaving one out costs a _NO_MATCH), so
+        # they are its result without the search.
+        t, d = np.nonzero(ok)
+        matched_track[d] = t
+        return
+    sub_ok = ok[r_idx][:, c_idx]
+    rows, cols = linear_sum_assignment(np.where(sub_ok, cost[r_idx][:, c_idx], _NO_MATCH))
     keep = sub_ok[rows, cols]
     matched_track[c_idx[cols[keep]]] = r_idx[rows[keep]]
 
@@ -627,10 +636,18 @@ def _split_people(
             fragment[best], fragment[d] = False, True
 
 
+@functools.cache
+def _pairs(num_keypoints: int) -> tuple[np.ndarray, np.ndarray]:
+    """`numpy.triu_indices(num_keypoints, 1)`, made once (it costs more than a frame's sums)."""
+    i, j = np.triu_indices(num_keypoints, 1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
+
+
 def _add_sizes(rows: dict, t_idx: np.ndarray, xyz: np.ndarray, kv: np.ndarray) -> None:
     """Adds the people's (M, K, 3) keypoint-pair distances (valid where kv (M, K)) to the body
     size sums of track rows t_idx (M,)."""
-    i, j = np.triu_indices(kv.shape[-1], 1)
+    i, j = _pairs(kv.shape[-1])
     sq = np.square(xyz[:, i] - xyz[:, j]).sum(-1)  # (M, P)
     both = kv[:, i] & kv[:, j]
     rows["size_n"][t_idx] += both

@@ -384,6 +384,32 @@ def test_the_compiled_costs_equal_their_definition():
 # ------------------------------------------------------------------- track-level association
 
 
+
+
+@pytest.mark.parametrize("density", [0.15, 0.4, 0.8])
+def test_assignment_is_scipys_on_the_whole_gated_matrix(density):
+    """`_assign` (with its shortcuts: one pair, and allowed pairs that already form a matching)
+    against `scipy.optimize.linear_sum_assignment` on the whole cost matrix, the disallowed
+    pairs priced out and dropped afterwards."""
+    from scipy.optimize import linear_sum_assignment
+
+    from mvpose_jax.tracking import _NO_MATCH, _assign
+
+    rng = np.random.default_rng(int(density * 100))
+    matchings = 0
+    for _ in range(300):
+        T, D = rng.integers(1, 7, size=2)
+        cost = rng.uniform(0, 1, (T, D))
+        ok = rng.random((T, D)) < density
+        got = np.full(D, -1, np.int64)
+        _assign(cost, ok, got)
+        want = np.full(D, -1, np.int64)
+        rows, cols = linear_sum_assignment(np.where(ok, cost, _NO_MATCH))
+        keep = ok[rows, cols]
+        want[cols[keep]] = rows[keep]
+        np.testing.assert_array_equal(got, want)
+        matchings += bool((ok.sum(0) <= 1).all() and (ok.sum(1) <= 1).all())
+    assert 10 < matchings < 300  # both paths were taken
 def _projections(rig, people):
     """Exact skeletons of (G, F, K, 3) people in every camera: xy (F, C, G, K, 2), score."""
     from mvpose_jax.cameras import project_points
