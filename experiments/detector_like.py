@@ -27,6 +27,10 @@ Scored as ``experiments.real`` scores them (nothing is tuned on these recordings
 * the GAT's scores of cross-view skeleton pairs against a reference grouping (MVOR's true groups
   and the geometric default's; the demo's geometric default): ROC AUC and the shares of pairs on
   the wrong side of the chosen threshold (`pair_separation`).
+* the grouping rule on the GAT's scores (`grouping_rules`): the paper's greedy union-find
+  (`proposals.propose_people`) against average linkage (`proposals.propose_people_linked`, a
+  person's pairs weighed together), each at the threshold with the best ARI on the composed dev
+  frames; people per frame and ARI against the reference groupings on the real recordings.
 
 Writes ``DIR/detector_like.md`` and ``DIR/detector_like.json``; the models go to ``DIR/models``.
 """
@@ -43,10 +47,13 @@ from scipy.stats import mannwhitneyu
 
 from experiments import pose2sim_demo as demo
 from experiments import real
+from experiments.data import make_data
 from experiments.mvor import DEFAULT_ROOT, load_mvor, poses_to_joints, select_frames, true_identity
 from experiments.mvor_protocol import evaluate
 from experiments.real_models import (
     MODELS_RECIPE,
+    SEED,
+    scale,
     synthetic_models,
     training_record,
 )
@@ -57,7 +64,10 @@ from mvpose_jax.detector_fit import fit_detector
 from mvpose_jax.floor import estimate_floor_from_detections
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import members_from_identity
+from mvpose_jax.matcher_settings import composed_frames
 from mvpose_jax.matching import gat_match_table
+from mvpose_jax.metrics import matching_scores
+from mvpose_jax.proposals import PROPOSAL_THRESHOLDS, propose_people, propose_people_linked
 from mvpose_jax.trained import Matcher
 
 # The model pairs: (key, label).
@@ -71,6 +81,8 @@ MVOR_MODEL_ROWS = (
     ("true groups + blend", "true", "blend"),
 )
 GEOMETRIC = ("geometric default (epipolar + robust)", "epipolar", "robust")
+# The grouping rules compared on the GAT's scores (`grouping_rules`).
+GROUPING_RULES = (("greedy", propose_people), ("average linkage", propose_people_linked))
 # The demo's rows: `pose2sim_demo.MODEL_SOURCES` keys of the two pairs.
 DEMO_SOURCE = {"default": "synthetic", "fitted": "detector-like"}
 
@@ -138,6 +150,67 @@ def score_separation(scores: np.ndarray, same: np.ndarray, threshold: float) -> 
         "other_above_threshold": float((s[~same] >= threshold).mean()),
         "threshold": threshold,
     }
+
+
+def grouping_rules(models, rig, floor, detector, smoke: bool, detections, references: dict) -> dict:
+    """The GAT's scores grouped by each of `GROUPING_RULES`, each at the threshold with the best
+    per-frame ARI on frames composed from the pair's dev recordings (regenerated as
+    `real_models.synthetic_models` made them: same scale, seed, floor and ``detector``; ties
+    nearest 0.5, as `proposals.choose_proposal_threshold`), then on the real ``detections``:
+    people per frame (the groups of 2+ views) and ARI against each of ``references`` ({name:
+    (F, C, P) identity})."""
+    sc = scale(smoke)
+    data = make_data(
+        rig, {}, sc, SEED, False, floor_height=floor.height, up=floor.measured_up, detector=detector
+    )
+    matcher = models.matcher
+    composed, identity = composed_frames(
+        matcher.rig,
+        data.dev,
+        num_samples=sc.threshold_frames,
+        seed=SEED,
+        **matcher.config.composition(),
+    )
+    dev_rows, dev_scores = gat_match_table(matcher, composed)
+    rows, scores = gat_match_table(matcher, detections)
+    out = {}
+    for name, rule in GROUPING_RULES:
+        ari = {
+            th: matching_scores(
+                identity,
+                rule(
+                    dev_rows,
+                    dev_scores,
+                    composed.count,
+                    num_skeletons=identity.shape[2],
+                    threshold=th,
+                ).identity,
+                composed.count,
+            )["ari"]
+            for th in PROPOSAL_THRESHOLDS
+        }
+        best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - 0.5)))
+        grouped = rule(
+            rows, scores, detections.count, num_skeletons=detections.score.shape[2], threshold=best
+        ).identity
+        out[name] = {
+            "threshold": best,
+            "dev_ari": ari[best],
+            "dev_ari_by_threshold": {str(k): v for k, v in ari.items()},
+            "people_per_frame": _people_per_frame(grouped),
+            **{
+                f"ari_vs_{ref}": matching_scores(truth, grouped, detections.count)["ari"]
+                for ref, truth in references.items()
+            },
+        }
+    out["references"] = {ref: _people_per_frame(t) for ref, t in references.items()}
+    return out
+
+
+def _people_per_frame(identity: np.ndarray) -> float:
+    """Mean number of people (distinct identities >= 0) per frame of (F, C, P) identities."""
+    ident = np.asarray(identity).reshape(len(identity), -1)
+    return float(np.mean([len(np.unique(f[f >= 0])) for f in ident]))
 
 
 def demo_rows(table: dict) -> list[dict]:
@@ -227,6 +300,32 @@ def markdown(report: dict) -> str:
                     f"| {100 * p['same_below_threshold']:.1f} "
                     f"| {100 * p['other_above_threshold']:.1f} |"
                 )
+    lines += [
+        "",
+        "## The grouping rule on the GAT's scores (threshold chosen on composed dev frames)",
+        "",
+        "| recording | models' detector | rule | threshold | dev ARI | people / frame "
+        "| ARI vs true groups | ARI vs geometric |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for rec in ("mvor", "pose2sim_demo"):
+        for key, by_rule in report.get(rec, {}).get("grouping_rules", {}).items():
+            refs = by_rule["references"]
+            for rule, _ in GROUPING_RULES:
+                g = by_rule[rule]
+                cells = [
+                    f"{g[f'ari_vs_{ref}']:.3f}" if f"ari_vs_{ref}" in g else "-"
+                    for ref in ("true groups", "geometric")
+                ]
+                lines.append(
+                    f"| {rec} | {dict(SOURCES)[key]} | {rule} | {g['threshold']:g} "
+                    f"| {g['dev_ari']:.4f} | {g['people_per_frame']:.2f} | {' | '.join(cells)} |"
+                )
+            lines.append(
+                f"| {rec} | | references: "
+                + ", ".join(f"{ref} {v:.2f} people / frame" for ref, v in refs.items())
+                + " | | | | | |"
+            )
     lines += ["", f"Seconds, with training: {report['seconds']:.0f}."]
     return "\n".join(lines) + "\n"
 
@@ -252,6 +351,7 @@ def main(argv=None) -> int:
     floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
     fit = fit_detector(data.rig, data.detections, layout=data.layout)
     print("\n".join([f"{args.data}: fitted detector", *fit.describe()]))
+    detector_of = {"default": None, "fitted": fit.config}
     pairs = {
         "default": synthetic_models(
             data.rig, floor, base / "mvor-synthetic", smoke=args.smoke, progress=True
@@ -279,6 +379,18 @@ def main(argv=None) -> int:
                 reference: pair_separation(m.matcher, m.fit["threshold"], data.detections, ident)
                 for reference, ident in (("true groups", truth), ("geometric", geometric))
             }
+            for k, m in pairs.items()
+        },
+        "grouping_rules": {
+            k: grouping_rules(
+                m,
+                data.rig,
+                floor,
+                detector_of[k],
+                args.smoke,
+                data.detections,
+                {"true groups": truth, "geometric": geometric},
+            )
             for k, m in pairs.items()
         },
     }
@@ -340,6 +452,18 @@ def main(argv=None) -> int:
                         m.matcher, m.fit["threshold"], detections, geometric
                     )
                 }
+                for k, m in pairs.items()
+            },
+            "grouping_rules": {
+                k: grouping_rules(
+                    m,
+                    rig,
+                    floor,
+                    None if k == "default" else fit.config,
+                    args.smoke,
+                    detections,
+                    {"geometric": geometric},
+                )
                 for k, m in pairs.items()
             },
         }

@@ -100,12 +100,8 @@ def propose_people(
     Returns:
       `Proposals`.
     """
-    count = np.asarray(count)
-    F, C = count.shape
-    P = max(1, int(count.max(initial=0)) if num_skeletons is None else num_skeletons)
-    if C > 62:
-        raise InputError("proposals support at most 62 cameras", field="cameras")
-    ok = np.arange(P)[None, None] < count[..., None]  # (F, C, P)
+    count, ok = _skeleton_slots(count, num_skeletons)
+    F, C, P = ok.shape
     n = F * C * P
     rows = np.asarray(rows, np.int64).reshape(-1, 5)
     scores = np.asarray(scores).reshape(-1)
@@ -127,6 +123,17 @@ def propose_people(
                 parent, a, b, scores[joins], pair_items, scores, threshold, C, P, min_views
             )
     return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
+
+
+def _skeleton_slots(count: np.ndarray, num_skeletons: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """count (F, C) as an array and which of the P skeleton slots hold a skeleton, ok (F, C, P)
+    (P: ``num_skeletons``, default ``count.max()``, at least 1). Camera sets are 64-bit masks:
+    at most 62 cameras."""
+    count = np.asarray(count)
+    P = max(1, int(count.max(initial=0)) if num_skeletons is None else num_skeletons)
+    if count.shape[1] > 62:
+        raise InputError("proposals support at most 62 cameras", field="cameras")
+    return count, np.arange(P)[None, None] < count[..., None]
 
 
 # `propose_people`'s split repair never merges two groups with a pair between them scoring
@@ -324,6 +331,87 @@ def _drop_duplicate_people(
             continue
         dropped.add(ghost)
         root[members[ghost]] = members[ghost]
+    return root
+
+
+def propose_people_linked(
+    rows: np.ndarray,
+    scores: np.ndarray,
+    count: np.ndarray,
+    *,
+    num_skeletons: int | None = None,
+    threshold: float = 0.5,
+    min_views: int = 2,
+) -> Proposals:
+    """Groups skeletons into people by average linkage over their cross-view pairs.
+
+    `propose_people` joins two groups on the one best pair between them, so one wrong pair
+    scored above the threshold can give a person's view to someone else, and one of the person's
+    own pairs scored below it leaves the person split. Here every skeleton starts as its own
+    group and, per frame, the two groups without a camera in common whose mean score over all
+    their cross-view pairs is highest are merged, while that mean exceeds ``threshold``: a
+    person's pairs are weighed together. Pairs not in ``rows`` score 0. Ties go to the groups
+    of the lower skeleton indices (camera, then skeleton). A person is a group of at least
+    ``min_views`` skeletons.
+
+    Args and returns as `propose_people` (rows (M, 5), scores (M,), count (F, C)).
+    Host-side numpy, a loop over frames and merges: for offline comparisons, not a hot path.
+    """
+    count, ok = _skeleton_slots(count, num_skeletons)
+    F, C, P = ok.shape
+    n = C * P
+    rows = np.asarray(rows, np.int64).reshape(-1, 5)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    camera = np.repeat(np.arange(C), P)  # (n,) of each frame-local item
+    root = np.tile(np.arange(n), (F, 1))  # (F, n)
+    if C > 1:
+        table = np.zeros((F, n, n))
+        a, b = rows[:, 1] * P + rows[:, 2], rows[:, 3] * P + rows[:, 4]
+        table[rows[:, 0], a, b] = scores
+        table[rows[:, 0], b, a] = scores
+        for f in range(F):
+            root[f] = _average_linkage(table[f], ok[f].reshape(-1), camera, threshold)
+    flat = root + (np.arange(F) * n)[:, None]
+    return _proposals_from_roots(flat.reshape(F, C, P), ok, 1 if C == 1 else min_views)
+
+
+def _average_linkage(
+    score: np.ndarray, valid: np.ndarray, camera: np.ndarray, threshold: float
+) -> np.ndarray:
+    """One frame of `propose_people_linked`: score (n, n) symmetric pair scores, valid (n,) real
+    skeletons, camera (n,). Returns (n,) each item's group, named by its lowest item."""
+    n = len(valid)
+    items = np.nonzero(valid)[0]
+    root = np.arange(n)
+    if len(items) < 2:
+        return root
+    m = len(items)
+    cams = np.zeros((m, int(camera.max()) + 1), bool)
+    cams[np.arange(m), camera[items]] = True
+    total = score[np.ix_(items, items)].copy()  # sums over the groups' cross-view pairs
+    pairs = (camera[items][:, None] != camera[items][None]).astype(np.float64)
+    alive = np.ones(m, bool)
+    members = [[i] for i in range(m)]
+    while True:
+        ok = alive[:, None] & alive[None] & ~(cams.astype(np.int64) @ cams.T.astype(np.int64) > 0)
+        np.fill_diagonal(ok, False)
+        mean = np.where(ok & (pairs > 0), total / np.maximum(pairs, 1), -np.inf)
+        best = int(np.argmax(mean))
+        i, j = divmod(best, m)
+        if not mean[i, j] > threshold:
+            break
+        i, j = min(i, j), max(i, j)
+        total[i] += total[j]
+        total[:, i] += total[:, j]
+        pairs[i] += pairs[j]
+        pairs[:, i] += pairs[:, j]
+        cams[i] |= cams[j]
+        alive[j] = False
+        members[i] += members[j]
+    for g in np.nonzero(alive)[0]:
+        group = members[g]
+        if len(group) > 1:
+            root[items[group]] = items[min(group)]
     return root
 
 

@@ -26,6 +26,7 @@ from mvpose_jax.proposals import (
     grouping_consistency,
     propose_combined,
     propose_people,
+    propose_people_linked,
     union_find_exclusive,
 )
 from mvpose_jax.synthetic import generate_single_person_recordings
@@ -500,3 +501,89 @@ def test_choose_combined_threshold_and_the_record(tmp_path):
     (tmp_path / PROPOSAL_THRESHOLD_FILE).write_text(bad)
     with pytest.raises(InputError, match="repair_splits must be true or false"):
         read_combined_config(tmp_path)
+
+
+# --------------------------------------------------------------------------- average linkage
+
+
+def _linked_by_definition(score, valid, camera, threshold):
+    """Average linkage written out: groups as sets, every candidate pair's mean recomputed."""
+    groups = [{i} for i in np.nonzero(valid)[0]]
+    while True:
+        best, pick = -np.inf, None
+        for x in range(len(groups)):
+            for y in range(x + 1, len(groups)):
+                if {camera[i] for i in groups[x]} & {camera[j] for j in groups[y]}:
+                    continue
+                vals = [score[i, j] for i in groups[x] for j in groups[y]]
+                mean = float(np.mean(vals))
+                if mean > best + 1e-12:
+                    best, pick = mean, (x, y)
+        if pick is None or not best > threshold:
+            return groups
+        x, y = pick
+        groups[x] |= groups.pop(y)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_linked_proposals_are_average_linkage_by_definition(seed):
+    """`propose_people_linked` against average linkage recomputed from scratch at every merge,
+    on random frames of 2-4 cameras (scores in [0, 1] on 8 levels, so ties happen)."""
+    rng = np.random.default_rng(seed)
+    F, C, P = 6, int(rng.integers(2, 5)), 4
+    count = rng.integers(0, P + 1, (F, C))
+    rows = np.array(
+        [
+            [f, ca, pa, cb, pb]
+            for f in range(F)
+            for ca in range(C)
+            for cb in range(ca + 1, C)
+            for pa in range(count[f, ca])
+            for pb in range(count[f, cb])
+        ],
+        np.int64,
+    ).reshape(-1, 5)
+    scores = rng.integers(0, 8, len(rows)) / 7.0
+    got = propose_people_linked(rows, scores, count, num_skeletons=P, threshold=0.45)
+    camera = np.repeat(np.arange(C), P)
+    for f in range(F):
+        score = np.zeros((C * P, C * P))
+        for (_, ca, pa, cb, pb), s in zip(
+            rows[rows[:, 0] == f], scores[rows[:, 0] == f], strict=True
+        ):
+            score[ca * P + pa, cb * P + pb] = score[cb * P + pb, ca * P + pa] = s
+        valid = (np.arange(P)[None] < count[f][:, None]).reshape(-1)
+        want = {
+            frozenset(g) for g in _linked_by_definition(score, valid, camera, 0.45) if len(g) >= 2
+        }
+        ident = got.identity[f].reshape(-1)
+        have = {frozenset(np.nonzero(ident == k)[0].tolist()) for k in range(ident.max() + 1)}
+        # Ties may be broken differently only where the means are equal; with these levels the
+        # merge order of equal means is the lowest pair first in both.
+        assert have == want, (f, have, want)
+
+
+def test_linkage_weighs_a_persons_pairs_together():
+    """Three views: person 0 in views 0 and 1, person 1 in all three, and a false skeleton in
+    view 2 that scores above the threshold with person 0's view 1 (0.6) and 0 with its view 0.
+    The greedy grouping joins it to person 0 on that one pair; average linkage does not (mean
+    0.3)."""
+    pairs = {(0, 0, 1, 0): 0.9, (0, 1, 1, 1): 0.9, (0, 1, 2, 1): 0.9, (1, 1, 2, 1): 0.9}
+    pairs |= {(1, 0, 2, 0): 0.6}
+    rows = np.array(
+        [
+            [0, ca, pa, cb, pb]
+            for ca, cb in ((0, 1), (0, 2), (1, 2))
+            for pa in (0, 1)
+            for pb in (0, 1)
+        ]
+    )
+    scores = np.array([pairs.get(tuple(r[1:]), 0.0) for r in rows])
+    count = np.full((1, 3), 2)
+    truth = np.array([[[0, 1], [0, 1], [-1, 1]]])
+    greedy = propose_people(rows, scores, count, threshold=0.5)
+    linked = propose_people_linked(rows, scores, count, threshold=0.5)
+    assert greedy.identity[0, 2, 0] == greedy.identity[0, 1, 0] >= 0
+    assert linked.identity[0, 2, 0] == -1
+    assert matching_scores(truth, linked.identity, count)["ari"] == pytest.approx(1.0)
+    assert matching_scores(truth, greedy.identity, count)["ari"] < 1.0

@@ -384,8 +384,6 @@ def test_the_compiled_costs_equal_their_definition():
 # ------------------------------------------------------------------- track-level association
 
 
-
-
 @pytest.mark.parametrize("density", [0.15, 0.4, 0.8])
 def test_assignment_is_scipys_on_the_whole_gated_matrix(density):
     """`_assign` (with its shortcuts: one pair, and allowed pairs that already form a matching)
@@ -410,6 +408,8 @@ def test_assignment_is_scipys_on_the_whole_gated_matrix(density):
         np.testing.assert_array_equal(got, want)
         matchings += bool((ok.sum(0) <= 1).all() and (ok.sum(1) <= 1).all())
     assert 10 < matchings < 300  # both paths were taken
+
+
 def _projections(rig, people):
     """Exact skeletons of (G, F, K, 3) people in every camera: xy (F, C, G, K, 2), score."""
     from mvpose_jax.cameras import project_points
