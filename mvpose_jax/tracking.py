@@ -592,21 +592,15 @@ def _assign(cost: np.ndarray, ok: np.ndarray, matched_track: np.ndarray) -> None
         if ok[0, 0]:
             matched_track[0] = 0
         return
-    r_any, c_any = ok.any(1), ok.any(0)
-    if not r_any.any():
-        return
-    r_idx, c_idx = np.nonzero(r_any)[0], np.nonzero(c_any)[0]
-    if len(r_idx) == 1 and len(c_idx) == 1:
-        matched_track[c_idx[0]] = r_idx[0]
-        return
     if (ok.sum(0) <= 1).all() and (ok.sum(1) <= 1).all():
         # Each track within the gate of at most one person and each person of at most one
-        # track (people apart, the common case): the allowed pairs are a matching, and the
-        # minimum-cost assignment takes all of them (leaving one out costs a _NO_MATCH), so
-        # they are its result without the search.
+        # track (people apart, the common case; no allowed pair at all, or one): the allowed
+        # pairs are a matching, and the minimum-cost assignment takes all of them (leaving one
+        # out costs a _NO_MATCH), so they are its result without the search.
         t, d = np.nonzero(ok)
         matched_track[d] = t
         return
+    r_idx, c_idx = np.nonzero(ok.any(1))[0], np.nonzero(ok.any(0))[0]
     sub_ok = ok[r_idx][:, c_idx]
     rows, cols = linear_sum_assignment(np.where(sub_ok, cost[r_idx][:, c_idx], _NO_MATCH))
     keep = sub_ok[rows, cols]
