@@ -67,7 +67,7 @@ from mvpose_jax.lifting import members_from_identity
 from mvpose_jax.matcher_settings import composed_frames
 from mvpose_jax.matching import gat_match_table
 from mvpose_jax.metrics import matching_scores
-from mvpose_jax.proposals import PROPOSAL_THRESHOLDS, propose_people, propose_people_linked
+from mvpose_jax.proposals import choose_proposal_threshold, propose_people, propose_people_linked
 from mvpose_jax.trained import Matcher
 
 # The model pairs: (key, label).
@@ -155,10 +155,10 @@ def score_separation(scores: np.ndarray, same: np.ndarray, threshold: float) -> 
 def grouping_rules(models, rig, floor, detector, smoke: bool, detections, references: dict) -> dict:
     """The GAT's scores grouped by each of `GROUPING_RULES`, each at the threshold with the best
     per-frame ARI on frames composed from the pair's dev recordings (regenerated as
-    `real_models.synthetic_models` made them: same scale, seed, floor and ``detector``; ties
-    nearest 0.5, as `proposals.choose_proposal_threshold`), then on the real ``detections``:
-    people per frame (the groups of 2+ views) and ARI against each of ``references`` ({name:
-    (F, C, P) identity})."""
+    `real_models.synthetic_models` made them: same scale, seed, floor and ``detector``;
+    `proposals.choose_proposal_threshold` with the rule as its grouping), then on the real
+    ``detections``: people per frame (the groups of 2+ views) and ARI against each of
+    ``references`` ({name: (F, C, P) identity})."""
     sc = scale(smoke)
     data = make_data(
         rig, {}, sc, SEED, False, floor_height=floor.height, up=floor.measured_up, detector=detector
@@ -175,21 +175,9 @@ def grouping_rules(models, rig, floor, detector, smoke: bool, detections, refere
     rows, scores = gat_match_table(matcher, detections)
     out = {}
     for name, rule in GROUPING_RULES:
-        ari = {
-            th: matching_scores(
-                identity,
-                rule(
-                    dev_rows,
-                    dev_scores,
-                    composed.count,
-                    num_skeletons=identity.shape[2],
-                    threshold=th,
-                ).identity,
-                composed.count,
-            )["ari"]
-            for th in PROPOSAL_THRESHOLDS
-        }
-        best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - 0.5)))
+        best, ari = choose_proposal_threshold(
+            dev_rows, dev_scores, identity, composed.count, grouping=rule
+        )
         grouped = rule(
             rows, scores, detections.count, num_skeletons=detections.score.shape[2], threshold=best
         ).identity
@@ -404,6 +392,7 @@ def main(argv=None) -> int:
         floor = estimate_floor_from_detections(rig, detections, layout=demo.LAYOUT)
         fit = fit_detector(rig, detections, layout=demo.LAYOUT)
         print("\n".join([f"{trial.folder}: fitted detector", *fit.describe()]))
+        detector_of = {"default": None, "fitted": fit.config}
         folders = {
             "default": base / "pose2sim-demo" / "synthetic",
             "fitted": out / "models" / "pose2sim-demo-detector-like",
@@ -459,7 +448,7 @@ def main(argv=None) -> int:
                     m,
                     rig,
                     floor,
-                    None if k == "default" else fit.config,
+                    detector_of[k],
                     args.smoke,
                     detections,
                     {"geometric": geometric},

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -386,16 +387,16 @@ def _average_linkage(
     if len(items) < 2:
         return root
     m = len(items)
-    cams = np.zeros((m, int(camera.max()) + 1), bool)
-    cams[np.arange(m), camera[items]] = True
-    total = score[np.ix_(items, items)].copy()  # sums over the groups' cross-view pairs
-    pairs = (camera[items][:, None] != camera[items][None]).astype(np.float64)
+    # Groups sharing a camera may never merge (the item itself included: the diagonal). Between
+    # two groups that may, every item pair is cross-view: their pair count is the sizes' product.
+    conflict = camera[items][:, None] == camera[items][None]
+    total = score[np.ix_(items, items)].copy()  # score sums over the groups' item pairs
+    size = np.ones(m)
     alive = np.ones(m, bool)
     members = [[i] for i in range(m)]
     while True:
-        ok = alive[:, None] & alive[None] & ~(cams.astype(np.int64) @ cams.T.astype(np.int64) > 0)
-        np.fill_diagonal(ok, False)
-        mean = np.where(ok & (pairs > 0), total / np.maximum(pairs, 1), -np.inf)
+        ok = alive[:, None] & alive[None] & ~conflict
+        mean = np.where(ok, total / np.outer(size, size), -np.inf)
         best = int(np.argmax(mean))
         i, j = divmod(best, m)
         if not mean[i, j] > threshold:
@@ -403,9 +404,9 @@ def _average_linkage(
         i, j = min(i, j), max(i, j)
         total[i] += total[j]
         total[:, i] += total[:, j]
-        pairs[i] += pairs[j]
-        pairs[:, i] += pairs[:, j]
-        cams[i] |= cams[j]
+        conflict[i] |= conflict[j]
+        conflict[:, i] |= conflict[:, j]
+        size[i] += size[j]
         alive[j] = False
         members[i] += members[j]
     for g in np.nonzero(alive)[0]:
@@ -481,6 +482,7 @@ def choose_proposal_threshold(
     thresholds: tuple[float, ...] = PROPOSAL_THRESHOLDS,
     min_views: int = 2,
     shared_keypoints: np.ndarray | None = None,
+    grouping: Callable[..., Proposals] | None = None,
 ) -> tuple[float, dict[float, float]]:
     """The proposal threshold with the best (per-frame) adjusted Rand index on labelled frames.
 
@@ -493,10 +495,12 @@ def choose_proposal_threshold(
     Args:
       rows (M, 5), scores (M,): scored pairs; identity (F, C, P): true person of each skeleton
         (-1 false detection); count (F, C).
+      grouping: the grouping the threshold is for, with `propose_people`'s arguments (None:
+        `propose_people` itself; e.g. `propose_people_linked`).
     Returns:
       (the threshold, {threshold: ARI}).
     """
-    ari = _ari_by_threshold(rows, scores, identity, count, thresholds, min_views)
+    ari = _ari_by_threshold(rows, scores, identity, count, thresholds, min_views, grouping)
     best = max(ari, key=lambda th: (round(ari[th], 6), -abs(th - 0.5)))
     return best, ari
 
@@ -550,14 +554,15 @@ def choose_geometric_cutoff(
     return best, ari
 
 
-def _ari_by_threshold(rows, scores, identity, count, thresholds, min_views) -> dict[float, float]:
+def _ari_by_threshold(
+    rows, scores, identity, count, thresholds, min_views, grouping=None
+) -> dict[float, float]:
     count = np.asarray(count)
     P = np.shape(identity)[2]
+    group = propose_people if grouping is None else grouping
     ari = {}
     for th in thresholds:
-        pred = propose_people(
-            rows, scores, count, num_skeletons=P, threshold=th, min_views=min_views
-        )
+        pred = group(rows, scores, count, num_skeletons=P, threshold=th, min_views=min_views)
         ari[float(th)] = matching_scores(identity, pred.identity, count)["ari"]
     return ari
 

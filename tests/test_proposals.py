@@ -587,3 +587,12 @@ def test_linkage_weighs_a_persons_pairs_together():
     assert linked.identity[0, 2, 0] == -1
     assert matching_scores(truth, linked.identity, count)["ari"] == pytest.approx(1.0)
     assert matching_scores(truth, greedy.identity, count)["ari"] < 1.0
+    # The threshold rule takes either grouping; by default the greedy one.
+    assert choose_proposal_threshold(rows, scores, truth, count) == choose_proposal_threshold(
+        rows, scores, truth, count, grouping=propose_people
+    )
+    best, ari = choose_proposal_threshold(
+        rows, scores, truth, count, grouping=propose_people_linked
+    )
+    assert ari[best] == pytest.approx(1.0) and ari[0.5] == pytest.approx(1.0)
+    assert ari[0.5] > choose_proposal_threshold(rows, scores, truth, count)[1][0.5]
