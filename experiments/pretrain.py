@@ -31,6 +31,7 @@ from pathlib import Path
 from experiments.config import SCALES, SPLITS, Scale, estimator_config, seed_stream
 from experiments.data import make_data, make_scenes, true_members
 from experiments.fitting import fit_estimator
+from experiments.real_detectors import DETECTORS, training_detectors
 from experiments.records import report_json
 from experiments.tables import diff_mean_sd, mean_sd, rounded, seeds_line
 from mvpose_jax.cameras import Rig, up_vector
@@ -43,7 +44,7 @@ from mvpose_jax.metrics import pose_metrics
 from mvpose_jax.models import MLPConfig
 from mvpose_jax.pretraining import RigPeople, pretrain_estimator
 from mvpose_jax.progress import progress_bar
-from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
+from mvpose_jax.synthetic import DetectorConfig, SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.synthetic.rigs import HELD_OUT_FAMILIES, PRETRAIN_FAMILIES, random_rig
 from mvpose_jax.trained import EstimatorConfig, load_estimator
 
@@ -110,14 +111,24 @@ EVAL_RIG_SEED = 35
 FINETUNE_RATES = (1e-4, 3e-5)  # the held-out families' rigs: fixed, whatever the training seed
 
 
-def rig_people(n: int, sc: PretrainScale, stream: str, seed: int, progress) -> list[RigPeople]:
+def rig_people(
+    n: int,
+    sc: PretrainScale,
+    stream: str,
+    seed: int,
+    progress,
+    detectors: tuple[DetectorConfig, ...] = (DetectorConfig(),),
+) -> list[RigPeople]:
     """``n`` random rigs of the pretraining families, in turn, each with single-person
-    recordings, as `RigPeople` (drawing a rig, with its capture area, is most of the time)."""
+    recordings, as `RigPeople` (drawing a rig, with its capture area, is most of the time);
+    rig ``i``'s recordings come from detector ``i mod len(detectors)``."""
     out = []
     for i in progress_bar(range(n), desc=f"{stream} rigs", unit="rig", disable=not progress):
         family = PRETRAIN_FAMILIES[i % len(PRETRAIN_FAMILIES)]
         rig, floor = random_rig(family, [*seed_stream(stream, seed), i])
-        config = SyntheticConfig().with_scene(up=(0.0, 0.0, 1.0), floor_height=floor)
+        config = SyntheticConfig(detector=detectors[i % len(detectors)]).with_scene(
+            up=(0.0, 0.0, 1.0), floor_height=floor
+        )
         recs = generate_single_person_recordings(
             rig,
             num_recordings=sc.recordings_per_rig,
@@ -191,12 +202,15 @@ def run(
     out: Path,
     progress: bool,
     rigs: tuple[str, ...] | None = None,
+    detectors: tuple[str, ...] = ("default",),
 ) -> dict:
-    """Pretrains on seed ``seed`` and compares on the evaluation rigs (`evaluation_rigs`; all
-    of them, or those named in ``rigs``); returns the report."""
+    """Pretrains on seed ``seed`` with the simulated ``detectors`` (names of
+    `real_detectors.DETECTORS`, taken in turn by the rigs) and compares on the evaluation rigs
+    (`evaluation_rigs`; all of them, or those named in ``rigs``); returns the report."""
     t0 = time.perf_counter()
-    train = rig_people(sc.train_rigs, sc, "train", seed, progress)
-    dev = rig_people(sc.dev_rigs, sc, "dev", seed, progress)
+    configs, detector_record = training_detectors(detectors)
+    train = rig_people(sc.train_rigs, sc, "train", seed, progress, configs)
+    dev = rig_people(sc.dev_rigs, sc, "dev", seed, progress, configs)
     data_seconds = time.perf_counter() - t0
     config = dataclasses.replace(
         sc.estimator, train=dataclasses.replace(sc.estimator.train, seed=seed)
@@ -221,6 +235,7 @@ def run(
         "pretraining": {
             "families": list(PRETRAIN_FAMILIES),
             "rigs": {"train": sc.train_rigs, "dev": sc.dev_rigs},
+            "detectors": detector_record,
             "people": {"train": sum(len(p.xy) for p in train), "dev": sum(len(p.xy) for p in dev)},
             "steps": fit.steps,
             "data_seconds": round(data_seconds, 1),
@@ -232,6 +247,7 @@ def run(
         "rig_steps": steps,
         "rigs": {},
     }
+    save(report, out)  # the pretraining's record, also when no rig is compared
     for name, rig, data in evaluation_data(rigs, rig_sc, scenes_seed, seed, progress):
         per_rig, _ = fit_estimator(data, rig_sc, rig.names, rig.names, seed, progress)
         pretrained = load_estimator(folder, rig)
@@ -276,7 +292,9 @@ def run(
 def table(report: dict, split: str = "test") -> list[str]:
     """PCP and MPJPE per evaluation rig and 3D stage."""
     rigs = report["rigs"]
-    rows = next(iter(rigs.values()))[split] if rigs else {}
+    if not rigs:
+        return ["(no evaluation rig: pretraining only, `--rigs none`)"]
+    rows = next(iter(rigs.values()))[split]
     head = "| 3D stage (true groupings) | " + " | ".join(
         f"{r} ({v['cameras']} cams{', held-out family' if v['held_out_family'] else ''})"
         for r, v in rigs.items()
@@ -452,8 +470,17 @@ def experiment_main(argv, *, description, scales, run, table, combine, ship, kin
     p.add_argument(
         "--rigs",
         nargs="+",
-        choices=("panoptic5", "arplab6", *HELD_OUT_FAMILIES),
-        help="compare on these evaluation rigs only (default: all)",
+        choices=("panoptic5", "arplab6", *HELD_OUT_FAMILIES, "none"),
+        help="compare on these evaluation rigs only (default: all; none: pretrain only)",
+    )
+    p.add_argument(
+        "--detectors",
+        nargs="+",
+        choices=DETECTORS,
+        default=["default"],
+        help="simulated detectors of the pretraining recordings, taken in turn by the rigs: the "
+        "simulator's default, or the detectors fitted without labels to ../shared/real/'s MVOR "
+        "days and Pose2Sim demo trial (experiments.real_detectors)",
     )
     p.add_argument(
         "--ship",
@@ -482,7 +509,8 @@ def experiment_main(argv, *, description, scales, run, table, combine, ship, kin
         args.scenes_seed,
         args.out,
         not args.no_progress,
-        tuple(args.rigs) if args.rigs else None,
+        tuple(r for r in args.rigs if r != "none") if args.rigs else None,
+        tuple(args.detectors),
     )
     report["scale"] = args.scale
     print("\n".join(table(report)))

@@ -42,6 +42,7 @@ from experiments.pretrain import (
     finetune_config,
     ship_model,
 )
+from experiments.real_detectors import training_detectors
 from experiments.records import report_json
 from experiments.tables import mean_sd, rounded_tree, seeds_line
 from mvpose_jax.cameras import up_vector
@@ -53,7 +54,7 @@ from mvpose_jax.metrics import matching_scores, pose_metrics
 from mvpose_jax.models import GATConfig
 from mvpose_jax.pretraining import pretrain_matcher, rig_pool
 from mvpose_jax.progress import progress_bar
-from mvpose_jax.synthetic import SyntheticConfig, generate_single_person_recordings
+from mvpose_jax.synthetic import DetectorConfig, SyntheticConfig, generate_single_person_recordings
 from mvpose_jax.synthetic.rigs import HELD_OUT_FAMILIES, PRETRAIN_FAMILIES, random_rig
 from mvpose_jax.trained import (
     MatcherConfig,
@@ -129,15 +130,24 @@ MATCHER_PRETRAIN_SCALES = {
 FINETUNE_RATES = (3e-4, 1e-4)
 
 
-def rig_recordings(n: int, sc: MatcherPretrainScale, stream: str, seed: int, progress):
+def rig_recordings(
+    n: int,
+    sc: MatcherPretrainScale,
+    stream: str,
+    seed: int,
+    progress,
+    detectors: tuple[DetectorConfig, ...] = (DetectorConfig(),),
+):
     """``n`` random rigs of the pretraining families, in turn, each with its single-person
-    recordings: [(rig, recordings)]."""
+    recordings (rig ``i``'s from detector ``i mod len(detectors)``): [(rig, recordings)]."""
     out = []
     for i in progress_bar(range(n), desc=f"{stream} rigs", unit="rig", disable=not progress):
         family = PRETRAIN_FAMILIES[i % len(PRETRAIN_FAMILIES)]
         at = [*seed_stream(stream, seed), MATCHER_RIGS, i]
         rig, floor = random_rig(family, at)
-        config = SyntheticConfig().with_scene(up=(0.0, 0.0, 1.0), floor_height=floor)
+        config = SyntheticConfig(detector=detectors[i % len(detectors)]).with_scene(
+            up=(0.0, 0.0, 1.0), floor_height=floor
+        )
         recs = generate_single_person_recordings(
             rig,
             num_recordings=sc.recordings_per_rig,
@@ -213,11 +223,21 @@ def matcher_rows(data, split: str, matchers: dict, cutoff_px: float) -> dict:
     return out
 
 
-def run(sc: MatcherPretrainScale, seed: int, scenes_seed: int, out: Path, progress: bool, rigs):
-    """Pretrains on seed ``seed`` and compares on the evaluation rigs; returns the report."""
+def run(
+    sc: MatcherPretrainScale,
+    seed: int,
+    scenes_seed: int,
+    out: Path,
+    progress: bool,
+    rigs,
+    detectors: tuple[str, ...] = ("default",),
+):
+    """Pretrains on seed ``seed`` with the simulated ``detectors`` (`experiments.pretrain.run`)
+    and compares on the evaluation rigs; returns the report."""
     t0 = time.perf_counter()
-    train = rig_recordings(sc.train_rigs, sc, "train", seed, progress)
-    dev = rig_recordings(sc.dev_rigs, sc, "dev", seed, progress)
+    configs, detector_record = training_detectors(detectors)
+    train = rig_recordings(sc.train_rigs, sc, "train", seed, progress, configs)
+    dev = rig_recordings(sc.dev_rigs, sc, "dev", seed, progress, configs)
     train_pools = [rig_pool(rig, recs) for rig, recs in train]
     dev_pools = [rig_pool(rig, recs) for rig, recs in dev]
     data_seconds = time.perf_counter() - t0
@@ -244,6 +264,7 @@ def run(sc: MatcherPretrainScale, seed: int, scenes_seed: int, out: Path, progre
         "pretraining": {
             "families": list(PRETRAIN_FAMILIES),
             "rigs": {"train": sc.train_rigs, "dev": sc.dev_rigs},
+            "detectors": detector_record,
             "frames": {
                 "train": sc.train_rigs * sc.recordings_per_rig * sc.frames,
                 "dev": sc.dev_rigs * sc.recordings_per_rig * sc.frames,
@@ -261,6 +282,7 @@ def run(sc: MatcherPretrainScale, seed: int, scenes_seed: int, out: Path, progre
         "rig_steps": steps,
         "rigs": {},
     }
+    save(report, out)  # the pretraining's record, also when no rig is compared
     for name, rig, data in evaluation_data(rigs, rig_sc, scenes_seed, seed, progress):
         per_rig, per_rig_fit = fit_matcher(data, rig_sc, rig.names, seed, progress)
         pretrained = load_matcher(folder, rig)
@@ -315,6 +337,8 @@ ROWS = ("per-rig GAT", "pretrained", "pretrained, rig's threshold", "fine-tuned"
 def table(report: dict, split: str = "test") -> list[str]:
     """ARI, people per frame and PCP / MPJPE per evaluation rig and matcher."""
     rigs = report["rigs"]
+    if not rigs:
+        return ["(no evaluation rig: pretraining only, `--rigs none`)"]
     head = "| matcher | " + " | ".join(
         f"{r} ({v['cameras']} cams{', held out' if v['held_out_family'] else ''})"
         for r, v in rigs.items()

@@ -77,14 +77,16 @@ def row_settings(method: str, estimator, matcher, grouping: str) -> dict:
     return settings
 
 
-def mvor_rows(root: Path, models: Path, pretrained: str, smoke: bool) -> dict:
+def mvor_rows(
+    root: Path, models: Path, pretrained: str, smoke: bool, matcher: str = PRETRAINED
+) -> dict:
     data = load_mvor(root)
     floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
     rig_models = synthetic_models(data.rig, floor, models / "mvor-synthetic", smoke=smoke)
     estimators = {"rig": rig_models.estimator, "pretrained": load_estimator(pretrained, data.rig)}
     matchers = {
         "rig": (rig_models.matcher, models / "mvor-synthetic" / "matcher"),
-        "pretrained": (load_matcher(PRETRAINED, data.rig), PRETRAINED),
+        "pretrained": (load_matcher(matcher, data.rig), matcher),
     }
     if smoke:
         data = select_frames(data, smoke_frames(data))
@@ -107,7 +109,9 @@ def mvor_rows(root: Path, models: Path, pretrained: str, smoke: bool) -> dict:
     return rows
 
 
-def demo_rows(data: Path, models: Path, pretrained: str, smoke: bool) -> dict:
+def demo_rows(
+    data: Path, models: Path, pretrained: str, smoke: bool, matcher: str = PRETRAINED
+) -> dict:
     trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[demo.MULTI_TRIAL]
     rig, det = demo.raw_detections(trial, demo.SMOKE_FRAMES if smoke else None)
     folder = demo.demo_models(data, models / "pose2sim-demo", smoke)["synthetic"][0]
@@ -117,7 +121,7 @@ def demo_rows(data: Path, models: Path, pretrained: str, smoke: bool) -> dict:
     }
     matchers = {
         "rig": (load_matcher(folder / "matcher", rig), folder / "matcher"),
-        "pretrained": (load_matcher(PRETRAINED, rig), PRETRAINED),
+        "pretrained": (load_matcher(matcher, rig), matcher),
     }
     rows = {}
     for name, grouping, method, which, matcher in ROWS:
@@ -144,7 +148,9 @@ def markdown(report: dict) -> str:
         "# The shipped rig-agnostic estimator and matcher on real footage",
         "",
         "Evaluation only, untracked and unfiltered. The rig's estimator: trained on synthetic "
-        "recordings of that rig (the recipe of `experiments.real`).",
+        "recordings of that rig (the recipe of `experiments.real`). The rig-agnostic models "
+        f'("pretrained" rows): estimator {report["models"]["estimator"]}, matcher '
+        f"{report['models']['matcher']}.",
         "",
         "## MVOR days 1-2 (labelled; the MVOR protocol, all frames)",
         "",
@@ -197,13 +203,21 @@ def main(argv=None) -> int:
         default=PRETRAINED,
         help="the rig-agnostic estimator (default: the one shipped in the package)",
     )
+    p.add_argument(
+        "--matcher",
+        default=PRETRAINED,
+        help="the rig-agnostic matcher, with its proposal settings (default: the shipped one)",
+    )
     p.add_argument("--smoke", action="store_true", help="a few frames (CI)")
     args = p.parse_args(argv)
     start = time.perf_counter()
     models = args.models or args.out / "models"
-    report = {"mvor": mvor_rows(Path(args.data), models, args.estimator, args.smoke)}
+    report = {"models": {"estimator": str(args.estimator), "matcher": str(args.matcher)}}
+    report["mvor"] = mvor_rows(Path(args.data), models, args.estimator, args.smoke, args.matcher)
     if Path(args.pose2sim).is_dir():
-        report["demo"] = demo_rows(Path(args.pose2sim), models, args.estimator, args.smoke)
+        report["demo"] = demo_rows(
+            Path(args.pose2sim), models, args.estimator, args.smoke, args.matcher
+        )
     report["seconds"] = time.perf_counter() - start
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "pretrained_real.json", report_json(report))
