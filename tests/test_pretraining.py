@@ -587,3 +587,31 @@ def test_pretrain_matcher_experiment_smoke(tmp_path):
     assert load_matcher(folder, load_rig("arplab6")).rig.num_cameras == 6
     main(["--out", str(tmp_path), "--combine", str(tmp_path), str(tmp_path)])
     assert "± 0.0" in (tmp_path / "pretrain_matcher_seeds.md").read_text()
+
+
+@pytest.mark.slow  # scenes of one rig, the shipped models scored (no training)
+def test_pretrained_synthetic_scores_model_folders_without_training(tmp_path):
+    """``python -m experiments.pretrained_synthetic``: each named folder at its own threshold and
+    at the rig's, the epipolar row, the estimator's rows; names must be distinct pairs."""
+    import json
+
+    from experiments.pretrained_synthetic import main, named_folders
+
+    assert named_folders(None) == {"shipped": "pretrained"}
+    for bad in (["x"], ["=f"], ["a=f", "a=g"]):
+        with pytest.raises(SystemExit):
+            named_folders(bad)
+    folder = "pretrained"
+    argv = ["--out", str(tmp_path), "--scale", "smoke", "--rigs", "pair"]
+    assert main([*argv, "--matchers", f"a={folder}", "--estimators", f"b={folder}"]) == 0
+    (rig,) = json.loads((tmp_path / "pretrained_synthetic.json").read_text())["rigs"].values()
+    assert rig["thresholds"]["a"]["folder"] == read_proposal_threshold(folder)
+    for split in ("validation", "test"):
+        assert set(rig[split]["matching"]) == {
+            "a",
+            "a, rig's threshold",
+            "epipolar",
+            "true_people_per_frame",
+        }
+        assert set(rig[split]["3d"]) == {"robust triangulation", "b, mlp", "b, blend"}
+    assert "| a, rig's threshold |" in (tmp_path / "pretrained_synthetic.md").read_text()
