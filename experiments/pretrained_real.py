@@ -62,6 +62,29 @@ ROWS = (
 )
 
 
+def selected(names: tuple[str, ...] | None) -> tuple:
+    """`ROWS` named in ``names`` (all when None), always with the geometric default first (the
+    reference of the last two MVOR columns)."""
+    if names is None:
+        return ROWS
+    unknown = set(names) - {r[0] for r in ROWS}
+    if unknown:
+        raise SystemExit(f"no such rows: {sorted(unknown)}; rows: {[r[0] for r in ROWS]}")
+    return (ROWS[0], *(r for r in ROWS[1:] if r[0] in names))
+
+
+def row_models(chosen, rig, pretrained: str, matcher: str, rig_pair) -> tuple[dict, dict]:
+    """The estimators and ``(matcher, folder)`` pairs the ``chosen`` rows use, by kind
+    ("pretrained", "rig"); ``rig_pair()`` gives the rig's (estimator, matcher, matcher folder),
+    trained where missing, and is called only when a row uses the rig's models."""
+    estimators = {"pretrained": load_estimator(pretrained, rig)}
+    matchers = {"pretrained": (load_matcher(matcher, rig), matcher)}
+    if "rig" in {kind for row in chosen for kind in row[3:]}:
+        estimator, rig_matcher, folder = rig_pair()
+        estimators["rig"], matchers["rig"] = estimator, (rig_matcher, folder)
+    return estimators, matchers
+
+
 def row_settings(method: str, estimator, matcher, grouping: str) -> dict:
     """A row's `run_pipeline` settings: its models, and its matcher's (``(matcher, folder)``)
     proposal settings as ``infer --matcher FOLDER`` reads them from the folder."""
@@ -78,23 +101,29 @@ def row_settings(method: str, estimator, matcher, grouping: str) -> dict:
 
 
 def mvor_rows(
-    root: Path, models: Path, pretrained: str, smoke: bool, matcher: str = PRETRAINED
+    root: Path,
+    models: Path,
+    pretrained: str,
+    smoke: bool,
+    matcher: str = PRETRAINED,
+    rows_named: tuple[str, ...] | None = None,
 ) -> dict:
     data = load_mvor(root)
-    floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
-    rig_models = synthetic_models(data.rig, floor, models / "mvor-synthetic", smoke=smoke)
-    estimators = {"rig": rig_models.estimator, "pretrained": load_estimator(pretrained, data.rig)}
-    matchers = {
-        "rig": (rig_models.matcher, models / "mvor-synthetic" / "matcher"),
-        "pretrained": (load_matcher(matcher, data.rig), matcher),
-    }
+    chosen = selected(rows_named)
+
+    def rig_pair():
+        floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
+        pair = synthetic_models(data.rig, floor, models / "mvor-synthetic", smoke=smoke)
+        return pair.estimator, pair.matcher, models / "mvor-synthetic" / "matcher"
+
+    estimators, matchers = row_models(chosen, data.rig, pretrained, matcher, rig_pair)
     if smoke:
         data = select_frames(data, smoke_frames(data))
     identity = true_identity(data)
     members = members_from_identity(identity, data.gt.valid.shape[1])
     views = (members >= 0).sum(-1)
     rows, geometric = {}, None
-    for name, grouping, method, which, matcher in ROWS:
+    for name, grouping, method, which, matcher in chosen:
         settings = row_settings(
             method,
             estimators[which] if which else None,
@@ -110,21 +139,25 @@ def mvor_rows(
 
 
 def demo_rows(
-    data: Path, models: Path, pretrained: str, smoke: bool, matcher: str = PRETRAINED
+    data: Path,
+    models: Path,
+    pretrained: str,
+    smoke: bool,
+    matcher: str = PRETRAINED,
+    rows_named: tuple[str, ...] | None = None,
 ) -> dict:
     trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[demo.MULTI_TRIAL]
     rig, det = demo.raw_detections(trial, demo.SMOKE_FRAMES if smoke else None)
-    folder = demo.demo_models(data, models / "pose2sim-demo", smoke)["synthetic"][0]
-    estimators = {
-        "rig": load_estimator(folder / "estimator", rig),
-        "pretrained": load_estimator(pretrained, rig),
-    }
-    matchers = {
-        "rig": (load_matcher(folder / "matcher", rig), folder / "matcher"),
-        "pretrained": (load_matcher(matcher, rig), matcher),
-    }
+    chosen = selected(rows_named)
+
+    def rig_pair():
+        folder = demo.demo_models(data, models / "pose2sim-demo", smoke)["synthetic"][0]
+        m = folder / "matcher"
+        return load_estimator(folder / "estimator", rig), load_matcher(m, rig), m
+
+    estimators, matchers = row_models(chosen, rig, pretrained, matcher, rig_pair)
     rows = {}
-    for name, grouping, method, which, matcher in ROWS:
+    for name, grouping, method, which, matcher in chosen:
         if grouping == "true":
             continue  # no true groupings without labels
         settings = row_settings(
@@ -208,15 +241,21 @@ def main(argv=None) -> int:
         default=PRETRAINED,
         help="the rig-agnostic matcher, with its proposal settings (default: the shipped one)",
     )
+    p.add_argument(
+        "--rows", nargs="+", help="only these rows (names as in the tables; default: all)"
+    )
     p.add_argument("--smoke", action="store_true", help="a few frames (CI)")
     args = p.parse_args(argv)
+    rows_named = tuple(args.rows) if args.rows else None
     start = time.perf_counter()
     models = args.models or args.out / "models"
     report = {"models": {"estimator": str(args.estimator), "matcher": str(args.matcher)}}
-    report["mvor"] = mvor_rows(Path(args.data), models, args.estimator, args.smoke, args.matcher)
+    report["mvor"] = mvor_rows(
+        Path(args.data), models, args.estimator, args.smoke, args.matcher, rows_named
+    )
     if Path(args.pose2sim).is_dir():
         report["demo"] = demo_rows(
-            Path(args.pose2sim), models, args.estimator, args.smoke, args.matcher
+            Path(args.pose2sim), models, args.estimator, args.smoke, args.matcher, rows_named
         )
     report["seconds"] = time.perf_counter() - start
     args.out.mkdir(parents=True, exist_ok=True)

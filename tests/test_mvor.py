@@ -544,3 +544,27 @@ def test_real_smoke_run_writes_its_files_deterministically(tmp_path):
     assert set(demo["models"]) == {"synthetic"}  # a smoke run's one pair
     assert demo["models"]["synthetic"]["floor"]["up_source"] == "people"
     assert "Pose2Sim's demo session" in text and "The models of the rows with models" in text
+
+
+@needs_real
+def test_pretrained_real_smoke_scores_the_rows_asked_for(tmp_path):
+    """`experiments.pretrained_real --rows`: the geometric default (the reference) and the rows
+    named, on MVOR and on the demo (no true groups there); no rig model trained for them."""
+    from experiments.pose2sim_demo import DEFAULT_DATA
+    from experiments.pretrained_real import main
+
+    rows = ["GAT + robust, pretrained matcher", "true groups + robust"]
+    argv = ["--smoke", "--out", str(tmp_path), "--matcher", "pretrained", "--rows", *rows]
+    assert main(argv) == 0
+    report = json.loads((tmp_path / "pretrained_real.json").read_text())
+    assert report["models"] == {"estimator": "pretrained", "matcher": "pretrained"}
+    geometric = "geometric default (epipolar + robust)"
+    assert list(report["mvor"]) == [geometric, *rows]
+    assert report["mvor"][geometric]["vs_geometric"]["mpjpe_mm"] == pytest.approx(
+        report["mvor"][geometric]["mpjpe_mm"]
+    )
+    assert not (tmp_path / "models").exists()
+    if DEFAULT_DATA.is_dir():
+        assert list(report["demo"]) == [geometric, rows[0]]
+    with pytest.raises(SystemExit):
+        main(["--smoke", "--out", str(tmp_path), "--rows", "no such row"])
