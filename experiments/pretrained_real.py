@@ -22,6 +22,8 @@ import argparse
 import time
 from pathlib import Path
 
+import numpy as np
+
 from experiments import pose2sim_demo as demo
 from experiments.mvor import DEFAULT_ROOT, load_mvor, poses_to_joints, select_frames, true_identity
 from experiments.mvor_protocol import evaluate, versus
@@ -135,6 +137,7 @@ def mvor_rows(
         geometric = joints if geometric is None else geometric  # ROWS[0]
         rows[name] = evaluate(joints, data, unreachable=views < MIN_VIEWS)["overall"]
         rows[name]["vs_geometric"] = versus(joints, geometric, data)
+        rows[name]["people_per_frame"] = float(np.asarray(result.poses.valid).sum(-1).mean())
     return rows
 
 
@@ -192,8 +195,8 @@ def markdown(report: dict) -> str:
         "people, then over the joints both produced (row / geometric default).",
         "",
         "| pipeline | missed (of annotated) | MPJPE mm | PCK3D@150 % | people both place: MPJPE "
-        "| joints both produce: MPJPE |",
-        "|---|---|---|---|---|---|",
+        "| joints both produce: MPJPE | people built per frame |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, r in report["mvor"].items():
         v = r["vs_geometric"]
@@ -201,7 +204,8 @@ def markdown(report: dict) -> str:
             f"| {name} | {r['missed']} of {r['people']} | {r['mpjpe_mm']:.1f} | "
             f"{r['pck3d_150']:.1f} | {v['mpjpe_mm']:.1f} / {v['reference_mpjpe_mm']:.1f} "
             f"({v['people']} people) | {v['mpjpe_common_mm']:.1f} / "
-            f"{v['reference_mpjpe_common_mm']:.1f} ({v['common_joints']} joints) |"
+            f"{v['reference_mpjpe_common_mm']:.1f} ({v['common_joints']} joints) | "
+            f"{r['people_per_frame']:.2f} |"
         )
     if "demo" in report:
         lines += [

@@ -564,6 +564,7 @@ def test_pretrained_real_smoke_scores_the_rows_asked_for(tmp_path):
         report["mvor"][geometric]["mpjpe_mm"]
     )
     assert not (tmp_path / "models").exists()
+    assert all(r["people_per_frame"] > 0 for r in report["mvor"].values())
     if DEFAULT_DATA.is_dir():
         assert list(report["demo"]) == [geometric, rows[0]]
     with pytest.raises(SystemExit):
