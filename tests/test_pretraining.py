@@ -287,6 +287,7 @@ def test_pretrain_experiment_smoke(tmp_path):
     (rig,) = report["rigs"].values()
     assert rig["cameras"] == 2 and rig["held_out_family"]
     assert rig["finetune_learning_rate"] in FINETUNE_RATES
+    assert report["pretraining"]["detectors"] == {"default": {"fitted": False}}
     for split in ("validation", "test"):
         for who in ("per-rig", "pretrained", "fine-tuned"):
             for method in ("mlp", "blend"):
@@ -330,19 +331,26 @@ def test_pretraining_rigs_take_the_detectors_in_turn():
             training_detectors(bad)
 
 
-def test_pretrain_experiment_without_evaluation_rigs_keeps_its_record(tmp_path):
-    """``--rigs none`` pretrains only: the report and the model folder are still written, with
-    the detectors the recordings came from."""
-    import json
+def test_pretrain_command_line_passes_rigs_and_detectors(tmp_path, monkeypatch):
+    """``--rigs none`` compares on no rig (pretraining only, its table says so); ``--detectors``
+    reaches the run in order; the default is the simulator's detector alone."""
+    import experiments.pretrain as pretrain
+    import experiments.pretrain_matcher as pretrain_matcher
 
-    from experiments.pretrain import main
-
-    main(["--out", str(tmp_path), "--scale", "smoke", "--rigs", "none", "--no-progress"])
-    report = json.loads((tmp_path / "pretrain.json").read_text())
-    assert report["rigs"] == {}
-    assert report["pretraining"]["detectors"] == {"default": {"fitted": False}}
-    assert "no evaluation rig" in (tmp_path / "pretrain.md").read_text()
-    assert load_estimator(tmp_path / "models" / "pretrained", load_rig("panoptic5"))
+    for module in (pretrain, pretrain_matcher):
+        calls = []
+        monkeypatch.setattr(module, "run", lambda *a: calls.append(a) or {"rigs": {}})
+        monkeypatch.setattr(module, "table", lambda report: ["table"])
+        module.main(["--out", str(tmp_path), "--rigs", "none", "--detectors", "mvor", "default"])
+        module.main(["--out", str(tmp_path), "--rigs", "pair", "arplab6"])
+        assert [c[5:] for c in calls] == [
+            ((), ("mvor", "default")),
+            (("pair", "arplab6"), ("default",)),
+        ]
+        monkeypatch.undo()
+        assert module.table({"rigs": {}}) == [
+            "(no evaluation rig: pretraining only, `--rigs none`)"
+        ]
 
 
 # =========================================================================== the rig-agnostic matcher
