@@ -19,6 +19,7 @@ Nothing is tuned on either: evaluation only. Writes ``DIR/pretrained_real.md`` a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -64,6 +65,16 @@ ROWS = (
 )
 
 
+@dataclasses.dataclass(frozen=True)
+class Scored:
+    """What a run scores: the rig-agnostic ``estimator`` and ``matcher`` folders ("pretrained":
+    the package's) and the ``rows`` named (`selected`; None: all)."""
+
+    estimator: str = PRETRAINED
+    matcher: str = PRETRAINED
+    rows: tuple[str, ...] | None = None
+
+
 def selected(names: tuple[str, ...] | None) -> tuple:
     """`ROWS` named in ``names`` (all when None), always with the geometric default first (the
     reference of the last two MVOR columns)."""
@@ -75,12 +86,12 @@ def selected(names: tuple[str, ...] | None) -> tuple:
     return (ROWS[0], *(r for r in ROWS[1:] if r[0] in names))
 
 
-def row_models(chosen, rig, pretrained: str, matcher: str, rig_pair) -> tuple[dict, dict]:
+def row_models(chosen, rig, scored: Scored, rig_pair) -> tuple[dict, dict]:
     """The estimators and ``(matcher, folder)`` pairs the ``chosen`` rows use, by kind
-    ("pretrained", "rig"); ``rig_pair()`` gives the rig's (estimator, matcher, matcher folder),
-    trained where missing, and is called only when a row uses the rig's models."""
-    estimators = {"pretrained": load_estimator(pretrained, rig)}
-    matchers = {"pretrained": (load_matcher(matcher, rig), matcher)}
+    ("pretrained": ``scored``'s, "rig"); ``rig_pair()`` gives the rig's (estimator, matcher,
+    matcher folder), trained where missing, and is called only when a row uses the rig's models."""
+    estimators = {"pretrained": load_estimator(scored.estimator, rig)}
+    matchers = {"pretrained": (load_matcher(scored.matcher, rig), scored.matcher)}
     if "rig" in {kind for row in chosen for kind in row[3:]}:
         estimator, rig_matcher, folder = rig_pair()
         estimators["rig"], matchers["rig"] = estimator, (rig_matcher, folder)
@@ -102,23 +113,16 @@ def row_settings(method: str, estimator, matcher, grouping: str) -> dict:
     return settings
 
 
-def mvor_rows(
-    root: Path,
-    models: Path,
-    pretrained: str,
-    smoke: bool,
-    matcher: str = PRETRAINED,
-    rows_named: tuple[str, ...] | None = None,
-) -> dict:
+def mvor_rows(root: Path, models: Path, smoke: bool, scored: Scored = Scored()) -> dict:
     data = load_mvor(root)
-    chosen = selected(rows_named)
+    chosen = selected(scored.rows)
 
     def rig_pair():
         floor = estimate_floor_from_detections(data.rig, data.detections, layout=data.layout)
         pair = synthetic_models(data.rig, floor, models / "mvor-synthetic", smoke=smoke)
         return pair.estimator, pair.matcher, models / "mvor-synthetic" / "matcher"
 
-    estimators, matchers = row_models(chosen, data.rig, pretrained, matcher, rig_pair)
+    estimators, matchers = row_models(chosen, data.rig, scored, rig_pair)
     if smoke:
         data = select_frames(data, smoke_frames(data))
     identity = true_identity(data)
@@ -141,24 +145,17 @@ def mvor_rows(
     return rows
 
 
-def demo_rows(
-    data: Path,
-    models: Path,
-    pretrained: str,
-    smoke: bool,
-    matcher: str = PRETRAINED,
-    rows_named: tuple[str, ...] | None = None,
-) -> dict:
+def demo_rows(data: Path, models: Path, smoke: bool, scored: Scored = Scored()) -> dict:
     trial = {t.name: t for t in find_trials(data, pose_folders=("pose",)).trials}[demo.MULTI_TRIAL]
     rig, det = demo.raw_detections(trial, demo.SMOKE_FRAMES if smoke else None)
-    chosen = selected(rows_named)
+    chosen = selected(scored.rows)
 
     def rig_pair():
         folder = demo.demo_models(data, models / "pose2sim-demo", smoke)["synthetic"][0]
         m = folder / "matcher"
         return load_estimator(folder / "estimator", rig), load_matcher(m, rig), m
 
-    estimators, matchers = row_models(chosen, rig, pretrained, matcher, rig_pair)
+    estimators, matchers = row_models(chosen, rig, scored, rig_pair)
     rows = {}
     for name, grouping, method, which, matcher in chosen:
         if grouping == "true":
@@ -250,17 +247,13 @@ def main(argv=None) -> int:
     )
     p.add_argument("--smoke", action="store_true", help="a few frames (CI)")
     args = p.parse_args(argv)
-    rows_named = tuple(args.rows) if args.rows else None
+    scored = Scored(args.estimator, args.matcher, tuple(args.rows) if args.rows else None)
     start = time.perf_counter()
     models = args.models or args.out / "models"
     report = {"models": {"estimator": str(args.estimator), "matcher": str(args.matcher)}}
-    report["mvor"] = mvor_rows(
-        Path(args.data), models, args.estimator, args.smoke, args.matcher, rows_named
-    )
+    report["mvor"] = mvor_rows(Path(args.data), models, args.smoke, scored)
     if Path(args.pose2sim).is_dir():
-        report["demo"] = demo_rows(
-            Path(args.pose2sim), models, args.estimator, args.smoke, args.matcher, rows_named
-        )
+        report["demo"] = demo_rows(Path(args.pose2sim), models, args.smoke, scored)
     report["seconds"] = time.perf_counter() - start
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "pretrained_real.json", report_json(report))
