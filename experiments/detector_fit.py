@@ -21,7 +21,7 @@ from pathlib import Path
 from mvpose_jax.data.calibration import load_rig
 from mvpose_jax.data.files import atomic_write_text, to_jsonable
 from mvpose_jax.data.pose2sim import find_trials
-from mvpose_jax.detector_fit import DetectorFit, fit_detector
+from mvpose_jax.detector_fit import FIT_FRAMES, DetectorFit, fit_detector
 from mvpose_jax.synthetic import DetectorConfig, SyntheticConfig, generate_recording
 
 # The detector of the synthetic check: the brief's rates, limb mixing and a Beta score model
@@ -53,21 +53,30 @@ TABLE_FIELDS = (
 )
 
 
-def fit_real(max_frames: int) -> dict[str, DetectorFit]:
-    """The detector fitted to MVOR days 1-2 and to the Pose2Sim demo's two-person trial."""
-    from experiments.mvor import load_mvor
-    from experiments.pose2sim_demo import DEFAULT_DATA, MULTI_TRIAL, raw_detections
+# The real recordings a detector is fitted to: (key, label).
+REAL_RECORDINGS = (("mvor", "MVOR days 1-2"), ("pose2sim-demo", "Pose2Sim demo, 2 people"))
 
-    mvor = load_mvor()
-    fits = {
-        "MVOR days 1-2": fit_detector(
-            mvor.rig, mvor.detections, layout=mvor.layout, max_frames=max_frames
-        )
-    }
-    trials = {t.name: t for t in find_trials(DEFAULT_DATA, pose_folders=("pose",)).trials}
-    rig, det = raw_detections(trials[MULTI_TRIAL], None)
-    fits["Pose2Sim demo, 2 people"] = fit_detector(rig, det, max_frames=max_frames)
-    return fits
+
+def fit_real_recording(name: str, max_frames: int = FIT_FRAMES) -> DetectorFit:
+    """The detector fitted to real recording ``name`` (a `REAL_RECORDINGS` key): MVOR days 1-2,
+    or the Pose2Sim demo's two-person trial."""
+    from experiments.mvor import load_mvor
+    from experiments.pose2sim_demo import DEFAULT_DATA, LAYOUT, MULTI_TRIAL, raw_detections
+
+    if name == "mvor":
+        mvor = load_mvor()
+        return fit_detector(mvor.rig, mvor.detections, layout=mvor.layout, max_frames=max_frames)
+    if name == "pose2sim-demo":
+        trials = {t.name: t for t in find_trials(DEFAULT_DATA, pose_folders=("pose",)).trials}
+        rig, det = raw_detections(trials[MULTI_TRIAL], None)
+        return fit_detector(rig, det, layout=LAYOUT, max_frames=max_frames)
+    keys = [k for k, _ in REAL_RECORDINGS]
+    raise ValueError(f"no real recording {name!r} to fit a detector to (of {keys})")
+
+
+def fit_real(max_frames: int) -> dict[str, DetectorFit]:
+    """The detector fitted to each of `REAL_RECORDINGS`, by label."""
+    return {label: fit_real_recording(key, max_frames) for key, label in REAL_RECORDINGS}
 
 
 def synthetic_check(

@@ -104,6 +104,10 @@ _LEGS = ("hip", "knee", "ankle")
 _LOWER_LIMBS = (("elbow", "wrist"), ("knee", "ankle"))
 
 
+# Frames `fit_detector` looks at by default, evenly spaced over the recording.
+FIT_FRAMES = 600
+
+
 @dataclasses.dataclass(frozen=True)
 class FittedField:
     """One `DetectorConfig` field as fitted.
@@ -177,7 +181,7 @@ def fit_detector(
     detections: Detections,
     *,
     layout: str | Layout = "coco18",
-    max_frames: int = 600,
+    max_frames: int = FIT_FRAMES,
     person_height_m: float = PERSON_HEIGHT_M,
 ) -> DetectorFit:
     """The `DetectorConfig` that behaves like the detector of ``detections`` (module docstring).
