@@ -26,6 +26,7 @@ import argparse
 import dataclasses
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from experiments.config import SCALES, SPLITS, Scale, estimator_config, seed_stream
@@ -111,6 +112,35 @@ EVAL_RIG_SEED = 35
 FINETUNE_RATES = (1e-4, 3e-5)  # the held-out families' rigs: fixed, whatever the training seed
 
 
+def random_rig_recordings(
+    n: int,
+    at: list[int],
+    recordings_per_rig: int,
+    frames: int,
+    detectors: tuple[DetectorConfig, ...],
+    progress,
+    desc: str,
+) -> Iterator[tuple[Rig, list]]:
+    """``n`` random rigs of the pretraining families, in turn, each with its single-person
+    recordings: rig ``i`` is drawn at seed ``[*at, i]`` (z-up, its own floor; drawing a rig,
+    with its capture area, is most of the time) and its recordings at ``[*at, i, 1]``, from
+    detector ``i mod len(detectors)``. Yields (rig, recordings) one rig at a time."""
+    for i in progress_bar(range(n), desc=desc, unit="rig", disable=not progress):
+        family = PRETRAIN_FAMILIES[i % len(PRETRAIN_FAMILIES)]
+        rig, floor = random_rig(family, [*at, i])
+        config = SyntheticConfig(detector=detectors[i % len(detectors)]).with_scene(
+            up=(0.0, 0.0, 1.0), floor_height=floor
+        )
+        recs = generate_single_person_recordings(
+            rig,
+            num_recordings=recordings_per_rig,
+            num_frames=frames,
+            config=config,
+            seed=[*at, i, 1],
+        )
+        yield rig, recs
+
+
 def rig_people(
     n: int,
     sc: PretrainScale,
@@ -119,25 +149,18 @@ def rig_people(
     progress,
     detectors: tuple[DetectorConfig, ...] = (DetectorConfig(),),
 ) -> list[RigPeople]:
-    """``n`` random rigs of the pretraining families, in turn, each with single-person
-    recordings, as `RigPeople` (drawing a rig, with its capture area, is most of the time);
-    rig ``i``'s recordings come from detector ``i mod len(detectors)``."""
-    out = []
-    for i in progress_bar(range(n), desc=f"{stream} rigs", unit="rig", disable=not progress):
-        family = PRETRAIN_FAMILIES[i % len(PRETRAIN_FAMILIES)]
-        rig, floor = random_rig(family, [*seed_stream(stream, seed), i])
-        config = SyntheticConfig(detector=detectors[i % len(detectors)]).with_scene(
-            up=(0.0, 0.0, 1.0), floor_height=floor
-        )
-        recs = generate_single_person_recordings(
-            rig,
-            num_recordings=sc.recordings_per_rig,
-            num_frames=sc.frames,
-            config=config,
-            seed=[*seed_stream(stream, seed), i, 1],
-        )
-        out.append(RigPeople(rig, *single_person_samples(recs)))
-    return out
+    """`random_rig_recordings` of seed stream ``stream`` as `RigPeople` (each rig's recordings
+    turned into people as they are made)."""
+    rigs = random_rig_recordings(
+        n,
+        seed_stream(stream, seed),
+        sc.recordings_per_rig,
+        sc.frames,
+        detectors,
+        progress,
+        f"{stream} rigs",
+    )
+    return [RigPeople(rig, *single_person_samples(recs)) for rig, recs in rigs]
 
 
 def evaluation_rigs() -> dict[str, tuple[Rig, float | None]]:

@@ -40,6 +40,7 @@ from experiments.pretrain import (
     evaluation_data,
     experiment_main,
     finetune_config,
+    random_rig_recordings,
     ship_model,
 )
 from experiments.real_detectors import training_detectors
@@ -53,9 +54,8 @@ from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.metrics import matching_scores, pose_metrics
 from mvpose_jax.models import GATConfig
 from mvpose_jax.pretraining import pretrain_matcher, rig_pool
-from mvpose_jax.progress import progress_bar
-from mvpose_jax.synthetic import DetectorConfig, SyntheticConfig, generate_single_person_recordings
-from mvpose_jax.synthetic.rigs import HELD_OUT_FAMILIES, PRETRAIN_FAMILIES, random_rig
+from mvpose_jax.synthetic import DetectorConfig
+from mvpose_jax.synthetic.rigs import HELD_OUT_FAMILIES, PRETRAIN_FAMILIES
 from mvpose_jax.trained import (
     MatcherConfig,
     load_matcher,
@@ -138,25 +138,14 @@ def rig_recordings(
     progress,
     detectors: tuple[DetectorConfig, ...] = (DetectorConfig(),),
 ):
-    """``n`` random rigs of the pretraining families, in turn, each with its single-person
-    recordings (rig ``i``'s from detector ``i mod len(detectors)``): [(rig, recordings)]."""
-    out = []
-    for i in progress_bar(range(n), desc=f"{stream} rigs", unit="rig", disable=not progress):
-        family = PRETRAIN_FAMILIES[i % len(PRETRAIN_FAMILIES)]
-        at = [*seed_stream(stream, seed), MATCHER_RIGS, i]
-        rig, floor = random_rig(family, at)
-        config = SyntheticConfig(detector=detectors[i % len(detectors)]).with_scene(
-            up=(0.0, 0.0, 1.0), floor_height=floor
+    """`pretrain.random_rig_recordings` of seed stream ``stream`` (the matcher's own rigs):
+    [(rig, recordings)]."""
+    at = [*seed_stream(stream, seed), MATCHER_RIGS]
+    return list(
+        random_rig_recordings(
+            n, at, sc.recordings_per_rig, sc.frames, detectors, progress, f"{stream} rigs"
         )
-        recs = generate_single_person_recordings(
-            rig,
-            num_recordings=sc.recordings_per_rig,
-            num_frames=sc.frames,
-            config=config,
-            seed=[*at, 1],
-        )
-        out.append((rig, recs))
-    return out
+    )
 
 
 def shipped_threshold(parts, config: MatcherConfig, dev, num_frames: int, seed: int):
