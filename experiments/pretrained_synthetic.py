@@ -72,13 +72,12 @@ def run(matchers: dict, estimators: dict, rigs, scale: str, scenes_seed: int, se
             thresholds[who] = {"folder": read_proposal_threshold(folder), "rig's": own["threshold"]}
             candidates[who] = (m, thresholds[who]["folder"])
             candidates[f"{who}, rig's threshold"] = (m, own["threshold"])
+        loaded = {who: load_estimator(folder, rig) for who, folder in estimators.items()}
         entry = {"cameras": rig.num_cameras, "thresholds": thresholds}
         for split in SPLITS:
             entry[split] = {
                 "matching": matcher_rows(data, split, candidates, cutoff) if candidates else {},
-                "3d": stage_rows(
-                    data, split, {w: load_estimator(f, rig) for w, f in estimators.items()}
-                ),
+                "3d": stage_rows(data, split, loaded),
             }
         entry["seconds"] = time.perf_counter() - t0
         report["rigs"][name] = rounded_tree(entry)
