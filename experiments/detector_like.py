@@ -64,7 +64,7 @@ from mvpose_jax.detector_fit import fit_detector
 from mvpose_jax.floor import estimate_floor_from_detections
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import members_from_identity
-from mvpose_jax.matcher_settings import composed_frames
+from mvpose_jax.matcher_settings import composed_match_table
 from mvpose_jax.matching import gat_match_table
 from mvpose_jax.metrics import matching_scores
 from mvpose_jax.proposals import choose_proposal_threshold, propose_people, propose_people_linked
@@ -163,20 +163,14 @@ def grouping_rules(models, rig, floor, detector, smoke: bool, detections, refere
     data = make_data(
         rig, {}, sc, SEED, False, floor_height=floor.height, up=floor.measured_up, detector=detector
     )
-    matcher = models.matcher
-    composed, identity = composed_frames(
-        matcher.rig,
-        data.dev,
-        num_samples=sc.threshold_frames,
-        seed=SEED,
-        **matcher.config.composition(),
+    dev_rows, dev_scores, identity, dev_count = composed_match_table(
+        models.matcher, data.dev, num_samples=sc.threshold_frames, seed=SEED
     )
-    dev_rows, dev_scores = gat_match_table(matcher, composed)
-    rows, scores = gat_match_table(matcher, detections)
+    rows, scores = gat_match_table(models.matcher, detections)
     out = {}
     for name, rule in GROUPING_RULES:
         best, ari = choose_proposal_threshold(
-            dev_rows, dev_scores, identity, composed.count, grouping=rule
+            dev_rows, dev_scores, identity, dev_count, grouping=rule
         )
         grouped = rule(
             rows, scores, detections.count, num_skeletons=detections.score.shape[2], threshold=best
