@@ -8,13 +8,14 @@ to pixels by K. Functions over a rig put the camera axis first: ``(C, ...)``.
 from __future__ import annotations
 
 import dataclasses
-import functools
+import math
 from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mvpose_jax import compiled
 from mvpose_jax.errors import InputError
 
 # Depth below which a point counts as behind the camera (metres). Projection clamps the depth to
@@ -32,6 +33,8 @@ MAX_R2_FACTOR = 4.0
 # corners, so we iterate to float32 convergence (20 cover strong radial+tangential models). ``num_iters=5``
 # reproduces OpenCV's default.
 UNDISTORT_ITERS = 20
+# Steps between the undistortion's convergence checks (a check costs about a step).
+_UNDISTORT_BLOCK = 4
 
 
 @jax.tree_util.register_dataclass
@@ -244,8 +247,7 @@ def _undistort_one(K, dist, px, num_iters):
     xy0 = _from_pixels(K, px)
     x0, y0 = xy0[..., 0], xy0[..., 1]
 
-    def body(_, xy):
-        x, y = xy
+    def step(x, y):
         r2 = x * x + y * y
         icdist = 1.0 / (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
         dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
@@ -255,7 +257,22 @@ def _undistort_one(K, dist, px, num_iters):
         ok = icdist > 0
         return jnp.where(ok, nx, x0), jnp.where(ok, ny, y0)
 
-    x, y = jax.lax.fori_loop(0, num_iters, body, (x0, y0))
+    block = math.gcd(num_iters, _UNDISTORT_BLOCK)
+
+    def body(state):
+        i, x, y, _ = state
+        for _ in range(block - 1):
+            x, y = step(x, y)
+        nx, ny = step(x, y)
+        return i + block, nx, ny, jnp.any((nx != x) | (ny != y))
+
+    # ``num_iters`` steps, in blocks, stopped early once a block's last step changes no point:
+    # from there on every step would return the same numbers, so the result is the fixed
+    # count's, bit for bit. A real lens's few percent of distortion settles within the first
+    # block (a live frame's undistortion is most of its epipolar distances' arithmetic); strong
+    # distortion in float32 can alternate between neighbouring values and run every step.
+    state = (jnp.int32(0), x0, y0, jnp.bool_(True))
+    _, x, y, _ = jax.lax.while_loop(lambda s: (s[0] < num_iters) & s[3], body, state)
     return jnp.stack([x, y], axis=-1)
 
 
@@ -292,7 +309,7 @@ def point_depths(rig: Rig, points: jax.Array) -> jax.Array:
     return world_to_camera(rig, points)[..., 2]
 
 
-@functools.partial(jax.jit, static_argnames="num_iters")
+@compiled.jit(static_argnames="num_iters")
 def undistort_normalized(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
     """Distorted pixels to undistorted normalised image coordinates (cv2.undistortPoints, P=None).
 
@@ -305,7 +322,7 @@ def undistort_normalized(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_
     return jax.vmap(_undistort_one, in_axes=(0, 0, 0, None))(rig.K, rig.dist, px, num_iters)
 
 
-@functools.partial(jax.jit, static_argnames="num_iters")
+@compiled.jit(static_argnames="num_iters")
 def undistort_points(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
     """Distorted pixels to undistorted pixels (cv2.undistortPoints with P=K).
 
@@ -323,7 +340,7 @@ def camera_centres(rig: Rig) -> jax.Array:
     return -jnp.einsum("cji,cj->ci", rig.R, rig.t)
 
 
-@functools.partial(jax.jit, static_argnames="num_iters")
+@compiled.jit(static_argnames="num_iters")
 def pixel_rays(rig: Rig, px: jax.Array, *, num_iters: int = UNDISTORT_ITERS) -> jax.Array:
     """Unit directions, in the world, of the rays through (distorted) pixels.
 

@@ -1,5 +1,6 @@
 """Compiled programs: trained models' jitted functions, built once per model structure (matching
-and lifting share them), and the on-disk cache that keeps compiled programs between processes."""
+and lifting share them), the compiler options of the geometry's and the matcher's programs, and
+the on-disk cache that keeps compiled programs between processes."""
 
 from __future__ import annotations
 
@@ -86,6 +87,59 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path
     return path
 
 
+# ------------------------------------------------------------------------- XLA's own CPU kernels
+
+# XLA:CPU hands dots, and the elementwise work around them, to YNNPACK fusions. On the small
+# arrays of geometry (3x3 matrices, a frame's few skeletons) a fusion costs more to launch than
+# its arithmetic: XLA's own kernels run the epipolar distances of a live frame in 131 against
+# 228 us, and of a 32-frame chunk in 1.4 against 3.6 ms; the matcher's GAT on a chunk in 14.3
+# against 18.5 ms; robust triangulation is equal live and 16 against 19 ms on a chunk of 1,024
+# people (2-core AMD EPYC, min of 300 interleaved calls; docs/performance.md). The estimator's
+# MLP is the exception: on a live frame's few people YNNPACK's matrix-vector kernels are faster
+# (0.34 against 0.50 ms), so its programs keep the default. The numbers are the same arithmetic
+# in another order: groupings and tracks identical, keypoints within float32 rounding.
+XLA_CPU_KERNELS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+@functools.cache
+def xla_kernel_options() -> dict[str, str]:
+    """`XLA_CPU_KERNELS` where the default backend is the CPU and its XLA knows the option, else
+    none (a GPU, or a jax whose CPU compiler dropped the experimental flag)."""
+    if jax.default_backend() != "cpu":
+        return {}
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=XLA_CPU_KERNELS).lower(1.0).compile()
+    except Exception:  # an unknown option: the defaults
+        return {}
+    return dict(XLA_CPU_KERNELS)
+
+
+def jit(fun: Callable | None = None, /, **jit_kwargs) -> Callable:
+    """``jax.jit(fun, **jit_kwargs)`` compiled with `xla_kernel_options` (a decorator too).
+
+    The jitted functions are made at the first call (the options need the backend, which the
+    import must not start). Called on tracers, inside another program, it is traced into that
+    program without options of its own (jax takes them only at the top level): the caller's
+    options apply.
+    """
+    if fun is None:
+        return functools.partial(jit, **jit_kwargs)
+    jitted: list[Callable] = []  # [top level, nested]
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        if not jitted:
+            options = xla_kernel_options()
+            jitted.append(jax.jit(fun, compiler_options=options or None, **jit_kwargs))
+            jitted.append(jax.jit(fun, **jit_kwargs) if options else jitted[0])
+        nested = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs)))
+        return jitted[nested](*args, **kwargs)
+
+    # Traced shapes of both, as jax.jit's own counts them (what the no-recompilation tests read).
+    call._cache_size = lambda: sum(f._cache_size() for f in {id(f): f for f in jitted}.values())
+    return call
+
+
 # ------------------------------------------------------------------------ models' jitted functions
 
 # Models are called through jit-compiled functions with their NNX GraphDef closed over, one per
@@ -97,19 +151,24 @@ _BOUND_BY_VALUE: dict[tuple, Callable] = {}
 _MAX_BOUND = 256
 
 
-def bound_model_fn(fn: Callable, graphdef) -> Callable:
+def bound_model_fn(fn: Callable, graphdef, *, xla_kernels: bool = False) -> Callable:
     """``jax.jit(functools.partial(fn, graphdef))``, built once per (fn, GraphDef).
 
     ``fn(graphdef, *args)`` must be a pure function of arrays besides its GraphDef.
+    ``xla_kernels``: compiled with `xla_kernel_options` (the matcher's programs; the
+    estimator's keep the defaults, faster on a live frame's few people).
     """
-    hit = _BOUND_BY_ID.get((fn, id(graphdef)))
+    key = (fn, xla_kernels)
+    hit = _BOUND_BY_ID.get((key, id(graphdef)))
     if hit is not None and hit[0] is graphdef:
         return hit[1]
     if len(_BOUND_BY_ID) >= _MAX_BOUND:
         _BOUND_BY_ID.clear()
         _BOUND_BY_VALUE.clear()
-    jitted = _BOUND_BY_VALUE.get((fn, graphdef))
+    jitted = _BOUND_BY_VALUE.get((key, graphdef))
     if jitted is None:
-        jitted = _BOUND_BY_VALUE[(fn, graphdef)] = jax.jit(functools.partial(fn, graphdef))
-    _BOUND_BY_ID[(fn, id(graphdef))] = (graphdef, jitted)
+        options = xla_kernel_options() if xla_kernels else None
+        jitted = jax.jit(functools.partial(fn, graphdef), compiler_options=options)
+        _BOUND_BY_VALUE[(key, graphdef)] = jitted
+    _BOUND_BY_ID[(key, id(graphdef))] = (graphdef, jitted)
     return jitted

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mvpose_jax import compiled
 from mvpose_jax.cameras import (
     Rig,
     camera_centres,
@@ -39,7 +40,7 @@ NUM_KEYPOINT_FEATURES = 10
 NUM_ESTIMATOR_FEATURES = 14
 
 
-@jax.jit
+@compiled.jit
 def keypoint_features(rig: Rig, xy: jax.Array, score: jax.Array, normalisation=None) -> jax.Array:
     """The 10 per-(camera, keypoint) numbers.
 
@@ -88,7 +89,7 @@ class EstimatorInputs(NamedTuple):
     pair_ok: jax.Array  # (N, K, Q) bool, the pair saw the keypoint and triangulated it
 
 
-@jax.jit
+@compiled.jit
 def estimator_inputs(
     rig: Rig, xy: jax.Array, score: jax.Array, normalisation=None
 ) -> EstimatorInputs:

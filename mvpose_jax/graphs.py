@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
+from mvpose_jax import compiled
 from mvpose_jax.cameras import Rig
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, keypoint_features
@@ -142,7 +143,7 @@ def detection_features(
     )
 
 
-@jax.jit
+@compiled.jit
 def _detection_features(rig: Rig, xy: jax.Array, score: jax.Array, normalisation) -> jax.Array:
     F, C, P, K = score.shape
     feats = keypoint_features(

@@ -30,7 +30,7 @@ from mvpose_jax.lifting import (
 from mvpose_jax.matching import MatchingConfig
 from mvpose_jax.progress import progress_bar
 from mvpose_jax.proposals import CombinedConfig, Proposals
-from mvpose_jax.skeletons import Detections, Poses3D
+from mvpose_jax.skeletons import Detections, Poses3D, zero_padded
 from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
 from mvpose_jax.temporal import cached_temporal, for_rig, refine_tracks
 from mvpose_jax.tracking import (
@@ -474,12 +474,15 @@ def skeleton_slots(num_skeletons: int) -> int:
 
 def _padded_skeletons(det: Detections) -> Detections:
     """``det`` with its skeleton axis zero-padded to `skeleton_slots` (counts unchanged)."""
-    P = np.shape(det.score)[2]
-    extra = skeleton_slots(P) - P
-    if extra == 0:
+    F, C, P, K = np.shape(det.score)
+    slots = skeleton_slots(P)
+    if slots == P:
         return det
-    pad = [(0, 0), (0, 0), (0, extra), (0, 0)]
-    return Detections(np.pad(det.xy, pad + [(0, 0)]), np.pad(det.score, pad), det.count)
+    return Detections(
+        zero_padded(det.xy, (F, C, slots, K, 2)),
+        zero_padded(det.score, (F, C, slots, K)),
+        det.count,
+    )
 
 
 def _chunks_of(detections: Detections, chunk_frames: int) -> Iterator[tuple[int, Detections]]:

@@ -19,13 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
+from mvpose_jax import compiled
 from mvpose_jax.cameras import Rig, undistort_points
 from mvpose_jax.compiled import bound_model_fn
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, keypoint_features
 from mvpose_jax.graphs import GraphBatch, build_graphs, match_table, next_power_of_two
 from mvpose_jax.proposals import CombinedConfig, Proposals, propose_combined, propose_people
-from mvpose_jax.skeletons import Detections
+from mvpose_jax.skeletons import Detections, zero_padded
 from mvpose_jax.trained import Matcher
 from mvpose_jax.triangulate import camera_pairs, nanmedian_by_rank
 
@@ -85,7 +86,7 @@ def _match_scores_fn(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
 
 
 def _match_scores(graphdef, rest, params, batch: GraphBatch) -> jax.Array:
-    return bound_model_fn(_match_scores_fn, graphdef)(rest, params, batch)
+    return bound_model_fn(_match_scores_fn, graphdef, xla_kernels=True)(rest, params, batch)
 
 
 def match_scores(
@@ -309,9 +310,11 @@ def _gat_tables(
         )
     with_epipolar = epipolar_min_shared is not None
     if with_epipolar:
-        scores_fn = bound_model_fn(_fused_fn(epipolar_min_shared), matcher.graphdef)
+        scores_fn = bound_model_fn(
+            _fused_fn(epipolar_min_shared), matcher.graphdef, xla_kernels=True
+        )
     else:
-        scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef)
+        scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef, xla_kernels=True)
     rows, scores, means, medians = [], [], [], []
     bounds, n_graphs = frame_chunks(F, frames_per_call)
     for start, stop in bounds:
@@ -357,7 +360,7 @@ def _gat_tables(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("min_shared", "median"))
+@compiled.jit(static_argnames=("min_shared", "median"))
 def _epipolar_distances(
     rig: Rig, xy: jax.Array, score: jax.Array, *, min_shared: int, median: bool = False
 ) -> tuple[jax.Array, jax.Array | None]:
@@ -505,9 +508,8 @@ def _epipolar_dense(
     means, medians = [], []
     bounds, n_frames = frame_chunks(F, frames_per_call)
     for start, stop in bounds:
-        pad = [(0, n_frames - (stop - start))] + [(0, 0)] * 3
-        xy_c = np.moveaxis(np.pad(xy[start:stop], pad + [(0, 0)]), 1, 0)
-        sc_c = np.moveaxis(np.pad(score[start:stop], pad), 1, 0)
+        xy_c = np.moveaxis(zero_padded(xy[start:stop], (n_frames,) + xy.shape[1:]), 1, 0)
+        sc_c = np.moveaxis(zero_padded(score[start:stop], (n_frames,) + score.shape[1:]), 1, 0)
         mean, med = _epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared, median=median)
         means.append(np.asarray(mean)[:, : stop - start])
         if median:

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mvpose_jax import compiled
 from mvpose_jax.cameras import (
     Rig,
     camera_centres,
@@ -108,7 +109,7 @@ def _flatten(rig: Rig, px: jax.Array, weight: jax.Array):
     return xy, w, batch
 
 
-@jax.jit
+@compiled.jit
 def triangulate_points(rig: Rig, px: jax.Array, weight: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Score-weighted DLT triangulation over any number of views, batched.
 
@@ -133,7 +134,7 @@ def camera_pairs(num_cameras: int) -> np.ndarray:
     return np.array(list(itertools.combinations(range(num_cameras), 2)), np.int32).reshape(-1, 2)
 
 
-@jax.jit
+@compiled.jit
 def triangulate_pairs(rig: Rig, px: jax.Array, visible: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Two-view triangulation of every camera pair (unweighted DLT on the pair alone).
 
@@ -159,7 +160,7 @@ def triangulate_pairs(rig: Rig, px: jax.Array, visible: jax.Array) -> tuple[jax.
     return xyz.reshape(batch + (Q, 3)), ok.reshape(batch + (Q,))
 
 
-@jax.jit
+@compiled.jit
 def triangulate_pairwise_centroid(
     rig: Rig, px: jax.Array, visible: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
@@ -239,7 +240,7 @@ def _reprojection_px(Rt: jax.Array, focal: jax.Array, X: jax.Array, xy: jax.Arra
     return jnp.where(front & jnp.isfinite(err), err, jnp.inf)
 
 
-@jax.jit
+@compiled.jit
 def reprojection_errors_px(rig: Rig, xyz: jax.Array, px: jax.Array) -> jax.Array:
     """Undistorted-pixel distance, per camera, between a point's projection and a detection.
 
@@ -455,7 +456,7 @@ def _skeleton_selection(
     return _greedy_steps(step, seen.any(axis=1), max(C - 2, 0))
 
 
-@jax.jit
+@compiled.jit
 def triangulate_robust(
     rig: Rig, px: jax.Array, weight: jax.Array, *, outlier_px: float = OUTLIER_PX
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -482,7 +483,7 @@ def triangulate_robust(
     return _finish(m, b, kept, centre, radius, batch)
 
 
-@jax.jit
+@compiled.jit
 def triangulate_skeletons_robust(
     rig: Rig,
     px: jax.Array,
@@ -585,7 +586,7 @@ def _finish(m, b, kept, centre, radius, batch):
 # consistent with the person's triangulated keypoints and with the one view that sees it.
 
 
-@jax.jit
+@compiled.jit
 def blend_skeletons(
     rig: Rig,
     px: jax.Array,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import jax
 import jax.numpy as jnp
@@ -82,6 +84,37 @@ def test_undistort_points_matches_opencv_on_every_camera(preset_rig, ring_rig):
             np.testing.assert_allclose(
                 ours[c], to_px(_cv_undistort(px[c], K, D, 200)), atol=1e-3, rtol=0
             )
+
+
+@pytest.mark.parametrize("num_iters", [5, 20])
+def test_undistortion_stopped_at_its_fixed_point_is_the_fixed_count_bit_for_bit(
+    preset_rig, ring_rig, num_iters
+):
+    """The early stop (a block of steps that changes no point) returns exactly what running every
+    step returns: the same steps written out as a fixed loop are the reference."""
+
+    def fixed(K, dist, px):
+        k1, k2, p1, p2, k3 = dist
+        y0 = (px[..., 1] - K[1, 2]) / K[1, 1]
+        x0 = (px[..., 0] - K[0, 2] - K[0, 1] * y0) / K[0, 0]
+        x, y = x0, y0
+        for _ in range(num_iters):
+            r2 = x * x + y * y
+            icdist = 1.0 / (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
+            dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+            ok = icdist > 0
+            x, y = jnp.where(ok, (x0 - dx) * icdist, x0), jnp.where(ok, (y0 - dy) * icdist, y0)
+        return jnp.stack([x, y], axis=-1)
+
+    reference = jax.jit(jax.vmap(fixed))
+    weak = dataclasses.replace(ring_rig, dist=ring_rig.dist * 0.01)  # settles within a block
+    for rig in (*_rigs(preset_rig, ring_rig), weak):
+        px = jnp.asarray(
+            np.stack([_image_points(rig, c) for c in range(rig.num_cameras)]), jnp.float32
+        )
+        ours = cameras.undistort_normalized(rig, px, num_iters=num_iters)
+        np.testing.assert_array_equal(np.asarray(ours), np.asarray(reference(rig.K, rig.dist, px)))
 
 
 def test_undistort_inverts_project(ring_rig):

@@ -101,3 +101,36 @@ def test_a_cache_configured_for_jax_is_kept(tmp_path):
         os.environ["JAX_COMPILATION_CACHE_DIR"]
     )
     assert not (tmp_path / "mine").exists()
+
+
+# ------------------------------------------------------------------------ compiled.jit's options
+
+
+def test_jit_compiles_with_xla_kernels_at_the_top_and_traces_into_callers():
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from mvpose_jax import compiled
+
+    @compiled.jit(static_argnames="power")
+    def f(a, b, *, power):
+        return jnp.einsum("ij,njk->nik", a, b) ** power
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(3, 3)).astype(np.float32)
+    b = rng.normal(size=(7, 3, 4)).astype(np.float32)
+    expected = np.einsum("ij,njk->nik", a.astype(np.float64), b) ** 2
+    np.testing.assert_allclose(np.asarray(f(a, b, power=2)), expected, rtol=1e-5, atol=1e-5)
+    # Inside another program it is traced without options of its own (jax refuses nested ones).
+    outer = jax.jit(lambda a, b: f(a, b, power=2) + 1.0)
+    np.testing.assert_allclose(np.asarray(outer(a, b)), expected + 1.0, rtol=1e-5, atol=1e-5)
+    assert f._cache_size() == 1  # the top-level program; the nested trace is the caller's
+    options = compiled.xla_kernel_options()
+    if jax.default_backend() == "cpu":
+        assert options == compiled.XLA_CPU_KERNELS  # this jax's XLA knows the option
+        top = jax.jit(lambda a, b: f(a, b, power=2), compiler_options=options)
+        text = top.lower(a, b).compile().as_text()
+        assert "ynn" not in text.lower()
+    else:
+        assert options == {}

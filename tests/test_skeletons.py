@@ -272,3 +272,13 @@ def test_flip_keypoints_swaps_sides():
 def test_unknown_layout():
     with pytest.raises(InputError, match="unknown keypoint layout"):
         skeletons.get_layout("coco19")
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 4), (2, 5, 4), (3, 5, 7)])
+def test_zero_padded_is_np_pad_at_the_ends(shape):
+    a = np.arange(24, dtype=np.float32).reshape(2, 3, 4) + 1
+    expected = np.pad(a, [(0, n - m) for m, n in zip(a.shape, shape, strict=True)])
+    out = skeletons.zero_padded(a, shape)
+    np.testing.assert_array_equal(out, expected)
+    assert out.dtype == a.dtype
+    assert (out is a) == (shape == a.shape)  # no copy where nothing is padded
