@@ -302,3 +302,30 @@ def test_same_results_compares_groupings_exactly_and_keypoints_within_a_toleranc
     b[f"{base}/members"][2, 0, 0] += 1
     _, problems = compare(a, b)
     assert len(problems) == 2 and any("members" in p for p in problems)
+
+
+def test_ab_extracts_a_commit_under_other_names_beside_the_working_tree(tmp_path):
+    """`benchmarks.ab` imports an old commit's packages under other names: every import of one
+    by the other is rewritten, package data comes along, and the copy imports on its own."""
+    import re
+
+    from benchmarks import ab
+
+    ab.extract_old("HEAD", tmp_path)
+    assert {p.name for p in tmp_path.iterdir()} == {"mvpose_jax_old", "benchmarks_old"}
+    sources = list(tmp_path.rglob("*.py"))
+    assert len(sources) > 40
+    unrenamed = re.compile(r"\b(mvpose_jax|benchmarks)\b(?!_old)")
+    assert not [p for p in sources if unrenamed.search(p.read_text())]
+    assert list((tmp_path / "mvpose_jax_old" / "data" / "rigs").glob("*.json"))
+    code = (
+        "import mvpose_jax_old.inference as i, benchmarks_old.pipeline as p; "
+        "print(i.__file__); print(p.pipeline_configs.__module__)"
+    )
+    env = dict(os.environ, PYTHONPATH=str(tmp_path), JAX_PLATFORMS="cpu")
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert Path(out[0]).is_relative_to(tmp_path) and out[1] == "benchmarks_old.pipeline"
+    with pytest.raises(subprocess.CalledProcessError):
+        ab.extract_old("no-such-revision", tmp_path / "none")
