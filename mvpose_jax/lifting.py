@@ -25,7 +25,7 @@ from mvpose_jax.errors import InputError, MvposeWarning
 from mvpose_jax.features import assemble_features, estimator_inputs
 from mvpose_jax.graphs import next_quarter_bucket
 from mvpose_jax.models import to_world
-from mvpose_jax.skeletons import Detections, Poses3D, get_layout, leg_chains
+from mvpose_jax.skeletons import Detections, Poses3D, get_layout, leg_chains, zero_padded
 from mvpose_jax.trained import Estimator
 from mvpose_jax.triangulate import (
     MAX_SPREAD_M,
@@ -211,11 +211,9 @@ def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarr
     Host arrays: the jitted call they go to moves them to the device itself, for less than an
     explicit transfer per array costs.
     """
-    n = len(xy)
-    xy_p = np.zeros((next_quarter_bucket(n),) + np.shape(xy)[1:], np.float32)
-    score_p = np.zeros((next_quarter_bucket(n),) + np.shape(score)[1:], np.float32)
-    xy_p[:n], score_p[:n] = xy, score
-    return xy_p, score_p
+    n = next_quarter_bucket(len(xy))
+    xy, score = np.asarray(xy, np.float32), np.asarray(score, np.float32)
+    return zero_padded(xy, (n,) + xy.shape[1:]), zero_padded(score, (n,) + score.shape[1:])
 
 
 def triangulate_people(

@@ -318,14 +318,8 @@ def _gat_tables(
     rows, scores, means, medians = [], [], [], []
     bounds, n_graphs = frame_chunks(F, frames_per_call)
     for start, stop in bounds:
-        xy_c, score_c = xy[start:stop], score[start:stop]
-        if n_graphs > stop - start:
-            xy_c = np.concatenate(
-                [xy_c, np.zeros((n_graphs - (stop - start),) + xy.shape[1:], np.float32)]
-            )
-            score_c = np.concatenate(
-                [score_c, np.zeros((n_graphs - (stop - start),) + score.shape[1:], np.float32)]
-            )
+        xy_c = zero_padded(xy[start:stop], (n_graphs,) + xy.shape[1:])
+        score_c = zero_padded(score[start:stop], (n_graphs,) + score.shape[1:])
         build = _single_frame_graphs if stop - start == 1 else _frame_graphs
         graphs = build(
             np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, P, n_graphs
