@@ -2,7 +2,9 @@
 
 The pipeline's person axis is a slot within one frame; this module links slots of consecutive
 frames into tracks. Host-side, one frame at a time (the problem is sequential): the numeric core
-of a frame is compiled with numba, the assignment is scipy's, the tracks' bookkeeping numpy.
+of a frame is compiled with numba, the assignment is scipy's, the tracks' bookkeeping numpy. Over
+a chunk (`track_frames`), the frames where nothing happens but matches of the people already
+tracked (most of them) run whole in one compiled loop, with the same arithmetic.
 
 Per frame (`update_tracks`):
 
@@ -234,7 +236,16 @@ def _lower_median(buf: np.ndarray, n: int) -> float:
     match or the velocity."""
     if n == 0:
         return np.inf
-    return np.sort(buf[:n])[(n - 1) // 2]
+    # Insertion sort of buf[:n] in place (the callers' scratch): n is a skeleton's keypoints or
+    # fewer, where it beats np.sort's copy and call. NaN sorts last, as in np.sort.
+    for i in range(1, n):
+        v = buf[i]
+        j = i - 1
+        while j >= 0 and (buf[j] > v or (np.isnan(buf[j]) and not np.isnan(v))):
+            buf[j + 1] = buf[j]
+            j -= 1
+        buf[j + 1] = v
+    return buf[(n - 1) // 2]
 
 
 @numba.njit(cache=True)
@@ -333,6 +344,22 @@ def _match_costs(
 
 
 @numba.njit(cache=True)
+def _add_size_samples(t, xyz, kv, pair_i, pair_j, size_n, size_sum, size_sq):
+    """Adds one person's keypoint-pair distances (xyz (K, 3) metres, valid where kv (K,); pairs
+    pair_i, pair_j (P,)) to the body size sums of track row t (size_n, size_sum, size_sq
+    (T, P)), in place."""
+    for p in range(len(pair_i)):
+        a, b = pair_i[p], pair_j[p]
+        sq = 0.0
+        for c in range(3):
+            sq += (xyz[a, c] - xyz[b, c]) ** 2
+        if kv[a] and kv[b]:
+            size_n[t, p] += 1
+            size_sum[t, p] += np.sqrt(sq)
+            size_sq[t, p] += sq
+
+
+@numba.njit(cache=True)
 def _move_tracks(
     t_idx,
     d_idx,
@@ -399,6 +426,238 @@ def _move_tracks(
             else:
                 track_xyz[t, k] += v * dt[t]
     return stored
+
+
+# `_steady_frames`'s 2D evidence where there is none (typed as the real ones).
+_NO_CHUNK_XY = np.zeros((0, 0, 0, 0, 2), np.float32)
+_NO_CHUNK_SCORE = np.zeros((0, 0, 0, 0), np.float32)
+_NO_CHUNK_PER_PX = np.zeros((0, 0, 0))
+
+
+def _steady_config(config: TrackingConfig) -> tuple:
+    """The settings `_steady_frames` reads, as a tuple of numbers."""
+    return (
+        float(config.max_gap_s),
+        float(config.gate_m),
+        float(config.gate_speed_mps),
+        float(config.view_weight),
+        int(config.min_common_keypoints),
+        float(config.velocity_smoothing),
+        float(config.max_speed_mps),
+        float(config.keypoint_ttl_s),
+        float(config.split_m),
+        float(max(config.max_gap_s, config.relink_gap_s)),
+        bool(config.relink_gap_s > 0),
+    )
+
+
+@numba.njit(cache=True)
+def _steady_frames(
+    f,
+    times,
+    xyz,
+    kv,
+    valid,
+    xy,
+    score,
+    per_px,
+    views,
+    state_time,
+    ids,
+    track_xyz,
+    track_kv,
+    keypoint_time,
+    velocity,
+    last_time,
+    hits,
+    track_xy,
+    track_score,
+    size_n,
+    size_sum,
+    size_sq,
+    pair_i,
+    pair_j,
+    config,
+    track,
+):
+    """`_update_tracks` over frames f, f + 1, ... of a chunk for as long as nothing but matches
+    happens, in place on the track rows; returns (the first frame left for `_update_tracks`, the
+    state's time).
+
+    A frame is taken here when every track is confirmed, none ends, the assignment is decided by
+    the gate (each track within the gate of at most one person and each person of at most one
+    track) and every person is matched or is part of a matched track's person: a frame of people
+    already tracked, the common case. Any other frame (a new person, a tentative track, a
+    confirmation, a re-link, an assignment to search, a track ending) is returned untouched to
+    `_update_tracks`. The arithmetic is `_update_tracks`'s, in the same order, so the result is
+    its bit for bit (`tests/test_tracking.py`).
+
+    Args:
+      times (F,), xyz (F, G, K, 3), kv (F, G, K), valid (F, G): the chunk (see `track_frames`);
+        xy (F, G, C, K, 2), score (F, G, C, K), per_px (F, G, C) its 2D evidence where
+        ``views``.
+      ids ... size_sq: the `TrackerState` fields of the same names (``xyz`` as track_xyz,
+        ``keypoint_valid`` as track_kv, ``xy``/``score`` as track_xy/track_score); pair_i,
+        pair_j the keypoint pairs (`_pairs`).
+      config: `TrackingConfig`'s numbers in `_steady_config`'s order.
+      track: (F, G) int32 track ids, written for the frames taken.
+    """
+    (
+        max_gap_s,
+        gate_m,
+        gate_speed,
+        view_weight,
+        min_common,
+        smoothing,
+        max_speed,
+        ttl,
+        split_m,
+        keep_s,
+        relink,
+    ) = config
+    F, G, K = kv.shape
+    T = len(ids)
+    no_xy = np.zeros((0, 0, 0, 2), np.float32)
+    no_score = np.zeros((0, 0, 0), np.float32)
+    no_recent = np.zeros(0, np.bool_)
+    no_px = np.zeros((0, 0))
+    for t in range(T):
+        if ids[t] < 0:
+            return f, state_time
+    while f < F:
+        time = times[f]
+        for t in range(T):
+            if time - last_time[t] > keep_s:
+                return f, state_time
+        d_idx = np.nonzero(valid[f])[0]
+        D = len(d_idx)
+        if D and not T:
+            return f, state_time
+        if np.isfinite(ttl):
+            # Idempotent: a frame returned to `_update_tracks` after this computes the same.
+            for t in range(T):
+                for k in range(K):
+                    if last_time[t] - keypoint_time[t, k] > ttl:
+                        track_kv[t, k] = False
+        if D:
+            dt = time - last_time
+            active = state_time - last_time <= max_gap_s
+            pred = np.empty((T, K, 3))
+            for t in range(T):
+                for k in range(K):
+                    for a in range(3):
+                        pred[t, k, a] = track_xyz[t, k, a] + velocity[t, a] * dt[t]
+            people = xyz[f][d_idx]
+            people_kv = kv[f][d_idx]
+            use_views = views and view_weight > 0 and T * D > 1
+            if use_views:
+                people_xy = xy[f][d_idx]
+                people_score = score[f][d_idx]
+                recent = last_time == state_time
+                dist, d3, cost = _match_costs(
+                    pred,
+                    track_kv,
+                    people,
+                    people_kv,
+                    min_common,
+                    track_xy,
+                    track_score,
+                    recent,
+                    people_xy,
+                    people_score,
+                    per_px[f][d_idx],
+                    view_weight,
+                )
+            else:
+                dist, d3, cost = _match_costs(
+                    pred,
+                    track_kv,
+                    people,
+                    people_kv,
+                    min_common,
+                    no_xy,
+                    no_score,
+                    no_recent,
+                    no_xy,
+                    no_score,
+                    no_px,
+                    0.0,
+                )
+            gate = gate_m + gate_speed * dt
+            matched = np.full(D, -1, np.int64)
+            if T * D == 1:
+                if d3[0, 0] <= gate[0] and active[0]:
+                    matched[0] = 0
+            else:
+                per_person = np.zeros(D, np.int64)
+                for t in range(T):
+                    n = 0
+                    for d in range(D):
+                        if d3[t, d] <= gate[t] and active[t]:
+                            n += 1
+                            per_person[d] += 1
+                            matched[d] = t
+                    if n > 1:
+                        return f, state_time  # an assignment to search
+                for d in range(D):
+                    if per_person[d] > 1:
+                        return f, state_time
+            fragment = np.zeros(D, np.bool_)
+            if split_m > 0 and T * D > 1 and (matched < 0).any():
+                # `_split_people`, in the same order.
+                support = people_kv.sum(1)
+                for d in np.nonzero(matched >= 0)[0]:
+                    t = matched[d]
+                    best, n = -1, 0
+                    for e in range(D):
+                        if matched[e] < 0 and not fragment[e] and d3[t, e] < split_m:
+                            fragment[e] = True
+                            n += 1
+                            if best < 0 or support[e] > support[best]:
+                                best = e
+                    if n and support[best] > support[d]:
+                        matched[best], matched[d] = t, -1
+                        fragment[best], fragment[d] = False, True
+            for d in range(D):
+                if matched[d] < 0 and not fragment[d]:
+                    # A new track: `_update_tracks` starts it. Nothing was changed but the
+                    # keypoints' expiry, which it repeats.
+                    return f, state_time
+            m = np.nonzero(matched >= 0)[0]
+            t_idx = matched[m]
+            new_kv = _move_tracks(
+                t_idx,
+                m,
+                people,
+                people_kv,
+                dist,
+                gate,
+                dt,
+                time,
+                track_xyz,
+                track_kv,
+                velocity,
+                keypoint_time,
+                hits,
+                smoothing,
+                max_speed,
+            )
+            for i in range(len(m)):
+                t, d = t_idx[i], m[i]
+                last_time[t] = time
+                hits[t] += 1
+                if views:
+                    track_xy[t] = xy[f, d_idx[d]]
+                    track_score[t] = score[f, d_idx[d]]
+                if relink and hits[t] % _SIZE_EVERY == 1:
+                    _add_size_samples(
+                        t, people[d], new_kv[i], pair_i, pair_j, size_n, size_sum, size_sq
+                    )
+            for d in range(D):
+                track[f, d_idx[d]] = ids[matched[d]] if matched[d] >= 0 else -1
+        state_time = time
+        f += 1
+    return f, state_time
 
 
 def update_tracks(
@@ -642,11 +901,10 @@ def _add_sizes(rows: dict, t_idx: np.ndarray, xyz: np.ndarray, kv: np.ndarray) -
     """Adds the people's (M, K, 3) keypoint-pair distances (valid where kv (M, K)) to the body
     size sums of track rows t_idx (M,)."""
     i, j = _pairs(kv.shape[-1])
-    sq = np.square(xyz[:, i] - xyz[:, j]).sum(-1)  # (M, P)
-    both = kv[:, i] & kv[:, j]
-    rows["size_n"][t_idx] += both
-    rows["size_sum"][t_idx] += np.sqrt(sq) * both
-    rows["size_sq"][t_idx] += sq * both
+    for m in range(len(t_idx)):
+        _add_size_samples(
+            t_idx[m], xyz[m], kv[m], i, j, rows["size_n"], rows["size_sum"], rows["size_sq"]
+        )
 
 
 def _relink_candidate(
@@ -725,6 +983,7 @@ def track_frames(
       (the state after the last frame, (F, G) int32 track id of each slot, -1 where empty or
       not on a confirmed track; see ``TrackingConfig.backfill`` for a track's first frames).
     """
+    times = np.asarray(times, np.float64)
     xyz = np.asarray(xyz, np.float64)
     keypoint_valid = np.asarray(keypoint_valid, bool)
     valid = np.asarray(valid, bool)
@@ -742,8 +1001,48 @@ def track_frames(
     track = np.full((F, G), -1, np.int32)
     # Tentative tracks' people so far, by track serial: (frames, slots), labelled once confirmed.
     pending: dict[int, tuple[list[int], list[int]]] = {}
-    for f in range(F):
+    # The track rows, copied once: the frames of people already tracked update them in place
+    # (`_steady_frames`); the others go through `_update_tracks`, which returns new ones.
+    rows = {name: getattr(state, name).copy() for name in _TRACK_FIELDS}
+    steady_config = _steady_config(config)
+    pair_i, pair_j = _pairs(keypoint_valid.shape[-1])
+    if not views:
+        xy = score = per_px = None
+    t_now = state.time
+    f = 0
+    while True:
+        f, t_now = _steady_frames(
+            f,
+            times,
+            xyz,
+            keypoint_valid,
+            valid,
+            xy if views else _NO_CHUNK_XY,
+            score if views else _NO_CHUNK_SCORE,
+            per_px if views else _NO_CHUNK_PER_PX,
+            views,
+            t_now,
+            rows["ids"],
+            rows["xyz"],
+            rows["keypoint_valid"],
+            rows["keypoint_time"],
+            rows["velocity"],
+            rows["last_time"],
+            rows["hits"],
+            rows["xy"],
+            rows["score"],
+            rows["size_n"],
+            rows["size_sum"],
+            rows["size_sq"],
+            pair_i,
+            pair_j,
+            steady_config,
+            track,
+        )
+        if f == F:
+            break
         (d,) = np.nonzero(valid[f])
+        state = dataclasses.replace(state, **rows, time=t_now)
         state, ids, serial = _update_tracks(
             state,
             time=float(times[f]),
@@ -754,22 +1053,25 @@ def track_frames(
             metres_per_px=per_px[f, d] if views else None,
             config=config,
         )
+        rows = {name: getattr(state, name) for name in _TRACK_FIELDS}
+        t_now = state.time
         track[f, d] = ids
-        if not config.backfill:
-            continue
-        for i in np.nonzero(serial >= 0)[0]:
-            key = int(serial[i])
-            if ids[i] < 0:
-                frames, slots = pending.setdefault(key, ([], []))
-                frames.append(f)
-                slots.append(int(d[i]))
-            elif key in pending:
-                frames, slots = pending.pop(key)
-                track[frames, slots] = ids[i]
-        if pending and f % 8 == 7:
-            # Tentative tracks end at their first miss: drop the ghosts that ended.
-            alive = set(state.serial[state.ids < 0].tolist())
-            pending = {k: v for k, v in pending.items() if k in alive}
+        if config.backfill:
+            for i in np.nonzero(serial >= 0)[0]:
+                key = int(serial[i])
+                if ids[i] < 0:
+                    frames, slots = pending.setdefault(key, ([], []))
+                    frames.append(f)
+                    slots.append(int(d[i]))
+                elif key in pending:
+                    frames, slots = pending.pop(key)
+                    track[frames, slots] = ids[i]
+            if pending:
+                # Tentative tracks end at their first miss: drop the ghosts that ended.
+                alive = set(state.serial[state.ids < 0].tolist())
+                pending = {k: v for k, v in pending.items() if k in alive}
+        f += 1
+    state = dataclasses.replace(state, **rows, time=t_now)
     return state, track
 
 

@@ -381,6 +381,122 @@ def test_the_compiled_costs_equal_their_definition():
         assert got == (kept[(len(kept) - 1) // 2] if len(kept) else np.inf)
 
 
+def _busy_scene(seed, F=150, G=7, C=5):
+    """A crowded chunk: people walking in and out (gaps shorter and longer than the limits),
+    passing near each other, missing keypoints, a person sometimes proposed twice, ghosts, slots
+    shuffled every frame, with 2D evidence in C cameras. Returns times, xyz, kv, valid, xy,
+    score."""
+    rng = np.random.default_rng(seed)
+    K = len(BODY)
+    N = G - 2  # true people; the other slots hold fragments and ghosts
+    start = rng.uniform(-1.5, 1.5, (N, 3)) * [1, 1, 0]
+    velocity = rng.normal(0, 0.6, (N, 3)) * [1, 1, 0]
+    times = np.arange(F) / FPS
+    root = start[:, None] + times[None, :, None] * velocity[:, None]  # (N, F, 3)
+    people = root[..., None, :] + BODY * rng.uniform(0.9, 1.2, (N, 1, 1, 1))
+    present = np.ones((N, F), bool)
+    for i in range(N):
+        for _ in range(rng.integers(0, 3)):
+            a = rng.integers(0, F)
+            present[i, a : a + rng.integers(1, 60)] = False
+    xyz = np.zeros((F, G, K, 3))
+    kv = np.zeros((F, G, K), bool)
+    valid = np.zeros((F, G), bool)
+    xy = np.zeros((F, G, C, K, 2), np.float32)
+    score = np.zeros((F, G, C, K), np.float32)
+    cams = rng.uniform(-300, 300, (C, 1, 2))
+    for f in range(F):
+        here = [people[i, f] + rng.normal(0, 0.01, (K, 3)) for i in range(N) if present[i, f]]
+        if here and rng.random() < 0.15:  # a fragment of someone, 0-10 cm off
+            j = rng.integers(len(here))
+            here.append(np.where(np.arange(K)[:, None] < 3, here[j] + 0.05, np.nan))
+        if rng.random() < 0.08:  # a ghost
+            here.append(BODY + rng.uniform(-2, 2, 3) * [1, 1, 0])
+        slots = rng.permutation(G)[: len(here)]
+        for g, p in zip(slots, here, strict=False):
+            p = np.where(rng.random((K, 1)) < 0.1, np.nan, p)  # missed keypoints
+            kv[f, g] = ~np.isnan(p).any(-1)
+            xyz[f, g] = np.nan_to_num(p)
+            valid[f, g] = True
+            xy[f, g] = 100 * xyz[f, g, None, :, :2] + cams
+            score[f, g] = kv[f, g] * (rng.random((C, K)) < 0.9)
+    return times, xyz, kv, valid, xy, score
+
+
+@pytest.mark.parametrize("views", [False, True])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_chunk_is_its_frames_one_at_a_time_bit_for_bit(seed, views, monkeypatch):
+    """`track_frames` takes the frames of people already tracked in one compiled loop
+    (`_steady_frames`) and the others through `_update_tracks`: its ids and final state are
+    those of `update_tracks` called frame by frame (backfill off), bit for bit, and with
+    backfill its ids are those frames' ids with each confirmed track's tentative frames
+    labelled."""
+    from mvpose_jax import tracking
+
+    rig = load_rig("panoptic5")
+    times, xyz, kv, valid, xy, score = _busy_scene(seed)
+    F, G = valid.shape
+    evidence = dict(xy=xy, score=score, rig=rig) if views else {}
+    per_px = metres_per_pixel(
+        rig, (xyz * kv[..., None]).sum(-2) / np.maximum(kv.sum(-1), 1)[..., None]
+    )
+    causal = TrackingConfig(backfill=False)
+
+    state = initial_state(len(BODY), rig.num_cameras if views else 0)
+    want = np.full((F, G), -1, np.int32)
+    serials = np.full((F, G), -1)
+    for f in range(F):
+        (d,) = np.nonzero(valid[f])
+        state, ids, serial = tracking._update_tracks(
+            state,
+            time=float(times[f]),
+            xyz=xyz[f, d],
+            keypoint_valid=kv[f, d],
+            xy=xy[f, d] if views else None,
+            score=score[f, d] if views else None,
+            metres_per_px=per_px[f, d] if views else None,
+            config=causal,
+        )
+        want[f, d], serials[f, d] = ids, serial
+
+    calls = []
+    original = tracking._update_tracks
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tracking, "_update_tracks", counted)
+    got_state, got = track_frames(
+        initial_state(len(BODY)),
+        times=times,
+        xyz=xyz,
+        keypoint_valid=kv,
+        valid=valid,
+        config=causal,
+        **evidence,
+    )
+    monkeypatch.undo()
+    np.testing.assert_array_equal(got, want)
+    for field in dataclasses.fields(state):
+        np.testing.assert_array_equal(getattr(got_state, field.name), getattr(state, field.name))
+    # Both paths were taken: the eventful frames in Python, the others in the compiled loop.
+    assert 5 < len(calls) < F - 30
+    assert len(np.unique(want[want >= 0])) >= 5
+
+    # Backfill: a confirmed track's tentative frames get its id; a ghost's stay -1.
+    _, filled = track_frames(
+        initial_state(len(BODY)), times=times, xyz=xyz, keypoint_valid=kv, valid=valid, **evidence
+    )
+    id_of_serial = {s: i for s, i in zip(serials[want >= 0], want[want >= 0], strict=True)}
+    expect = np.where(
+        want >= 0,
+        want,
+        [[id_of_serial.get(s, -1) if s >= 0 else -1 for s in row] for row in serials],
+    )
+    np.testing.assert_array_equal(filled, expect)
+
+
 # ------------------------------------------------------------------- track-level association
 
 
