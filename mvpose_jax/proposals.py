@@ -40,6 +40,7 @@ import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from mvpose_jax.errors import InputError
@@ -113,8 +114,10 @@ def propose_people(
         pair_items = (rows[:, [0]] * C + rows[:, [1, 3]]) * P + rows[:, [2, 4]]  # (M, 2)
         keep = np.nonzero(scores > threshold)[0]
         joins = keep[np.argsort(-scores[keep], kind="stable")]  # best first
-        a, b = pair_items[joins, 0].tolist(), pair_items[joins, 1].tolist()
+        a, b = pair_items[joins, 0], pair_items[joins, 1]
         parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
+        if repair_splits or drop_duplicates:
+            a, b = a.tolist(), b.tolist()
         if repair_splits:  # it reads every scored pair, not only the joins
             parent = _merge_split_people(
                 parent, a, b, scores[joins], pair_items, scores, threshold, C, P
@@ -417,7 +420,7 @@ def _average_linkage(
 
 
 def union_find_exclusive(
-    num_items: int, a: list[int], b: list[int], group: np.ndarray
+    num_items: int, a: list[int] | np.ndarray, b: list[int] | np.ndarray, group: np.ndarray
 ) -> np.ndarray:
     """Greedy union-find that never joins two items of the same group (camera).
 
@@ -428,26 +431,43 @@ def union_find_exclusive(
     Returns:
       (n,) the root of every item's set.
     """
-    parent = list(range(num_items))
-    cams = [1 << int(g) for g in np.asarray(group).tolist()]  # camera bitmask of each root
+    return _union_find_exclusive(
+        num_items,
+        np.asarray(a, np.int64).reshape(-1),
+        np.asarray(b, np.int64).reshape(-1),
+        np.asarray(group, np.int64).reshape(-1),
+    )
 
-    def find(x: int) -> int:
-        root = x
-        while parent[root] != root:
-            root = parent[root]
-        while parent[x] != root:  # path compression
-            parent[x], x = root, parent[x]
-        return root
 
-    for x, y in zip(a, b, strict=True):
-        rx, ry = find(x), find(y)
+# Compiled: an offline chunk joins tens of thousands of pairs, and as Python the loop cost more
+# than the rest of the proposals.
+@numba.njit(cache=True)
+def _union_find_exclusive(num_items, a, b, group):
+    """`union_find_exclusive` on (M,) int64 pairs and (n,) int64 groups."""
+    parent = np.arange(num_items)
+    cams = np.empty(num_items, np.int64)  # camera bitmask of each root
+    for i in range(num_items):
+        cams[i] = np.int64(1) << group[i]
+    for m in range(len(a)):
+        rx, ry = _find(parent, a[m]), _find(parent, b[m])
         if rx == ry or cams[rx] & cams[ry]:
             continue
         if rx > ry:
             rx, ry = ry, rx
         parent[ry] = rx
         cams[rx] |= cams[ry]
-    return np.array([find(x) for x in range(num_items)], np.int64)
+    return np.array([_find(parent, x) for x in range(num_items)], np.int64)
+
+
+@numba.njit(cache=True)
+def _find(parent, x):
+    """The root of item x, compressing its path."""
+    root = x
+    while parent[root] != root:
+        root = parent[root]
+    while parent[x] != root:
+        parent[x], x = root, parent[x]
+    return root
 
 
 def _proposals_from_roots(root: np.ndarray, ok: np.ndarray, min_views: int) -> Proposals:
