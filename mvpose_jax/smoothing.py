@@ -33,6 +33,7 @@ slot-major, with ``filled`` set.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -44,7 +45,6 @@ from scipy.signal import butter, sosfiltfilt
 from mvpose_jax.data.poses import PoseResults, load_poses_chunk, save_poses_chunk
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D
-from mvpose_jax.triangulate import nanmedian_along
 
 FILTERS = ("none", "one-euro", "butterworth")
 
@@ -340,20 +340,63 @@ def reject_outliers(
       (the series without the outliers, (N, K) bool: the dropped samples).
     """
     x, kv = series.xyz, series.keypoint_valid
-    N, K = kv.shape
-    # (N, K, W, 3) windows, NaN where a neighbour is missing or in another track.
-    idx = np.arange(N)[:, None] + np.arange(-half_window, half_window + 1)[None]  # (N, W)
-    idx_c = np.clip(idx, 0, N - 1)
-    inside = (idx == idx_c) & (series.track[idx_c] == series.track[:, None])
-    idx = idx_c
-    use = inside[:, None, :] & kv[idx].transpose(0, 2, 1)  # (N, K, W)
-    # Neighbours in pairs, one each side: a one-sided window's median lags a moving keypoint
-    # (at a run's ends), and would flag good samples of fast motion.
-    use &= use[..., ::-1]
-    win = np.where(use[..., None], x[idx].transpose(0, 2, 1, 3), np.nan)
-    med = nanmedian_along(win, axis=2)  # (N, K, 3); NaN for an all-NaN window (no sample)
+    # (N, K, 3); NaN for a window without a sample.
+    med = _window_medians(
+        np.asarray(x, np.float64), np.asarray(kv, bool), np.asarray(series.track), half_window
+    )
     out = kv & (_norm(x - med, axis=-1) > max_deviation_m)
     return dataclasses.replace(series, keypoint_valid=kv & ~out), out
+
+
+@numba.njit(cache=True)
+def _window_medians(x, kv, track, half_window):
+    """`reject_outliers`'s local medians: x (N, K, 3) metres, kv (N, K), track (N,) ->
+    (N, K, 3) the median of each coordinate over the keypoint's samples at offsets
+    -half_window..half_window of the same track, taken in pairs (offset -o only with +o), NaN
+    where there is none (``np.nanmedian`` of those samples: a NaN coordinate is no sample).
+    Compiled: as numpy, the windows' sort cost more than the Butterworth filter itself."""
+    N, K = kv.shape
+    W = 2 * half_window + 1
+    med = np.full((N, K, 3), np.nan)
+    pairs = np.empty((W, 2), np.int64)  # the sample's window: rows j, j2 = i + o, i - o
+    rows = np.empty(W, np.int64)
+    buf = np.empty(W)
+    for i in range(N):
+        P = 0
+        for o in range(-half_window, half_window + 1):
+            j, j2 = i + o, i - o
+            if 0 <= j < N and 0 <= j2 < N and track[j] == track[i] and track[j2] == track[i]:
+                pairs[P, 0], pairs[P, 1] = j, j2
+                P += 1
+        for k in range(K):
+            R = 0
+            for p in range(P):
+                if kv[pairs[p, 0], k] and kv[pairs[p, 1], k]:
+                    rows[R] = pairs[p, 0]
+                    R += 1
+            for a in range(3):
+                n = 0
+                for r in range(R):
+                    v = x[rows[r], k, a]
+                    if np.isnan(v):
+                        continue
+                    # Insertion into the sorted buffer.
+                    m = n
+                    while m > 0 and buf[m - 1] > v:
+                        buf[m] = buf[m - 1]
+                        m -= 1
+                    buf[m] = v
+                    n += 1
+                if n:
+                    med[i, k, a] = (buf[(n - 1) // 2] + buf[n // 2]) / 2
+    return med
+
+
+@functools.lru_cache(maxsize=32)
+def _low_pass(order: int, cutoff_hz: float, fps: float) -> np.ndarray:
+    """The Butterworth low-pass's second-order sections (designed once per setting: the design
+    costs about 2 ms, as much as filtering a 256-frame chunk of a few tracks)."""
+    return butter(order, cutoff_hz, btype="low", fs=fps, output="sos")
 
 
 def butterworth(
@@ -373,7 +416,8 @@ def butterworth(
             f"the cut-off {cutoff_hz:g} Hz must lie between 0 and half the frame rate ({fps / 2:g} Hz)",
             field="cutoff_hz",
         )
-    sos = butter(order, cutoff_hz, btype="low", fs=fps, output="sos")
+    # A copy: scipy's filter wants a writable array, and the cached one must stay as designed.
+    sos = _low_pass(order, float(cutoff_hz), float(fps)).copy()
     # sosfiltfilt's own default edge padding; shorter runs are padded by what they have.
     pad = 3 * (2 * len(sos) + 1 - min((sos[:, 2] == 0).sum(), (sos[:, 5] == 0).sum()))
     k, s, n = _runs(series.keypoint_valid, series.starts)
