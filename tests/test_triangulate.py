@@ -545,6 +545,28 @@ def test_skeleton_spread_is_the_median_distance_from_the_median_point():
     assert triangulate.human_sized(xyz, valid, np.inf).all()
 
 
+def test_skeleton_spread_is_numpys_nanmedians_bit_for_bit():
+    """The compiled spread against its definition in numpy (np.nanmedian; a NaN coordinate of a
+    valid keypoint is no sample), on random people with ties, NaNs and few valid keypoints."""
+    rng = np.random.default_rng(31)
+    xyz = rng.normal(size=(400, 3, 12, 3))
+    xyz[::3] = np.round(xyz[::3], 1)  # ties
+    xyz[rng.random(xyz.shape) < 0.03] = np.nan
+    valid = rng.random((400, 3, 12)) < rng.random((400, 3, 1))
+    xyz[0, 0, :, 0], valid[0, 0, :2] = np.nan, True  # valid keypoints without an x: NaN
+    got = triangulate.skeleton_spread(xyz, valid)
+    want = np.zeros(valid.shape[:-1])
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices
+        for idx in np.ndindex(valid.shape[:-1]):
+            if valid[idx].sum() >= 2:
+                pts = np.where(valid[idx][:, None], xyz[idx], np.nan)
+                d = pts - np.nanmedian(pts, axis=0)
+                want[idx] = np.nanmedian(np.sqrt((d * d).sum(-1)))
+    np.testing.assert_array_equal(got, want)
+    assert np.isnan(got).any() and (got == 0).any()  # both edge cases were drawn
+
+
 @pytest.mark.parametrize("axis", [-1, -2])
 def test_nanmedian_by_rank_is_jnp_nanmedian_bit_for_bit(axis):
     rng = np.random.default_rng(30)
