@@ -316,6 +316,51 @@ def test_union_find_exclusive_plain():
     assert roots.tolist() == [0, 0, 2, 2]  # 1-2 refused (camera 0 twice), 2-3 joined
 
 
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_union_find_exclusive_is_greedy_set_merging(data):
+    # The compiled union-find against sets merged in the pairs' order, each merge refused when
+    # the two sets share a camera; a set's root is its smallest item.
+    n = data.draw(st.integers(1, 30))
+    group = np.array(data.draw(st.lists(st.integers(0, 62), min_size=n, max_size=n)))
+    pairs = data.draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1))))
+    sets = [{i} for i in range(n)]
+    for x, y in pairs:
+        a, b = sets[x], sets[y]
+        if a is not b and not {group[i] for i in a} & {group[i] for i in b}:
+            merged = a | b
+            for i in merged:
+                sets[i] = merged
+    a, b = [x for x, _ in pairs], [y for _, y in pairs]
+    assert union_find_exclusive(n, a, b, group).tolist() == [min(sets[i]) for i in range(n)]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_people_are_numbered_by_root_within_each_frame(data):
+    from mvpose_jax.proposals import _proposals_from_roots
+
+    F, C, P = (data.draw(st.integers(1, 4)) for _ in range(3))
+    ok = np.array(data.draw(st.lists(st.booleans(), min_size=F * C * P, max_size=F * C * P)))
+    ok = ok.reshape(F, C, P)
+    # Each slot's root: any slot of its own frame.
+    local = data.draw(st.lists(st.integers(0, C * P - 1), min_size=F * C * P, max_size=F * C * P))
+    root = np.asarray(local).reshape(F, C, P) + (np.arange(F) * C * P)[:, None, None]
+    min_views = data.draw(st.integers(1, 3))
+    got = _proposals_from_roots(root, ok, min_views)
+    for f in range(F):
+        size = {r: int((ok[f] & (root[f] == r)).sum()) for r in np.unique(root[f])}
+        people = sorted(r for r in size if size[r] >= min_views)
+        want = np.where(
+            ok[f], [[people.index(r) if r in people else -1 for r in row] for row in root[f]], -1
+        )
+        np.testing.assert_array_equal(got.identity[f], want)
+        table = np.full((len(people), C), -1)
+        for c, p in zip(*np.nonzero(want >= 0), strict=True):
+            table[want[c, p], c] = p  # the last skeleton of a camera, as numpy assigns
+        np.testing.assert_array_equal(got.people[f], table)
+
+
 # --------------------------------------------------------------------------- combined matcher
 
 
