@@ -549,40 +549,32 @@ def _steady_frames(
                         pred[t, k, a] = track_xyz[t, k, a] + velocity[t, a] * dt[t]
             people = xyz[f][d_idx]
             people_kv = kv[f][d_idx]
-            use_views = views and view_weight > 0 and T * D > 1
-            if use_views:
-                people_xy = xy[f][d_idx]
-                people_score = score[f][d_idx]
-                recent = last_time == state_time
-                dist, d3, cost = _match_costs(
-                    pred,
-                    track_kv,
-                    people,
-                    people_kv,
-                    min_common,
-                    track_xy,
-                    track_score,
-                    recent,
-                    people_xy,
-                    people_score,
+            # One track and one person: the gate (3D) alone decides, as in `_update_tracks`.
+            if views and view_weight > 0 and T * D > 1:
+                t_xy, t_score, recent = track_xy, track_score, last_time == state_time
+                p_xy, p_score, p_px, w = (
+                    xy[f][d_idx],
+                    score[f][d_idx],
                     per_px[f][d_idx],
                     view_weight,
                 )
             else:
-                dist, d3, cost = _match_costs(
-                    pred,
-                    track_kv,
-                    people,
-                    people_kv,
-                    min_common,
-                    no_xy,
-                    no_score,
-                    no_recent,
-                    no_xy,
-                    no_score,
-                    no_px,
-                    0.0,
-                )
+                t_xy, t_score, recent = no_xy, no_score, no_recent
+                p_xy, p_score, p_px, w = no_xy, no_score, no_px, 0.0
+            dist, d3, cost = _match_costs(
+                pred,
+                track_kv,
+                people,
+                people_kv,
+                min_common,
+                t_xy,
+                t_score,
+                recent,
+                p_xy,
+                p_score,
+                p_px,
+                w,
+            )
             gate = gate_m + gate_speed * dt
             matched = np.full(D, -1, np.int64)
             if T * D == 1:
