@@ -164,19 +164,24 @@ def _estimate_people(
         thresholds = np.array([outlier_px, view_outlier_px], np.float32)
         up = np.asarray(up_vector(estimator.rig_infer), np.float32)
         extra = (thresholds, leg_chains(lay), up)
-    xy_p, score_p = _pad_people(xy, score)
     jitted = bound_model_fn(fn, estimator.graphdef)
     if mesh is None:
-        out = jitted(
-            estimator.rest,
-            estimator.params,
-            estimator.rig_infer,
-            estimator.normalisation,
-            xy_p,
-            score_p,
-            *extra,
-        )
-        return _unpadded(out, np.asarray, len(xy))
+
+        def block(xy_b, score_b):
+            out = jitted(
+                estimator.rest,
+                estimator.params,
+                estimator.rig_infer,
+                estimator.normalisation,
+                xy_b,
+                score_b,
+                *extra,
+            )
+            return out if isinstance(out, tuple) else (out,)
+
+        out = _by_blocks(block, xy, score)
+        return out[0], (out[1] if len(out) > 1 else None)
+    xy_p, score_p = _pad_people(xy, score)
     # Local imports: this function is the only place inference needs the mesh helpers.
     from mvpose_jax.parallel import mesh_size, pad_leading, replicate, shard_batch, to_host
 
@@ -216,6 +221,38 @@ def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return zero_padded(xy, (n,) + xy.shape[1:]), zero_padded(score, (n,) + score.shape[1:])
 
 
+# The 3D stage's programs take at most this many people a call: a larger batch runs in blocks
+# of this size, the last zero-padded to it. A chunk's people then compile the quarter buckets up
+# to it and this one size, however many people its frames hold (a recording whose chunks hold
+# 300 to 2,400 people compiled seven shapes, each a few seconds; the arithmetic per person is
+# the same in every shape).
+PEOPLE_PER_CALL = 512
+
+
+def _people_blocks(n: int) -> list[tuple[int, int, int]]:
+    """(start, stop, padded size) of the calls that take ``n`` people: one call padded to
+    `graphs.next_quarter_bucket` up to `PEOPLE_PER_CALL` people, blocks of that size above."""
+    if n <= PEOPLE_PER_CALL:
+        return [(0, n, next_quarter_bucket(n))]
+    return [(s, min(n, s + PEOPLE_PER_CALL), PEOPLE_PER_CALL) for s in range(0, n, PEOPLE_PER_CALL)]
+
+
+def _by_blocks(fn, xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``fn(xy_block, score_block)`` (padded float32 (B, C, K, 2) / (B, C, K), a tuple of
+    arrays with the people first) over `_people_blocks`, joined: each output's N real rows as
+    numpy. Every block is dispatched before the first is fetched."""
+    xy, score = np.asarray(xy, np.float32), np.asarray(score, np.float32)
+    calls = []
+    for start, stop, size in _people_blocks(len(xy)):
+        xy_b = zero_padded(xy[start:stop], (size,) + xy.shape[1:])
+        score_b = zero_padded(score[start:stop], (size,) + score.shape[1:])
+        calls.append((stop - start, fn(xy_b, score_b)))
+    parts = [tuple(np.asarray(a)[:n] for a in out) for n, out in calls]
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
+
+
 def triangulate_people(
     rig: Rig,
     xy: np.ndarray,
@@ -239,16 +276,17 @@ def triangulate_people(
     """
     if method not in TRIANGULATION_METHODS:
         raise ValueError(f"method must be one of {TRIANGULATION_METHODS}, not {method!r}")
-    xy_p, score_p = _pad_people(xy, score)
-    px, w = np.moveaxis(xy_p, 1, 0), np.moveaxis(score_p, 1, 0)
-    if method == "robust":
-        xyz, ok, _ = triangulate_skeletons_robust(
-            rig, px, w, outlier_px=outlier_px, view_outlier_px=view_outlier_px
-        )
-    else:
+
+    def block(xy_b, score_b):
+        px, w = np.moveaxis(xy_b, 1, 0), np.moveaxis(score_b, 1, 0)
+        if method == "robust":
+            return triangulate_skeletons_robust(
+                rig, px, w, outlier_px=outlier_px, view_outlier_px=view_outlier_px
+            )[:2]
         fn = {"centroid": triangulate_pairwise_centroid, "dlt": triangulate_points}[method]
-        xyz, ok = fn(rig, px, w)
-    return np.asarray(xyz)[: len(xy)], np.asarray(ok)[: len(xy)]
+        return fn(rig, px, w)
+
+    return _by_blocks(block, xy, score)
 
 
 def poses_from_people(xyz: np.ndarray, keypoint_valid: np.ndarray, exists: np.ndarray) -> Poses3D:
@@ -550,21 +588,22 @@ def lift_confident(
     out = np.zeros((F, G, K, 3), np.float32)
     kv = np.zeros((F, G, K), bool)
     if exists.any():
-        xy_p, score_p = _pad_people(xy[exists], score[exists])
-        p = inlier_probability(model, rig, xy_p, score_p, layout or "coco18")
-        px, w = np.moveaxis(xy_p, 1, 0), np.moveaxis(score_p, 1, 0)
-        xyz, ok = triangulate_confident(
-            rig,
-            px,
-            w,
-            np.moveaxis(p, 1, 0),
-            threshold=model.config.threshold,
-            then=model.config.then,
-            outlier_px=config.outlier_px,
-            view_outlier_px=config.view_outlier_px,
-        )
-        n = int(exists.sum())
-        out[exists], kv[exists] = np.asarray(xyz)[:n], np.asarray(ok)[:n]
+
+        def block(xy_b, score_b):
+            p = inlier_probability(model, rig, xy_b, score_b, layout or "coco18")
+            px, w = np.moveaxis(xy_b, 1, 0), np.moveaxis(score_b, 1, 0)
+            return triangulate_confident(
+                rig,
+                px,
+                w,
+                np.moveaxis(p, 1, 0),
+                threshold=model.config.threshold,
+                then=model.config.then,
+                outlier_px=config.outlier_px,
+                view_outlier_px=config.view_outlier_px,
+            )
+
+        out[exists], kv[exists] = _by_blocks(block, xy[exists], score[exists])
     exists = exists & kv.any(axis=-1)
     exists[exists] = _body_sized(out[exists], kv[exists], config.max_spread_m)
     return poses_from_people(out, kv, exists), _confidence(score)

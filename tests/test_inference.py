@@ -770,3 +770,45 @@ def test_pipeline_proposal_modes_with_a_matcher(scene):
         run_pipeline(rig, det, proposals="combined")
     with pytest.raises(ValueError, match="proposals must be one of"):
         run_pipeline(rig, det, matcher=matcher, proposals="learned")
+
+
+@pytest.mark.parametrize("method", ["robust", "dlt", "blend", "mlp"])
+def test_people_in_blocks_give_one_calls_results_bit_for_bit(scene, method, monkeypatch):
+    """Beyond `lifting.PEOPLE_PER_CALL` people the 3D stage runs in blocks of that size (the
+    last padded to it), so a chunk compiles one shape however many people it holds: every
+    method's keypoints and validity are those of one call on the whole batch, bit for bit."""
+    from mvpose_jax import lifting
+
+    rig, rec = scene
+    det = rec.detections
+    members = members_from_identity(np.asarray(rec.identity), 3)
+    xy, score = lifting.group_people(np.asarray(det.xy), np.asarray(det.score), members)
+    present = (score > 0).any(-1).sum(-1) >= 2  # (F, G) people seen in 2+ views
+    xy, score = xy[present], score[present]  # (N, C, K, 2), N = 24 people
+    estimator = untrained_estimator(rig)
+
+    def lift(per_call):
+        monkeypatch.setattr(lifting, "PEOPLE_PER_CALL", per_call)
+        if method in ("robust", "dlt"):
+            return lifting.triangulate_people(rig, xy, score, method)
+        return lifting._estimate_people(
+            estimator,
+            xy,
+            score,
+            method=method,
+            outlier_px=lifting.OUTLIER_PX,
+            view_outlier_px=lifting.VIEW_OUTLIER_PX,
+            layout="coco18",
+            mesh=None,
+        )
+
+    assert len(xy) == 24 and lifting._people_blocks(24) == [(0, 24, 24)]
+    whole = lift(512)
+    blocks = lift(10)  # the last block padded: 4 people in a call of 10
+    assert lifting._people_blocks(24) == [(0, 10, 10), (10, 20, 10), (20, 24, 10)]
+    for a, b in zip(whole, blocks, strict=True):
+        if a is None:
+            assert b is None
+        else:
+            assert a.shape[0] == len(xy)
+            np.testing.assert_array_equal(a, b)
