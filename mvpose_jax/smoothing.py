@@ -45,6 +45,7 @@ from scipy.signal import butter, sosfiltfilt
 from mvpose_jax.data.poses import PoseResults, load_poses_chunk, save_poses_chunk
 from mvpose_jax.errors import InputError
 from mvpose_jax.skeletons import Poses3D
+from mvpose_jax.triangulate import insert_sorted, sorted_median
 
 FILTERS = ("none", "one-euro", "butterworth")
 
@@ -357,7 +358,7 @@ def _window_medians(x, kv, track, half_window):
     Compiled: as numpy, the windows' sort cost more than the Butterworth filter itself."""
     N, K = kv.shape
     W = 2 * half_window + 1
-    med = np.full((N, K, 3), np.nan)
+    med = np.empty((N, K, 3))
     pairs = np.empty((W, 2), np.int64)  # the sample's window: rows j, j2 = i + o, i - o
     rows = np.empty(W, np.int64)
     buf = np.empty(W)
@@ -377,18 +378,9 @@ def _window_medians(x, kv, track, half_window):
             for a in range(3):
                 n = 0
                 for r in range(R):
-                    v = x[rows[r], k, a]
-                    if np.isnan(v):
-                        continue
-                    # Insertion into the sorted buffer.
-                    m = n
-                    while m > 0 and buf[m - 1] > v:
-                        buf[m] = buf[m - 1]
-                        m -= 1
-                    buf[m] = v
-                    n += 1
-                if n:
-                    med[i, k, a] = (buf[(n - 1) // 2] + buf[n // 2]) / 2
+                    if not np.isnan(x[rows[r], k, a]):
+                        n = insert_sorted(buf, n, x[rows[r], k, a])
+                med[i, k, a] = sorted_median(buf, n)
     return med
 
 

@@ -740,8 +740,8 @@ def _skeleton_spreads(xyz, valid):
             n = 0
             for k in range(K):
                 if valid[i, k] and not np.isnan(xyz[i, k, a]):
-                    n = _insert_sorted(buf, n, xyz[i, k, a])
-            centre[a] = (buf[(n - 1) // 2] + buf[n // 2]) / 2 if n else np.nan
+                    n = insert_sorted(buf, n, xyz[i, k, a])
+            centre[a] = sorted_median(buf, n)
         n = 0
         for k in range(K):
             if valid[i, k]:
@@ -750,20 +750,29 @@ def _skeleton_spreads(xyz, valid):
                 d2 = xyz[i, k, 2] - centre[2]
                 e = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
                 if not np.isnan(e):
-                    n = _insert_sorted(dist, n, e)
-        out[i] = (dist[(n - 1) // 2] + dist[n // 2]) / 2 if n else np.nan
+                    n = insert_sorted(dist, n, e)
+        out[i] = sorted_median(dist, n)
     return out
 
 
+# Medians of a few numbers in compiled host loops (a skeleton's keypoints, a filter's window):
+# each number inserted into a sorted scratch buffer, then np.nanmedian's middle of the n.
 @numba.njit(cache=True)
-def _insert_sorted(buf, n, v):
-    """Inserts v into the sorted buf[:n]; returns n + 1."""
+def insert_sorted(buf, n, v):
+    """Inserts the number v into the sorted buf[:n]; returns n + 1."""
     m = n
     while m > 0 and buf[m - 1] > v:
         buf[m] = buf[m - 1]
         m -= 1
     buf[m] = v
     return n + 1
+
+
+@numba.njit(cache=True)
+def sorted_median(buf, n):
+    """The median of the sorted buf[:n], as np.nanmedian gives it (the mean of the two middle
+    numbers when n is even); NaN when n is 0."""
+    return (buf[(n - 1) // 2] + buf[n // 2]) / 2 if n else np.nan
 
 
 def nanmedian_along(a: np.ndarray, axis: int) -> np.ndarray:
