@@ -596,20 +596,7 @@ def _steady_frames(
                         return f, state_time
             fragment = np.zeros(D, np.bool_)
             if split_m > 0 and T * D > 1 and (matched < 0).any():
-                # `_split_people`, in the same order.
-                support = people_kv.sum(1)
-                for d in np.nonzero(matched >= 0)[0]:
-                    t = matched[d]
-                    best, n = -1, 0
-                    for e in range(D):
-                        if matched[e] < 0 and not fragment[e] and d3[t, e] < split_m:
-                            fragment[e] = True
-                            n += 1
-                            if best < 0 or support[e] > support[best]:
-                                best = e
-                    if n and support[best] > support[d]:
-                        matched[best], matched[d] = t, -1
-                        fragment[best], fragment[d] = False, True
+                _split_people(d3, people_kv, matched, fragment, split_m)
             for d in range(D):
                 if matched[d] < 0 and not fragment[d]:
                     # A new track: `_update_tracks` starts it. Nothing was changed but the
@@ -858,6 +845,7 @@ def _assign(cost: np.ndarray, ok: np.ndarray, matched_track: np.ndarray) -> None
     matched_track[c_idx[cols[keep]]] = r_idx[rows[keep]]
 
 
+@numba.njit(cache=True)
 def _split_people(
     d3: np.ndarray,
     keypoint_valid: np.ndarray,
@@ -866,17 +854,21 @@ def _split_people(
     split_m: float,
 ) -> None:
     """Marks the unmatched people within ``split_m`` (3D cost d3 (T, D)) of a matched track as
-    parts of its person (``fragment``, (D,)); the one of them with the most keypoints, if it has
-    more than the track's person, takes the track's place (``matched_track`` (D,))."""
-    support = keypoint_valid.sum(-1)  # (D,)
+    parts of its person (``fragment``, (D,)); the one of them with the most keypoints (the
+    first of equals), if it has more than the track's person, takes the track's place
+    (``matched_track`` (D,)). Compiled: both tracker paths (`_update_tracks`, `_steady_frames`)
+    call it."""
+    support = keypoint_valid.sum(1)  # (D,)
+    D = len(matched_track)
     for d in np.nonzero(matched_track >= 0)[0]:
         t = matched_track[d]
-        parts = np.nonzero((matched_track < 0) & ~fragment & (d3[t] < split_m))[0]
-        if not len(parts):
-            continue
-        fragment[parts] = True
-        best = parts[np.argmax(support[parts])]
-        if support[best] > support[d]:
+        best = -1
+        for e in range(D):
+            if matched_track[e] < 0 and not fragment[e] and d3[t, e] < split_m:
+                fragment[e] = True
+                if best < 0 or support[e] > support[best]:
+                    best = e
+        if best >= 0 and support[best] > support[d]:
             matched_track[best], matched_track[d] = t, -1
             fragment[best], fragment[d] = False, True
 
@@ -998,8 +990,8 @@ def track_frames(
     rows = {name: getattr(state, name).copy() for name in _TRACK_FIELDS}
     steady_config = _steady_config(config)
     pair_i, pair_j = _pairs(keypoint_valid.shape[-1])
-    if not views:
-        xy = score = per_px = None
+    # `_steady_frames`'s 2D arguments: the chunk's evidence, or empty arrays of their types.
+    chunk_2d = (xy, score, per_px) if views else (_NO_CHUNK_XY, _NO_CHUNK_SCORE, _NO_CHUNK_PER_PX)
     t_now = state.time
     f = 0
     while True:
@@ -1009,9 +1001,7 @@ def track_frames(
             xyz,
             keypoint_valid,
             valid,
-            xy if views else _NO_CHUNK_XY,
-            score if views else _NO_CHUNK_SCORE,
-            per_px if views else _NO_CHUNK_PER_PX,
+            *chunk_2d,
             views,
             t_now,
             rows["ids"],
