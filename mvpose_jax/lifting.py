@@ -209,14 +209,17 @@ def _unpadded(out, to_numpy, n: int) -> tuple[np.ndarray, np.ndarray | None]:
     return to_numpy(out)[:n], None
 
 
-def _pad_people(xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, C, K, 2) / (N, C, K) zero-padded to `graphs.next_quarter_bucket(N)` people, float32
-    numpy (a chunk's thousand people cost their own arithmetic, not up to twice it).
+def _pad_people(
+    xy: np.ndarray, score: np.ndarray, size: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, C, K, 2) / (N, C, K) zero-padded to ``size`` people (default
+    `graphs.next_quarter_bucket(N)`: a chunk's thousand people cost their own arithmetic, not up
+    to twice it), float32 numpy.
 
     Host arrays: the jitted call they go to moves them to the device itself, for less than an
     explicit transfer per array costs.
     """
-    n = next_quarter_bucket(len(xy))
+    n = next_quarter_bucket(len(xy)) if size is None else size
     xy, score = np.asarray(xy, np.float32), np.asarray(score, np.float32)
     return zero_padded(xy, (n,) + xy.shape[1:]), zero_padded(score, (n,) + score.shape[1:])
 
@@ -241,12 +244,10 @@ def _by_blocks(fn, xy: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, ...]:
     """``fn(xy_block, score_block)`` (padded float32 (B, C, K, 2) / (B, C, K), a tuple of
     arrays with the people first) over `_people_blocks`, joined: each output's N real rows as
     numpy. Every block is dispatched before the first is fetched."""
-    xy, score = np.asarray(xy, np.float32), np.asarray(score, np.float32)
     calls = []
     for start, stop, size in _people_blocks(len(xy)):
-        xy_b = zero_padded(xy[start:stop], (size,) + xy.shape[1:])
-        score_b = zero_padded(score[start:stop], (size,) + score.shape[1:])
-        calls.append((stop - start, fn(xy_b, score_b)))
+        block = _pad_people(xy[start:stop], score[start:stop], size)
+        calls.append((stop - start, fn(*block)))
     parts = [tuple(np.asarray(a)[:n] for a in out) for n, out in calls]
     if len(parts) == 1:
         return parts[0]
