@@ -30,7 +30,7 @@ from mvpose_jax.lifting import (
 from mvpose_jax.matching import MatchingConfig
 from mvpose_jax.progress import progress_bar
 from mvpose_jax.proposals import CombinedConfig, Proposals
-from mvpose_jax.skeletons import Detections, Poses3D, zero_padded
+from mvpose_jax.skeletons import Detections, Poses3D, skeleton_slots, zero_padded
 from mvpose_jax.smoothing import OneEuroConfig, one_euro_frames, one_euro_initial, one_euro_keep
 from mvpose_jax.temporal import cached_temporal, for_rig, refine_tracks
 from mvpose_jax.tracking import (
@@ -461,15 +461,6 @@ def _temporal_chunk(model, rig, det, members, poses, track, config: PipelineConf
         poses.valid,
         np.asarray(poses.keypoint_valid, bool) | valid[..., None],
     )
-
-
-def skeleton_slots(num_skeletons: int) -> int:
-    """The skeleton slots per camera a chunk is padded to: the next multiple of 4 (at least 4).
-
-    Every stage reads a camera's skeletons up to its count, so empty slots change no result;
-    they keep the compiled programs' shapes few (recordings of 3 to 10 skeletons a camera: 3
-    shapes, not 8), where each new shape costs the jitted stages seconds of compilation."""
-    return 4 * max(1, -(-num_skeletons // 4))
 
 
 def _padded_skeletons(det: Detections) -> Detections:

@@ -26,7 +26,7 @@ from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, keypoint_features
 from mvpose_jax.graphs import GraphBatch, build_graphs, match_table, next_power_of_two
 from mvpose_jax.proposals import CombinedConfig, Proposals, propose_combined, propose_people
-from mvpose_jax.skeletons import Detections, zero_padded
+from mvpose_jax.skeletons import Detections, skeleton_slots, zero_padded
 from mvpose_jax.trained import Matcher
 from mvpose_jax.triangulate import camera_pairs, nanmedian_by_rank
 
@@ -317,12 +317,14 @@ def _gat_tables(
         scores_fn = bound_model_fn(_frame_scores_fn, matcher.graphdef, xla_kernels=True)
     rows, scores, means, medians = [], [], [], []
     bounds, n_graphs = frame_chunks(F, frames_per_call)
+    # The pipeline's skeleton slots: a table of the same frames then reuses its programs.
+    S = skeleton_slots(P)
     for start, stop in bounds:
-        xy_c = zero_padded(xy[start:stop], (n_graphs,) + xy.shape[1:])
-        score_c = zero_padded(score[start:stop], (n_graphs,) + score.shape[1:])
+        xy_c = zero_padded(xy[start:stop], (n_graphs, C, S, K, 2))
+        score_c = zero_padded(score[start:stop], (n_graphs, C, S, K))
         build = _single_frame_graphs if stop - start == 1 else _frame_graphs
         graphs = build(
-            np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, P, n_graphs
+            np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, S, n_graphs
         )
         out = scores_fn(
             matcher.rest,
@@ -336,8 +338,8 @@ def _gat_tables(
         )
         if with_epipolar:
             out, mean, median = jax.device_get(out)  # one fetch for the three
-            means.append(mean[:, : stop - start])
-            medians.append(median[:, : stop - start])
+            means.append(mean[:, : stop - start, :P, :P])
+            medians.append(median[:, : stop - start, :P, :P])
         r = graphs.rows.copy()
         r[:, 0] += start
         rows.append(r)
@@ -498,16 +500,17 @@ def _epipolar_dense(
     (`frame_chunks`): mean and (if ``median``) median, (Q, F, P, P) numpy."""
     xy = np.asarray(detections.xy, np.float32)
     score = np.asarray(detections.score, np.float32)
-    F = len(score)
+    F, C, P, K = score.shape
+    S = skeleton_slots(P)  # the pipeline's slots, so that its programs serve here too
     means, medians = [], []
     bounds, n_frames = frame_chunks(F, frames_per_call)
     for start, stop in bounds:
-        xy_c = np.moveaxis(zero_padded(xy[start:stop], (n_frames,) + xy.shape[1:]), 1, 0)
-        sc_c = np.moveaxis(zero_padded(score[start:stop], (n_frames,) + score.shape[1:]), 1, 0)
+        xy_c = np.moveaxis(zero_padded(xy[start:stop], (n_frames, C, S, K, 2)), 1, 0)
+        sc_c = np.moveaxis(zero_padded(score[start:stop], (n_frames, C, S, K)), 1, 0)
         mean, med = _epipolar_distances(rig, xy_c, sc_c, min_shared=min_shared, median=median)
-        means.append(np.asarray(mean)[:, : stop - start])
+        means.append(np.asarray(mean)[:, : stop - start, :P, :P])
         if median:
-            medians.append(np.asarray(med)[:, : stop - start])
+            medians.append(np.asarray(med)[:, : stop - start, :P, :P])
     return np.concatenate(means, axis=1), np.concatenate(medians, axis=1) if median else None
 
 

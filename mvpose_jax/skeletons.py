@@ -622,3 +622,12 @@ def zero_padded(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     out = np.zeros(shape, a.dtype)
     out[tuple(slice(0, n) for n in a.shape)] = a
     return out
+
+
+def skeleton_slots(num_skeletons: int) -> int:
+    """The skeleton slots per camera a chunk is padded to: the next multiple of 4 (at least 4).
+
+    Every stage reads a camera's skeletons up to its count, so empty slots change no result;
+    they keep the compiled programs' shapes few (recordings of 3 to 10 skeletons a camera: 3
+    shapes, not 8), where each new shape costs the jitted stages seconds of compilation."""
+    return 4 * max(1, -(-num_skeletons // 4))

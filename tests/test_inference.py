@@ -21,7 +21,7 @@ from mvpose_jax.graphs import (
     detection_features,
     match_table,
 )
-from mvpose_jax.inference import run_pipeline, skeleton_slots
+from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import members_from_identity, poses_of_members
 from mvpose_jax.matcher_training import train_matcher
 from mvpose_jax.matching import (
@@ -149,10 +149,6 @@ def test_chunks_give_the_same_result_as_one_batch(scene):
         np.testing.assert_allclose(a, b, atol=1e-5)
     np.testing.assert_array_equal(whole.members, chunked.members)
     np.testing.assert_array_equal(whole.identity, chunked.identity)
-
-
-def test_skeleton_slots_are_multiples_of_four():
-    assert [skeleton_slots(p) for p in (0, 1, 3, 4, 5, 8, 9, 13)] == [4, 4, 4, 4, 8, 8, 12, 16]
 
 
 @pytest.mark.slow  # the learned default's stages, compiled at two skeleton-slot counts
@@ -573,6 +569,38 @@ def test_combined_match_tables_are_the_gat_table_and_its_rows_epipolar_distances
         for a, b in zip(got[2:], want, strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4)  # inf where inf
         assert np.isfinite(got[2]).mean() > 0.5
+
+
+def test_match_tables_reuse_the_pipelines_programs(scene):
+    """A table of the frames the pipeline has just run (the experiments' diagnostics) pads the
+    skeleton slots as the pipeline does, so it compiles nothing more: the GAT's program, the
+    combined one and the epipolar one are all the pipeline's, at the same numbers."""
+    from mvpose_jax.matching import (
+        _epipolar_distances,
+        _frame_scores_fn,
+        _fused_fn,
+        combined_match_tables,
+        epipolar_match_distances,
+    )
+
+    rig, rec = scene
+    d = rec.detections
+    pad = [(0, 0), (0, 0), (0, 5 - np.shape(d.score)[2]), (0, 0)]  # 5 slots: padded to 8
+    det = Detections(np.pad(d.xy, pad + [(0, 0)]), np.pad(d.score, pad), d.count)
+    matcher = _untrained_matcher(rig)
+    run_pipeline(rig, det, matcher=matcher, proposals="gat")
+    run_pipeline(rig, det, matcher=matcher)  # combined
+    run_pipeline(rig, det)  # epipolar
+    programs = [
+        bound_model_fn(_frame_scores_fn, matcher.graphdef, xla_kernels=True),
+        bound_model_fn(_fused_fn(3), matcher.graphdef, xla_kernels=True),
+        _epipolar_distances,
+    ]
+    before = [f._cache_size() for f in programs]
+    gat_match_table(matcher, det)
+    combined_match_tables(matcher, det)
+    epipolar_match_distances(rig, det)
+    assert [f._cache_size() for f in programs] == before
 
 
 def test_geometric_baseline_groups_true_people(ring_rig):

@@ -282,3 +282,8 @@ def test_zero_padded_is_np_pad_at_the_ends(shape):
     np.testing.assert_array_equal(out, expected)
     assert out.dtype == a.dtype
     assert (out is a) == (shape == a.shape)  # no copy where nothing is padded
+
+
+def test_skeleton_slots_are_multiples_of_four():
+    slots = [skeletons.skeleton_slots(p) for p in (0, 1, 3, 4, 5, 8, 9, 13)]
+    assert slots == [4, 4, 4, 4, 8, 8, 12, 16]
