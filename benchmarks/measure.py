@@ -822,7 +822,7 @@ def _train_matcher_step(rig, recs, gat, tier: Tier, K: int) -> dict:
     model = MatchingGAT(rig.num_cameras, K, gat, rngs=nnx.Rngs(0))
     tx = make_optimizer(config.train, config.steps_per_epoch)
     graphdef, rest, state = init_train_state(model, tx)
-    step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
+    step = make_train_step(graphdef, rest, tx, matcher_loss_fn, xla_kernels=True)
     key = jax.random.key(0)
     compile_times, seen = [], {}
     for b in batches:  # warm-up: one compilation per graph budget

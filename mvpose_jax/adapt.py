@@ -680,7 +680,7 @@ def adapt_matcher(
     # A copy: the train step donates its state, and the caller keeps the given matcher.
     model = nnx.merge(matcher.graphdef, jax.tree.map(jnp.copy, matcher.params), matcher.rest)
     graphdef, rest, state = init_train_state(model, tx)
-    train_step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
+    train_step = make_train_step(graphdef, rest, tx, matcher_loss_fn, xla_kernels=True)
     eval_batch = jax.jit(lambda params, b: matcher_eval_sums(graphdef, rest, params, b))
 
     def evaluate(s: TrainState) -> dict[str, float]:

@@ -235,7 +235,7 @@ def estimator_training(
     loss_fn = estimator_loss_fn(
         rig_train, rig_infer, config.num_augment, config.loss_power, normalisation
     )
-    train_step = make_train_step(graphdef, rest, tx, loss_fn, mesh=mesh)
+    train_step = make_train_step(graphdef, rest, tx, loss_fn, mesh=mesh, xla_kernels=True)
     evaluate = make_estimator_eval(graphdef, rest, rig_train, config.loss_power, normalisation)
     if mesh is not None:
         state = replicate(mesh, state)

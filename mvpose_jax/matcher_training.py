@@ -170,11 +170,13 @@ def fit_matcher_model(
     graphdef, rest, state = init_train_state(model, tx)
     mesh = training_mesh(tcfg)
     if mesh is None:
-        step = make_train_step(graphdef, rest, tx, matcher_loss_fn)
+        step = make_train_step(graphdef, rest, tx, matcher_loss_fn, xla_kernels=True)
         eval_batch = jax.jit(functools.partial(matcher_eval_sums, graphdef, rest))
         batches = epoch_batches
     else:
-        step = make_train_step(graphdef, rest, tx, stacked_loss_fn(matcher_loss_fn), mesh=mesh)
+        step = make_train_step(
+            graphdef, rest, tx, stacked_loss_fn(matcher_loss_fn), mesh=mesh, xla_kernels=True
+        )
         eval_batch = jax.jit(functools.partial(_stacked_matcher_eval, graphdef, rest))
         state = replicate(mesh, state)
         shard = lambda b: shard_batch(mesh, split_graph_batch(b, mesh_size(mesh))[0])  # noqa: E731

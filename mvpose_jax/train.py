@@ -41,6 +41,7 @@ import optax
 from flax import nnx
 
 from mvpose_jax.checkpoints import Checkpoints, TrainState  # TrainState: defined with what holds it
+from mvpose_jax.compiled import xla_kernel_options
 from mvpose_jax.data.files import to_jsonable
 from mvpose_jax.errors import InputError
 from mvpose_jax.losses import masked_mean
@@ -75,7 +76,13 @@ def init_train_state(model: nnx.Module, tx: optax.GradientTransformation):
 
 
 def make_train_step(
-    graphdef, rest, tx, loss_fn: Callable, *, mesh: jax.sharding.Mesh | None = None
+    graphdef,
+    rest,
+    tx,
+    loss_fn: Callable,
+    *,
+    mesh: jax.sharding.Mesh | None = None,
+    xla_kernels: bool = False,
 ):
     """A jitted ``(state, batch, key) -> (state, metrics)``.
 
@@ -88,10 +95,18 @@ def make_train_step(
     step from those shardings (each device its block, one all-reduce of the gradients). The new
     state and the metrics come back replicated, so the next call has the same input shardings
     and the step compiles once.
+
+    ``xla_kernels``: compiled with `compiled.xla_kernel_options` (XLA's own CPU kernels, not its
+    YNNPACK fusions; nothing changes on a GPU). The matcher's and the estimator's steps take it:
+    on 2 CPU cores they run 13 and 17 % faster (the quick scale's 5-view GAT, its MLP), the same
+    arithmetic in another order.
     """
     out_shardings = None if mesh is None else replicated(mesh)
+    options = (xla_kernel_options() or None) if xla_kernels else None
 
-    @functools.partial(jax.jit, donate_argnums=0, out_shardings=out_shardings)
+    @functools.partial(
+        jax.jit, donate_argnums=0, out_shardings=out_shardings, compiler_options=options
+    )
     def train_step(state: TrainState, batch, base_key):
         key = jax.random.fold_in(base_key, state.step)
 
