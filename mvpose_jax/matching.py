@@ -24,7 +24,14 @@ from mvpose_jax.cameras import Rig, undistort_points
 from mvpose_jax.compiled import bound_model_fn
 from mvpose_jax.errors import InputError
 from mvpose_jax.features import NUM_KEYPOINT_FEATURES, keypoint_features
-from mvpose_jax.graphs import GraphBatch, build_graphs, match_table, next_power_of_two
+from mvpose_jax.graphs import (
+    Budget,
+    GraphBatch,
+    build_graphs,
+    graph_budget,
+    match_table,
+    next_power_of_two,
+)
 from mvpose_jax.proposals import CombinedConfig, Proposals, propose_combined, propose_people
 from mvpose_jax.skeletons import Detections, skeleton_slots, zero_padded
 from mvpose_jax.trained import Matcher
@@ -126,13 +133,21 @@ class _FrameGraphs(NamedTuple):
 
 
 def _frame_graphs(
-    count_bytes: bytes, num_frames: int, num_cameras: int, num_skeletons: int, num_graphs: int
+    count_bytes: bytes,
+    num_frames: int,
+    num_cameras: int,
+    num_skeletons: int,
+    num_graphs: int,
+    budget: Budget | None = None,
 ) -> _FrameGraphs:
-    """The graphs of frames with these skeleton counts ((F, C) int64 as bytes)."""
+    """The graphs of frames with these skeleton counts ((F, C) int64 as bytes), padded to
+    ``budget`` (default: `graphs.graph_budget` of the frames)."""
     F, C, P = num_frames, num_cameras, num_skeletons
     count = np.frombuffer(count_bytes, np.int64).reshape(F, C)
     valid = np.arange(P)[None, None] < count[..., None]
-    batch = build_graphs(np.zeros((F, C, P, 0), np.float32), valid, num_graphs=num_graphs)
+    batch = build_graphs(
+        np.zeros((F, C, P, 0), np.float32), valid, num_graphs=num_graphs, budget=budget
+    )
     node = batch.det_node
     frame = np.repeat(np.arange(len(batch.graphs.n_node)), batch.graphs.n_node)[node]
     cam, skel = batch.node_camera[node], batch.node_skeleton[node]
@@ -190,6 +205,26 @@ class _GraphCache:
 
 
 _single_frame_graphs = _GraphCache(max_bytes=64 << 20)
+
+
+def _largest_budget(count: np.ndarray, bounds: list[tuple[int, int]], num_graphs: int) -> Budget:
+    """The largest `graphs.graph_budget` of the calls ``bounds`` cut ``count`` (F, C) into.
+
+    All calls of a chunk then share one padded shape: a recording compiles one GAT program per
+    chunk, not one per call's bucket (the main job's tracks section met 17 buckets in 8 scenes,
+    2 s of compilation each). Padding changes no real node's score (tested bit for bit)."""
+    budgets = []
+    for start, stop in bounds:
+        c = count[start:stop].astype(np.int64)
+        per_frame = c.sum(1)
+        pairs = (per_frame**2 - (c**2).sum(1)) // 2  # skeleton pairs of different cameras
+        budgets.append(graph_budget(int(per_frame.sum()), int(pairs.sum()), num_graphs))
+    return Budget(
+        nodes=max(b.nodes for b in budgets),
+        dets=max(b.dets for b in budgets),
+        edges=max(b.edges for b in budgets),
+        graphs=num_graphs + 1,
+    )
 
 
 def _frame_scores_fn(
@@ -319,13 +354,12 @@ def _gat_tables(
     bounds, n_graphs = frame_chunks(F, frames_per_call)
     # The pipeline's skeleton slots: a table of the same frames then reuses its programs.
     S = skeleton_slots(P)
+    budget = _largest_budget(count, bounds, n_graphs) if len(bounds) > 1 else None
     for start, stop in bounds:
         xy_c = zero_padded(xy[start:stop], (n_graphs, C, S, K, 2))
         score_c = zero_padded(score[start:stop], (n_graphs, C, S, K))
-        build = _single_frame_graphs if stop - start == 1 else _frame_graphs
-        graphs = build(
-            np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, S, n_graphs
-        )
+        key = (np.ascontiguousarray(count[start:stop]).tobytes(), stop - start, C, S, n_graphs)
+        graphs = _single_frame_graphs(*key) if stop - start == 1 else _frame_graphs(*key, budget)
         out = scores_fn(
             matcher.rest,
             matcher.params,

@@ -551,6 +551,36 @@ def test_gat_match_table_equals_features_then_graphs_then_network(ring_rig):
     assert not (rows[:, 0] == 2).any()
 
 
+def test_a_chunks_calls_share_one_graph_budget(ring_rig):
+    """Calls of a chunk whose frames hold few and many skeletons compile one program (the
+    largest call's budget), and the padding moves no score: the same numbers, bit for bit, as
+    each call in a budget of its own."""
+    from mvpose_jax.matching import _frame_scores_fn
+    from mvpose_jax.trained import Matcher
+
+    rec = generate_recording(ring_rig, num_people=3, num_frames=12, seed=6)
+    d = rec.detections
+    count = np.asarray(d.count).copy()
+    count[:4] = np.minimum(count[:4], 1)  # the first call: a skeleton a view at most
+    det = Detections(np.asarray(d.xy), np.asarray(d.score), count)
+    model = MatchingGAT(ring_rig.num_cameras, rec.num_keypoints, TINY, rngs=nnx.Rngs(3))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    matcher = Matcher(graphdef, rest, params, ring_rig, MatcherConfig(gat=TINY))
+    jitted = bound_model_fn(_frame_scores_fn, graphdef, xla_kernels=True)
+    before = jitted._cache_size()
+    rows, scores = gat_match_table(matcher, det, frames_per_call=4)
+    assert jitted._cache_size() - before == 1
+    for start in range(0, 12, 4):  # each call alone: its own, smaller budget
+        part = Detections(
+            det.xy[start : start + 4], det.score[start : start + 4], count[start : start + 4]
+        )
+        r, s = gat_match_table(matcher, part, frames_per_call=4)
+        in_call = (rows[:, 0] >= start) & (rows[:, 0] < start + 4)
+        np.testing.assert_array_equal(rows[in_call][:, 1:], r[:, 1:])
+        np.testing.assert_array_equal(scores[in_call], s)
+    assert jitted._cache_size() - before > 1  # the calls alone did need other budgets
+
+
 def test_combined_match_tables_are_the_gat_table_and_its_rows_epipolar_distances(ring_rig):
     """One jit call per chunk for both tables gives the two calls' numbers."""
     from mvpose_jax.matching import combined_match_tables, epipolar_distances_of_rows
