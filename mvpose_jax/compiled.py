@@ -96,8 +96,12 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path
 # against 18.5 ms; robust triangulation is equal live and 16 against 19 ms on a chunk of 1,024
 # people (2-core AMD EPYC, min of 300 interleaved calls; docs/performance.md). The estimator's
 # MLP is the exception: on a live frame's few people YNNPACK's matrix-vector kernels are faster
-# (0.34 against 0.50 ms), so its programs keep the default. The numbers are the same arithmetic
-# in another order: groupings and tracks identical, keypoints within float32 rounding.
+# (0.34 against 0.50 ms), so its programs keep the default. Training is the other way round:
+# the matcher's and the estimator's train steps (`train.make_train_step`'s ``xla_kernels``) run
+# 13 and 17 % faster with XLA's kernels (the quick scale's 5-view GAT and its MLP). The numbers
+# are the same arithmetic in another order: groupings and tracks identical, keypoints within
+# float32 rounding; a training run departs from the default kernels' at rounding and ends in
+# other weights of the same quality (the main job's tables, docs/performance.md).
 XLA_CPU_KERNELS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 
 
