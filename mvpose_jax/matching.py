@@ -32,6 +32,7 @@ from mvpose_jax.graphs import (
     match_table,
     next_power_of_two,
 )
+from mvpose_jax.models import MatchingGAT
 from mvpose_jax.proposals import CombinedConfig, Proposals, propose_combined, propose_people
 from mvpose_jax.skeletons import Detections, skeleton_slots, zero_padded
 from mvpose_jax.trained import Matcher
@@ -239,12 +240,22 @@ def _frame_scores_fn(
     feats = keypoint_features(
         rig, jnp.moveaxis(xy, 1, 0), jnp.moveaxis(score, 1, 0)
     )  # (C, F, P, K, 10)
+    model = nnx.merge(graphdef, params, rest)
+    if isinstance(model, MatchingGAT) and F > 1:
+        # The paper's camera slots: each camera's skeleton slots meet their own slot of W1
+        # alone, then each detection row takes its slot's product. On a chunk that is the
+        # fifth of the dense product's work it looks; on a live frame (one graph) the batched
+        # small products and the gather cost more than they save (the GAT 1.3-1.4x slower
+        # there, `benchmarks.ab`), so a single frame keeps the dense rows.
+        per_slot = model.slot_products(feats.reshape(C, F * P, K * NUM_KEYPOINT_FEATURES))
+        pre = jnp.moveaxis(per_slot.reshape(C, F, P, -1), 0, 1).reshape(F * C * P, -1)
+        return model(batch, det_pre=pre[det_source])
     rows = jnp.moveaxis(feats, 0, 1).reshape(F * C * P, K * NUM_KEYPOINT_FEATURES)[
         det_source
     ]  # (D, K*10)
     in_slot = (det_camera[:, None] == jnp.arange(C)[None]) & batch.det_mask[:, None]  # (D, C)
     det = jnp.where(in_slot[..., None], rows[:, None, :], 0.0).reshape(rows.shape[0], -1)
-    return nnx.merge(graphdef, params, rest)(batch._replace(det_features=det))
+    return model(batch._replace(det_features=det))
 
 
 def _frame_scores_and_epipolar_fn(

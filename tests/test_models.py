@@ -44,6 +44,26 @@ def test_factorised_first_layer_equals_dense_gat(model):
     np.testing.assert_allclose(fast[b.node_mask], dense[b.node_mask], atol=1e-5)
 
 
+def test_slot_products_give_the_dense_first_layer(model):
+    """Rows held per camera, each multiplied by its camera's slot of W1 (`slot_products`, what
+    inference uses on chunks), give the scores of the dense slot rows."""
+    feats, valid, _ = random_frames(np.random.default_rng(2), 4)  # (F, C, P, K*10)
+    b = build_graphs(feats, valid)
+    F, Cf, P, KF = feats.shape
+    per_camera = jnp.moveaxis(jnp.asarray(feats), 1, 0).reshape(Cf, F * P, KF)
+    f_d, c_d, p_d = np.nonzero(valid)  # detection rows in (frame, camera, skeleton) order
+    source = np.zeros(b.det_mask.shape[0], np.int64)
+    source[: len(f_d)] = (c_d * F + f_d) * P + p_d
+
+    def with_slots(m, batch):
+        pre = m.slot_products(per_camera).reshape(Cf * F * P, -1)[source]
+        return m(batch, det_pre=pre)
+
+    slots = np.asarray(jax.jit(with_slots)(model, b))
+    dense = np.asarray(jax.jit(lambda m, x: m(x))(model, b))
+    np.testing.assert_allclose(slots[b.node_mask], dense[b.node_mask], atol=1e-5)
+
+
 def test_padding_never_changes_real_scores(model):
     feats, valid, identity = random_frames(np.random.default_rng(1), 3)
     small = build_graphs(feats, valid, identity)
