@@ -274,13 +274,10 @@ def stream_pipeline(
             )
         if checked_keypoints == [K]:
             return  # the models' keypoint counts cost a model merge: checked once
-        for what, model, k_of in (
-            ("matcher", matcher, _matcher_keypoints),
-            ("estimator", estimator, _estimator_keypoints),
-        ):
-            if model is not None and k_of(model) != K:
+        for what, model in (("matcher", matcher), ("estimator", estimator)):
+            if model is not None and (trained_on := _model_keypoints(model)) != K:
                 raise InputError(
-                    f"the {what} was trained on {k_of(model)} keypoints, the detections have {K} "
+                    f"the {what} was trained on {trained_on} keypoints, the detections have {K} "
                     "(convert the layout)",
                     field="keypoints",
                 )
@@ -577,12 +574,21 @@ def _pad_skeletons(identity: np.ndarray, num_skeletons: int) -> np.ndarray:
     return np.pad(identity, [(0, 0), (0, 0), (0, pad)], constant_values=-1)
 
 
-def _estimator_keypoints(estimator: Estimator) -> int:
-    return nnx.merge(estimator.graphdef, estimator.params, estimator.rest).num_keypoints
+# Models' keypoint counts by GraphDef (a static attribute of the model: equal GraphDefs, equal
+# counts). Merging a model to read it costs about 1 ms, as much as a live frame: a stream of
+# one-frame chunks (`stream_pipeline` per live session) would pay it at every start. The entry
+# keeps its GraphDef, so an id is never reused while it is here.
+_KEYPOINTS_BY_GRAPHDEF: dict[int, tuple[Any, int]] = {}
 
 
-def _matcher_keypoints(matcher: Matcher) -> int:
-    return nnx.merge(matcher.graphdef, matcher.params, matcher.rest).num_keypoints
+def _model_keypoints(model: Estimator | Matcher) -> int:
+    hit = _KEYPOINTS_BY_GRAPHDEF.get(id(model.graphdef))
+    if hit is None or hit[0] is not model.graphdef:
+        if len(_KEYPOINTS_BY_GRAPHDEF) >= 256:
+            _KEYPOINTS_BY_GRAPHDEF.clear()
+        K = nnx.merge(model.graphdef, model.params, model.rest).num_keypoints
+        hit = _KEYPOINTS_BY_GRAPHDEF[id(model.graphdef)] = (model.graphdef, K)
+    return hit[1]
 
 
 def _members_table(proposals: Proposals, num_frames: int, num_cameras: int) -> np.ndarray:

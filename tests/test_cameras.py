@@ -190,6 +190,20 @@ def test_select_and_camera_index(preset_rig):
     assert e.value.camera == "nope"
 
 
+def test_select_gives_the_same_cameras_eagerly_and_under_jit(preset_rig):
+    names = preset_rig.names
+    order = [names[2], names[0], names[-1]]
+    eager = preset_rig.select(order)
+    traced = jax.jit(lambda rig: rig.select(order))(preset_rig)
+    for field in ("K", "dist", "R", "t", "size"):
+        a, b = getattr(eager, field), getattr(traced, field)
+        assert isinstance(a, jax.Array) and a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, np.asarray(getattr(preset_rig, field))[[2, 0, -1]])
+    assert preset_rig.select(list(names)) is preset_rig  # all cameras in order: nothing to copy
+    assert preset_rig.select(list(range(len(names)))) is preset_rig
+
+
 def test_up_vector_inferred_from_cameras_matches_calibration(preset_rig):
     inferred = cameras.up_vector(cameras.Rig(**{**preset_rig.__dict__, "up": None}))
     # Level cameras pin up down to a few degrees (the mean image-up alone is 6-10 degrees off).
