@@ -388,6 +388,11 @@ def test_keypoint_count_mismatch_is_a_clear_error(scene, models):
     )
     with pytest.raises(InputError, match="18 keypoints"):
         run_pipeline(rig, det25, estimator=estimator)
+    # After a run with the right keypoints (the model's count is then kept), still an error.
+    two = Detections(*(np.asarray(a)[:2] for a in det))
+    run_pipeline(rig, two, estimator=estimator)
+    with pytest.raises(InputError, match="the estimator was trained on 18 keypoints"):
+        run_pipeline(rig, det25, estimator=estimator)
 
 
 @pytest.mark.slow  # uses the trained `models`

@@ -297,12 +297,15 @@ def test_stale_keypoints_are_forgotten():
 
 
 def test_metres_per_pixel_is_depth_over_focal():
-    rig = load_rig("panoptic5")
     point = np.array([0.3, -1.0, 0.2])
-    got = metres_per_pixel(rig, point)
-    R, t, K = (np.asarray(a) for a in (rig.R, rig.t, rig.K))
-    depth = (R @ point + t)[:, 2]
-    np.testing.assert_allclose(got, depth / ((K[:, 0, 0] + K[:, 1, 1]) / 2))
+    # Each rig in turn, twice: its host copies of the cameras are kept per rig, never mixed.
+    for name in ("panoptic5", "arplab6", "panoptic5", "arplab6"):
+        rig = load_rig(name)
+        got = metres_per_pixel(rig, point)
+        R, t, K = (np.asarray(a) for a in (rig.R, rig.t, rig.K))
+        depth = (R @ point + t)[:, 2]
+        np.testing.assert_allclose(got, depth / ((K[:, 0, 0] + K[:, 1, 1]) / 2))
+    assert metres_per_pixel(rig.select(rig.names[:2]), point).shape == (2,)
 
 
 @pytest.mark.slow  # the geometric pipeline over 60 frames of 3 people (a few seconds)
