@@ -329,3 +329,18 @@ def test_ab_extracts_a_commit_under_other_names_beside_the_working_tree(tmp_path
     assert Path(out[0]).is_relative_to(tmp_path) and out[1] == "benchmarks_old.pipeline"
     with pytest.raises(subprocess.CalledProcessError):
         ab.extract_old("no-such-revision", tmp_path / "none")
+
+
+def test_only_the_pipeline_groups_process_keeps_compiled_programs(tmp_path, monkeypatch):
+    from benchmarks import measure
+    from benchmarks import run as harness
+
+    monkeypatch.setitem(measure.GROUPS, "pipeline", lambda tier: {"records": [], "notes": []})
+    monkeypatch.setitem(measure.GROUPS, "tracking", lambda tier: {"records": []})
+    for group in ("pipeline", "tracking"):
+        assert harness._child(group, "smoke", tmp_path / f"{group}.json") == 0
+    kept = json.loads((tmp_path / "pipeline.json").read_text())["result"]["notes"]
+    # The tests' own cache (conftest) is the one configured, so the note names it.
+    assert len(kept) == 1 and os.environ["JAX_COMPILATION_CACHE_DIR"] in kept[0]
+    assert "notes" not in json.loads((tmp_path / "tracking.json").read_text())["result"]
+    assert harness.CACHED_GROUPS == ("pipeline",)
