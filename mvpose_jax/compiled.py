@@ -9,6 +9,7 @@ import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import jax
 
@@ -142,6 +143,25 @@ def jit(fun: Callable | None = None, /, **jit_kwargs) -> Callable:
     # Traced shapes of both, as jax.jit's own counts them (what the no-recompilation tests read).
     call._cache_size = lambda: sum(f._cache_size() for f in {id(f): f for f in jitted}.values())
     return call
+
+
+# ------------------------------------------------------------------- host values kept per object
+
+
+def kept_per_object(table: dict, obj: Any, make: Callable[[], Any], max_entries: int) -> Any:
+    """``make()``, computed once per object ``obj`` (by identity) and kept in ``table``.
+
+    For values read off immutable objects (a rig's arrays fetched to the host, a model's static
+    attributes) on a hot path, where hashing the object, or recomputing, costs more than a
+    lookup. Each entry keeps its object, so an id is never reused while the entry is there; the
+    table is emptied when it holds ``max_entries``.
+    """
+    hit = table.get(id(obj))
+    if hit is None or hit[0] is not obj:
+        if len(table) >= max_entries:
+            table.clear()
+        hit = table[id(obj)] = (obj, make())
+    return hit[1]
 
 
 # ------------------------------------------------------------------------ models' jitted functions

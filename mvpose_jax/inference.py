@@ -19,6 +19,7 @@ from flax import nnx
 
 from mvpose_jax import stages
 from mvpose_jax.cameras import Rig
+from mvpose_jax.compiled import kept_per_object
 from mvpose_jax.errors import InputError
 from mvpose_jax.lifting import (
     LiftingConfig,
@@ -576,19 +577,17 @@ def _pad_skeletons(identity: np.ndarray, num_skeletons: int) -> np.ndarray:
 
 # Models' keypoint counts by GraphDef (a static attribute of the model: equal GraphDefs, equal
 # counts). Merging a model to read it costs about 1 ms, as much as a live frame: a stream of
-# one-frame chunks (`stream_pipeline` per live session) would pay it at every start. The entry
-# keeps its GraphDef, so an id is never reused while it is here.
+# one-frame chunks (`stream_pipeline` per live session) would pay it at every start.
 _KEYPOINTS_BY_GRAPHDEF: dict[int, tuple[Any, int]] = {}
 
 
 def _model_keypoints(model: Estimator | Matcher) -> int:
-    hit = _KEYPOINTS_BY_GRAPHDEF.get(id(model.graphdef))
-    if hit is None or hit[0] is not model.graphdef:
-        if len(_KEYPOINTS_BY_GRAPHDEF) >= 256:
-            _KEYPOINTS_BY_GRAPHDEF.clear()
-        K = nnx.merge(model.graphdef, model.params, model.rest).num_keypoints
-        hit = _KEYPOINTS_BY_GRAPHDEF[id(model.graphdef)] = (model.graphdef, K)
-    return hit[1]
+    return kept_per_object(
+        _KEYPOINTS_BY_GRAPHDEF,
+        model.graphdef,
+        lambda: nnx.merge(model.graphdef, model.params, model.rest).num_keypoints,
+        max_entries=256,
+    )
 
 
 def _members_table(proposals: Proposals, num_frames: int, num_cameras: int) -> np.ndarray:

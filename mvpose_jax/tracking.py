@@ -43,6 +43,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mvpose_jax.cameras import Rig, point_depths, project_points
+from mvpose_jax.compiled import kept_per_object
 from mvpose_jax.triangulate import nanmedian_along
 
 # A cost larger than any gate: "no match" for the assignment.
@@ -212,20 +213,19 @@ def metres_per_pixel(rig: Rig, centre: np.ndarray) -> np.ndarray:
 
 # Each rig's depth terms as host arrays, by rig (its arrays are immutable jax arrays). Fetching
 # them from the device at every frame cost three round trips, about 30 us of a live frame's
-# tracking. The entry keeps its rig, so an id is never reused while it is here.
+# tracking.
 _DEPTH_TERMS: dict[int, tuple[Rig, tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
 
 
 def _depth_terms(rig: Rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(C, 3) the cameras' optical axes in world coordinates (R's last row), (C,) t's depth
     and (C,) the mean focal length (pixels), float64."""
-    hit = _DEPTH_TERMS.get(id(rig))
-    if hit is None or hit[0] is not rig:
-        if len(_DEPTH_TERMS) >= 64:
-            _DEPTH_TERMS.clear()
+
+    def fetch():
         R, t, K = (np.asarray(a, np.float64) for a in (rig.R, rig.t, rig.K))
-        hit = _DEPTH_TERMS[id(rig)] = (rig, (R[:, 2], t[:, 2], 0.5 * (K[:, 0, 0] + K[:, 1, 1])))
-    return hit[1]
+        return R[:, 2], t[:, 2], 0.5 * (K[:, 0, 0] + K[:, 1, 1])
+
+    return kept_per_object(_DEPTH_TERMS, rig, fetch, max_entries=64)
 
 
 def _norm(a: np.ndarray, axis: int = -1, keepdims: bool = False) -> np.ndarray:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from mvpose_jax.compiled import CACHE_ENV, enable_compilation_cache
+from mvpose_jax.compiled import CACHE_ENV, enable_compilation_cache, kept_per_object
 
 # Enables the cache as the command line does, compiles one program, and reports what jax did.
 SCRIPT = """
@@ -134,3 +134,23 @@ def test_jit_compiles_with_xla_kernels_at_the_top_and_traces_into_callers():
         assert "ynn" not in text.lower()
     else:
         assert options == {}
+
+
+def test_kept_per_object_computes_once_per_object_and_stays_bounded():
+    table: dict = {}
+    calls: list[str] = []
+
+    def make(name):
+        calls.append(name)
+        return name.upper()
+
+    a, b = ["a"], ["b"]  # unhashable, as rigs' arrays are: only their identity keys the table
+    for _ in range(3):
+        assert kept_per_object(table, a, lambda: make("a"), max_entries=2) == "A"
+        assert kept_per_object(table, b, lambda: make("b"), max_entries=2) == "B"
+    assert calls == ["a", "b"]
+    c = ["c"]
+    assert kept_per_object(table, c, lambda: make("c"), max_entries=2) == "C"
+    assert len(table) == 1  # full at two entries: emptied, then c kept
+    assert kept_per_object(table, a, lambda: make("a"), max_entries=2) == "A"
+    assert calls == ["a", "b", "c", "a"]
