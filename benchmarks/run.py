@@ -203,7 +203,7 @@ def _in_process(group: str, tier: str) -> tuple[dict | None, dict | None, str | 
 # Groups whose figures leave compilation out (every timed run follows an untimed warm-up), and
 # whose own process therefore keeps its compiled programs on disk between runs, as `infer` and
 # the experiments do (`compiled.enable_compilation_cache`): a second `--quick` run of
-# ``pipeline`` skips most of its compiling (189 -> 85 s on 2 cores), and a cached program is the
+# ``pipeline`` skips most of its compiling (169 -> 82 s on 2 cores), and a cached program is the
 # program a compile gives. Not in `--in-process` runs, where the cache would reach the groups
 # after it, some of which time their compiles.
 CACHED_GROUPS = ("pipeline",)
