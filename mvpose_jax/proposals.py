@@ -36,7 +36,6 @@ Host-side numpy; no model here.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -116,15 +115,20 @@ def propose_people(
         joins = keep[np.argsort(-scores[keep], kind="stable")]  # best first
         a, b = pair_items[joins, 0], pair_items[joins, 1]
         parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
-        if repair_splits or drop_duplicates:
-            a, b = a.tolist(), b.tolist()
-        if repair_splits:  # it reads every scored pair, not only the joins
-            parent = _merge_split_people(
-                parent, a, b, scores[joins], pair_items, scores, threshold, C, P
-            )
-        if drop_duplicates:
-            parent = _drop_duplicate_people(
-                parent, a, b, scores[joins], pair_items, scores, threshold, C, P, min_views
+        if repair_splits or drop_duplicates:  # they read every scored pair, not only the joins
+            parent = _repaired_roots(
+                parent,
+                a,
+                b,
+                pair_items,
+                scores,
+                joins,
+                threshold,
+                C,
+                P,
+                min_views,
+                repair_splits,
+                drop_duplicates,
             )
     return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
 
@@ -149,193 +153,362 @@ def _skeleton_slots(count: np.ndarray, num_skeletons: int | None) -> tuple[np.nd
 SPLIT_VETO_FRACTION = 0.1
 
 
-def _linked_groups(
-    root: np.ndarray, a: list[int], b: list[int], strength: np.ndarray
-) -> tuple[dict[tuple[int, int], list[float]], dict[int, list[int]]]:
-    """The pairs of distinct groups that pairs above the threshold (a, b, with their scores
-    ``strength``) join: {(root_a, root_b): those pairs' scores}, and {root: its items} of every
-    group among them."""
-    links: dict[tuple[int, int], list[float]] = {}
-    for x, y, s in zip(a, b, np.asarray(strength).tolist(), strict=True):
-        rx, ry = int(root[x]), int(root[y])
-        if rx != ry:
-            links.setdefault((min(rx, ry), max(rx, ry)), []).append(s)
-    members: dict[int, list[int]] = {}
-    if links:
-        involved = np.array(sorted({r for key in links for r in key}))
-        for item in np.nonzero(np.isin(root, involved))[0].tolist():
-            members.setdefault(int(root[item]), []).append(item)
-    return links, members
-
-
-class _PairScores:
-    """The score of every scored pair of skeletons (items) in the frames of ``items``, both
-    ways: ``table.get(x, y, default)``, ``(x, y) in table``.
-
-    A dense (frames, C*P, C*P) table, not a dict of pairs: a chunk's repairs look at thousands
-    of pairs, and building a dict of them in Python was most of the combined matcher's time.
-    """
-
-    def __init__(
-        self, pair_items: np.ndarray, pair_scores: np.ndarray, items: set[int], C: int, P: int
-    ):
-        self.per_frame = C * P
-        frames = np.unique(np.fromiter(items, np.int64, len(items)) // self.per_frame)
-        self.row = dict(zip(frames.tolist(), range(len(frames)), strict=True))
-        shape = (len(frames), self.per_frame, self.per_frame)
-        self.score = np.zeros(shape)
-        self.known = np.zeros(shape, bool)
-        frame = pair_items[:, 0] // self.per_frame
-        pos = np.searchsorted(frames, frame)
-        inside = (pos < len(frames)) & (frames[np.minimum(pos, len(frames) - 1)] == frame)
-        x, y = pair_items[inside, 0] % self.per_frame, pair_items[inside, 1] % self.per_frame
-        r, sc = pos[inside], np.asarray(pair_scores, np.float64)[inside]
-        # Both ways, each row's two entries in turn: a pair scored twice keeps its last score.
-        rr, xx, yy = (np.stack([u, v], 1).reshape(-1) for u, v in ((r, r), (x, y), (y, x)))
-        self.score[rr, xx, yy] = np.repeat(sc, 2)
-        self.known[rr, xx, yy] = True
-
-    def _at(self, x: int, y: int) -> tuple[int, int, int] | None:
-        f = x // self.per_frame
-        if f != y // self.per_frame or f not in self.row:
-            return None
-        return self.row[f], x % self.per_frame, y % self.per_frame
-
-    def get(self, pair: tuple[int, int], default: float) -> float:
-        at = self._at(*pair)
-        return float(self.score[at]) if at is not None and self.known[at] else default
-
-    def __contains__(self, pair: tuple[int, int]) -> bool:
-        at = self._at(*pair)
-        return at is not None and bool(self.known[at])
-
-    def __getitem__(self, pair: tuple[int, int]) -> float:
-        if pair not in self:
-            raise KeyError(pair)
-        return float(self.score[self._at(*pair)])
-
-
-def _merge_split_people(
+def _repaired_roots(
     root: np.ndarray,
-    a: list[int],
-    b: list[int],
-    strength: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
     pair_items: np.ndarray,
-    pair_scores: np.ndarray,
-    threshold: float,
-    C: int,
-    P: int,
-) -> np.ndarray:
-    """`propose_people`'s ``repair_splits`` on a grouping: root (n,) each item's group; a, b the
-    joining pairs (above the threshold) and their scores ``strength``; pair_items (M, 2) and
-    pair_scores (M,) every scored pair. Returns the new roots (a dropped skeleton: its own)."""
-    root = root.copy()
-    camera = lambda item: item // P % C  # noqa: E731
-    links, members = _linked_groups(root, a, b, strength)
-    candidates = []
-    for (ra, rb), scores in links.items():
-        cams_a = {camera(x) for x in members[ra]}
-        cams_b = {camera(y) for y in members[rb]}
-        shared = cams_a & cams_b
-        possible = sum(camera(x) != camera(y) for x in members[ra] for y in members[rb])
-        if len(shared) == 1 and len(scores) >= 2 and len(scores) >= 0.5 * possible:
-            candidates.append((len(scores), sum(scores) / len(scores), ra, rb, shared.pop()))
-    if not candidates:
-        return root
-    # Every scored pair of the candidates' skeletons, to choose the one kept in the shared camera.
-    items = {x for *_, ra, rb, _ in candidates for x in members[ra] + members[rb]}
-    score_of = _PairScores(pair_items, pair_scores, items, C, P)
-    veto = SPLIT_VETO_FRACTION * threshold
-    touched: set[int] = set()
-    for *_, ra, rb, c in sorted(candidates, reverse=True):  # most links first
-        if ra in touched or rb in touched:
-            continue
-        group = members[ra] + members[rb]
-        twins = [x for x in group if camera(x) == c]
-        others = [x for x in group if camera(x) != c]
-
-        def support(x: int) -> float:
-            got = [score_of[(x, y)] for y in others if (x, y) in score_of]
-            return sum(got) / len(got) if got else -np.inf
-
-        of_twin = {x: support(x) for x in twins}
-        # Both twins must belong with the other views (a duplicate or fragment does; another
-        # person's skeleton does not): else the groups are two people.
-        if min(of_twin.values()) <= threshold:
-            continue
-        drop = min(twins, key=lambda x: (of_twin[x], -x))
-        kept = [x for x in group if x != drop]
-        # Nor may any pair of the merged person be ruled out (two people whose groups are
-        # linked by enough near pairs can still hold one far pair between them). Pairs of one
-        # camera are never scored, so only cross-view pairs can veto.
-        if any(
-            score_of.get((x, y), np.inf) < veto
-            for x in members[ra]
-            for y in members[rb]
-            if drop not in (x, y)
-        ):
-            continue
-        touched |= {ra, rb}
-        root[kept] = min(kept)
-        root[drop] = drop
-    return root
-
-
-def _drop_duplicate_people(
-    root: np.ndarray,
-    a: list[int],
-    b: list[int],
-    strength: np.ndarray,
-    pair_items: np.ndarray,
-    pair_scores: np.ndarray,
+    scores: np.ndarray,
+    joins: np.ndarray,
     threshold: float,
     C: int,
     P: int,
     min_views: int,
+    repair_splits: bool,
+    drop_duplicates: bool,
 ) -> np.ndarray:
-    """`propose_people`'s ``drop_duplicates`` on a grouping: root (n,) each item's group; a, b the
-    pairs above the threshold and their scores ``strength``; pair_items (M, 2) and pair_scores
-    (M,) every scored pair. Returns the new roots (a ghost's skeletons: their own)."""
+    """`propose_people`'s ``repair_splits`` then ``drop_duplicates`` on a grouping.
+
+    Args:
+      root: (n,) each item's group (its lowest item), n = F * C * P.
+      a, b: (J,) the joining pairs' items, best first; ``joins`` (J,) their rows in ``scores``.
+      pair_items: (M, 2) every scored pair's items; scores (M,) their scores.
+    Returns:
+      The new roots (a dropped skeleton, and a ghost's skeletons: their own).
+    """
+    return _repaired_roots_compiled(
+        np.ascontiguousarray(root, np.int64),
+        np.ascontiguousarray(a, np.int64),
+        np.ascontiguousarray(b, np.int64),
+        np.ascontiguousarray(scores[joins], np.float64),
+        np.ascontiguousarray(pair_items, np.int64),
+        np.ascontiguousarray(scores, np.float64),
+        float(threshold),
+        # The Python float product, as the rule was first written and tuned.
+        float(SPLIT_VETO_FRACTION * threshold),
+        C,
+        P,
+        min_views,
+        repair_splits,
+        drop_duplicates,
+    )
+
+
+# Compiled: as Python (dicts of links, sets of cameras) the two repairs were most of the combined
+# matcher's host time, about 0.25 ms a live frame. Groups never span frames, so each frame is
+# repaired on its own dense (C*P, C*P) table of pair scores; the rules and their orders are the
+# ones `propose_people`'s docstring states, tie for tie.
+@numba.njit(cache=True)
+def _repaired_roots_compiled(
+    root, a, b, strength, pair_items, pair_scores, threshold, veto, C, P, min_views, repair, drop
+):
     root = root.copy()
-    camera = lambda item: item // P % C  # noqa: E731
-    links, members = _linked_groups(root, a, b, strength)
-    if not links:
-        return root
-    score_of = _PairScores(pair_items, pair_scores, set().union(*members.values()), C, P)
-
-    @functools.cache  # asked once per link a group has
-    def own_score(r: int) -> float:
-        got = [
-            score_of.get((x, y), -np.inf)
-            for i, x in enumerate(members[r])
-            for y in members[r][i + 1 :]
-        ]
-        return float(np.mean(got)) if got else -np.inf
-
-    veto = SPLIT_VETO_FRACTION * threshold
-    candidates = []
-    for (ra, rb), joining in links.items():
-        n_links = len(joining)
-        if min(len(members[ra]), len(members[rb])) < min_views:
-            continue  # not two people
-        cams = {r: {camera(x) for x in members[r]} for r in (ra, rb)}
-        order = sorted((ra, rb), key=lambda r: (len(members[r]), own_score(r), -r), reverse=True)
-        host, ghost = order
-        if not cams[ghost] <= cams[host]:
-            continue
-        across = [(x, y) for x in members[ghost] for y in members[host] if camera(x) != camera(y)]
-        if n_links < 0.5 * len(across):
-            continue
-        if any(score_of.get(pair, np.inf) < veto for pair in across):
-            continue
-        candidates.append((len(members[host]), n_links, host, ghost))
-    dropped: set[int] = set()
-    for *_, host, ghost in sorted(candidates, reverse=True):  # the largest people first
-        if host in dropped or ghost in dropped:
-            continue
-        dropped.add(ghost)
-        root[members[ghost]] = members[ghost]
+    per_frame = C * P
+    F = len(root) // per_frame
+    join_order, join_start = _by_frame(a // per_frame, F)
+    pair_order, pair_start = _by_frame(pair_items[:, 0] // per_frame, F)
+    score = np.zeros((per_frame, per_frame))
+    known = np.zeros((per_frame, per_frame), np.bool_)
+    index = np.full((per_frame, per_frame), -1, np.int64)
+    for f in range(F):
+        if join_start[f] == join_start[f + 1]:
+            continue  # nothing joins two groups here
+        base = f * per_frame
+        ja = np.empty(join_start[f + 1] - join_start[f], np.int64)
+        jb = np.empty_like(ja)
+        js = np.empty(len(ja))
+        for k in range(len(ja)):
+            j = join_order[join_start[f] + k]
+            ja[k], jb[k], js[k] = a[j] - base, b[j] - base, strength[j]
+        # Both ways, in the pairs' order: a pair scored twice keeps its last score.
+        for k in range(pair_start[f], pair_start[f + 1]):
+            m = pair_order[k]
+            x, y = pair_items[m, 0] - base, pair_items[m, 1] - base
+            score[x, y] = pair_scores[m]
+            score[y, x] = pair_scores[m]
+            known[x, y] = True
+            known[y, x] = True
+        r = root[base : base + per_frame] - base
+        if repair:
+            r = _merge_split_frame(r, ja, jb, js, score, known, index, threshold, veto, P)
+        if drop:
+            r = _drop_duplicates_frame(r, ja, jb, score, known, index, veto, P, min_views)
+        root[base : base + per_frame] = r + base
+        for k in range(pair_start[f], pair_start[f + 1]):
+            m = pair_order[k]
+            x, y = pair_items[m, 0] - base, pair_items[m, 1] - base
+            known[x, y] = False
+            known[y, x] = False
     return root
+
+
+@numba.njit(cache=True)
+def _by_frame(frame, F):
+    """A stable order of items by their frame (F,), and where each frame's items start (F + 1,)."""
+    start = np.zeros(F + 1, np.int64)
+    for f in frame:
+        start[f + 1] += 1
+    start = np.cumsum(start)
+    fill = start[:-1].copy()
+    order = np.empty(len(frame), np.int64)
+    for i in range(len(frame)):
+        order[fill[frame[i]]] = i
+        fill[frame[i]] += 1
+    return order, start
+
+
+@numba.njit(cache=True)
+def _links(r, ja, jb, js, index):
+    """The pairs of distinct groups that the joins (ja, jb; scores js) link, in the order first
+    linked: (lo, hi) roots, how many joins link each, and the sum of their scores in join order.
+    index: (C*P, C*P) all -1, a scratch table left as it was found."""
+    lo = np.empty(len(ja), np.int64)
+    hi = np.empty(len(ja), np.int64)
+    count = np.zeros(len(ja), np.int64)
+    total = np.zeros(len(ja))
+    num = 0
+    for k in range(len(ja)):
+        rx, ry = r[ja[k]], r[jb[k]]
+        if rx == ry:
+            continue
+        u, v = min(rx, ry), max(rx, ry)
+        if index[u, v] < 0:
+            index[u, v] = num
+            lo[num], hi[num] = u, v
+            num += 1
+        i = index[u, v]
+        count[i] += 1
+        total[i] += js[k]
+    for i in range(num):
+        index[lo[i], hi[i]] = -1
+    return lo[:num], hi[:num], count[:num], total[:num]
+
+
+@numba.njit(cache=True)
+def _members(r, group):
+    """The items of ``group`` (those whose root it is), ascending."""
+    out = np.empty(len(r), np.int64)
+    m = 0
+    for i in range(len(r)):
+        if r[i] == group:
+            out[m] = i
+            m += 1
+    return out[:m]
+
+
+@numba.njit(cache=True)
+def _camera_mask(items, P):
+    mask = np.int64(0)
+    for x in items:
+        mask |= np.int64(1) << (x // P)
+    return mask
+
+
+@numba.njit(cache=True)
+def _merge_split_frame(r0, ja, jb, js, score, known, index, threshold, veto, P):
+    """One frame of ``repair_splits``: r0 (C*P,) roots, frame-local items."""
+    r = r0.copy()
+    lo, hi, count, total = _links(r0, ja, jb, js, index)
+    L = len(lo)
+    ok = np.zeros(L, np.bool_)
+    shared_camera = np.zeros(L, np.int64)
+    for i in range(L):
+        A, B = _members(r0, lo[i]), _members(r0, hi[i])
+        shared = _camera_mask(A, P) & _camera_mask(B, P)
+        possible = 0
+        for x in A:
+            for y in B:
+                if x // P != y // P:
+                    possible += 1
+        one = shared != 0 and (shared & (shared - 1)) == 0
+        ok[i] = one and count[i] >= 2 and count[i] >= 0.5 * possible
+        if one:
+            c = 0
+            while not (shared >> c) & 1:
+                c += 1
+            shared_camera[i] = c
+    mean = total / np.maximum(count, 1)
+    touched = np.zeros(len(r), np.bool_)
+    # Most links first, then the higher mean score, then the higher roots (`sorted(reverse=True)`
+    # over (links, mean, root a, root b)).
+    while True:
+        best = -1
+        for i in range(L):
+            if ok[i] and (
+                best < 0
+                or _after(
+                    count[i], mean[i], lo[i], hi[i], count[best], mean[best], lo[best], hi[best]
+                )
+            ):
+                best = i
+        if best < 0:
+            break
+        ok[best] = False
+        ra, rb, c = lo[best], hi[best], shared_camera[best]
+        if touched[ra] or touched[rb]:
+            continue
+        A, B = _members(r0, ra), _members(r0, rb)
+        group = np.concatenate((A, B))
+        # Each twin's mean score to the other views, over the pairs scored (Python's sum order).
+        drop, drop_support, lowest = -1, 0.0, np.inf
+        for x in group:
+            if x // P != c:
+                continue
+            got, num = 0.0, 0
+            for y in group:
+                if y // P != c and known[x, y]:
+                    got += score[x, y]
+                    num += 1
+            support = got / num if num else -np.inf
+            lowest = min(lowest, support)
+            if drop < 0 or support < drop_support or (support == drop_support and x > drop):
+                drop, drop_support = x, support
+        # Both twins must belong with the other views (a duplicate or fragment does; another
+        # person's skeleton does not): else the groups are two people.
+        if lowest <= threshold:
+            continue
+        # Nor may any cross-view pair of the merged person be ruled out.
+        vetoed = False
+        for x in A:
+            for y in B:
+                if x != drop and y != drop and known[x, y] and score[x, y] < veto:
+                    vetoed = True
+        if vetoed:
+            continue
+        touched[ra] = touched[rb] = True
+        kept = len(r)
+        for x in group:
+            if x != drop:
+                kept = min(kept, x)
+        for x in group:
+            r[x] = kept
+        r[drop] = drop
+    return r
+
+
+@numba.njit(cache=True)
+def _after(a1, a2, a3, a4, b1, b2, b3, b4):
+    """(a1, a2, a3, a4) > (b1, b2, b3, b4), as Python compares tuples."""
+    if a1 != b1:
+        return a1 > b1
+    if a2 != b2:
+        return a2 > b2
+    if a3 != b3:
+        return a3 > b3
+    return a4 > b4
+
+
+@numba.njit(cache=True)
+def _pairwise_sum(values):
+    """numpy's own summation order for float64 (``np.add.reduce``: 8 running sums in blocks of
+    up to 128 values, halved above), so that a mean here is the one ``np.mean`` gives, bit for
+    bit."""
+    n = len(values)
+    if n > 128:
+        half = n // 2
+        half -= half % 8
+        return _pairwise_sum(values[:half]) + _pairwise_sum(values[half:])
+    if n < 8:
+        total = 0.0
+        for v in values:
+            total += v
+        return total
+    part = values[:8].copy()
+    i = 8
+    while i < n - n % 8:
+        for j in range(8):
+            part[j] += values[i + j]
+        i += 8
+    total = ((part[0] + part[1]) + (part[2] + part[3])) + (
+        (part[4] + part[5]) + (part[6] + part[7])
+    )
+    while i < n:
+        total += values[i]
+        i += 1
+    return total
+
+
+@numba.njit(cache=True)
+def _own_score(r, group, score, known):
+    """The mean score of a group's pairs of items (unscored: -inf), -inf for one item."""
+    items = _members(r, group)
+    m = len(items)
+    if m < 2:
+        return -np.inf
+    got = np.empty(m * (m - 1) // 2)
+    k = 0
+    for i in range(m):
+        for j in range(i + 1, m):
+            got[k] = score[items[i], items[j]] if known[items[i], items[j]] else -np.inf
+            k += 1
+    return _pairwise_sum(got) / len(got)
+
+
+@numba.njit(cache=True)
+def _drop_duplicates_frame(r0, ja, jb, score, known, index, veto, P, min_views):
+    """One frame of ``drop_duplicates``: r0 (C*P,) roots, frame-local items."""
+    r = r0.copy()
+    lo, hi, count, _ = _links(r0, ja, jb, np.zeros(len(ja)), index)
+    L = len(lo)
+    host = np.empty(L, np.int64)
+    ghost = np.empty(L, np.int64)
+    host_size = np.zeros(L, np.int64)
+    ok = np.zeros(L, np.bool_)
+    for i in range(L):
+        A, B = _members(r0, lo[i]), _members(r0, hi[i])
+        if min(len(A), len(B)) < min_views:
+            continue  # not two people
+        # The host: more skeletons, then the higher own score, then the lower root.
+        own_a = _own_score(r0, lo[i], score, known)
+        own_b = _own_score(r0, hi[i], score, known)
+        if _after(len(A), own_a, -lo[i], 0, len(B), own_b, -hi[i], 0):
+            H, G = A, B
+            host[i], ghost[i] = lo[i], hi[i]
+        else:
+            H, G = B, A
+            host[i], ghost[i] = hi[i], lo[i]
+        cams_h, cams_g = _camera_mask(H, P), _camera_mask(G, P)
+        if cams_g & ~cams_h:
+            continue
+        across, vetoed = 0, False
+        for x in G:
+            for y in H:
+                if x // P != y // P:
+                    across += 1
+                    if known[x, y] and score[x, y] < veto:
+                        vetoed = True
+        if count[i] < 0.5 * across or vetoed:
+            continue
+        ok[i] = True
+        host_size[i] = len(H)
+    dropped = np.zeros(len(r), np.bool_)
+    # The largest people first (`sorted(reverse=True)` over (host size, links, host, ghost)).
+    while True:
+        best = -1
+        for i in range(L):
+            if ok[i] and (
+                best < 0
+                or _after(
+                    host_size[i],
+                    count[i],
+                    host[i],
+                    ghost[i],
+                    host_size[best],
+                    count[best],
+                    host[best],
+                    ghost[best],
+                )
+            ):
+                best = i
+        if best < 0:
+            break
+        ok[best] = False
+        if dropped[host[best]] or dropped[ghost[best]]:
+            continue
+        dropped[ghost[best]] = True
+        for x in _members(r0, ghost[best]):
+            r[x] = x
+    return r
 
 
 def propose_people_linked(

@@ -311,6 +311,82 @@ def test_of_two_duplicate_people_on_the_same_cameras_the_weaker_is_left_out():
         assert both[0, 0] == both[1, 0] != both[0, 1] == both[1, 1]
 
 
+def test_compiled_repairs_equal_the_plain_reference():
+    """The compiled split repair and duplicate drop give the roots of the plain Python reference
+    (tests/reference_proposals.py) on random frames: scores from four values (so that link
+    counts, mean scores and supports tie) or continuous, some pairs scored twice (the last score
+    counts), thresholds in both signs (the epipolar grouping's are negative distances), and
+    one to three views a person. Both repairs must change the grouping in many of the cases."""
+    from mvpose_jax.proposals import _repaired_roots
+    from tests import reference_proposals as reference
+
+    rng = np.random.default_rng(0)
+    changed = {"repair": 0, "drop": 0}
+    for case in range(600):
+        F, C, P = int(rng.integers(1, 4)), int(rng.integers(2, 6)), int(rng.integers(1, 5))
+        count, rows = _random_frames(rng, F, C, P)
+        twice = rows[rng.random(len(rows)) < 0.1][:, [0, 3, 4, 1, 2]]
+        rows = np.concatenate([rows, twice])
+        coarse = rng.choice([0.01, 0.3, 0.6, 0.9], len(rows))
+        scores = coarse if case % 2 else rng.random(len(rows))
+        threshold, min_views = float(rng.choice([0.2, 0.5])), int(rng.integers(1, 4))
+        if case % 3 == 0:  # as the epipolar grouping: minus distances, minus the cutoff
+            scores, threshold = -100 * scores, -100 * threshold
+        scores = scores.astype(rng.choice([np.float32, np.float64]))
+        pair_items = (rows[:, [0]] * C + rows[:, [1, 3]]) * P + rows[:, [2, 4]]
+        keep = np.nonzero(scores > threshold)[0]
+        joins = keep[np.argsort(-scores[keep], kind="stable")]
+        a, b = pair_items[joins, 0], pair_items[joins, 1]
+        parent = union_find_exclusive(F * C * P, a, b, np.tile(np.repeat(np.arange(C), P), F))
+        for repair in (False, True):
+            for drop in (False, True):
+                want = parent
+                if repair:
+                    want = reference.merge_split_people(
+                        want,
+                        a.tolist(),
+                        b.tolist(),
+                        scores[joins],
+                        pair_items,
+                        scores,
+                        threshold,
+                        C,
+                        P,
+                    )
+                    changed["repair"] += not drop and (want != parent).any()
+                if drop:
+                    before = want
+                    want = reference.drop_duplicate_people(
+                        want,
+                        a.tolist(),
+                        b.tolist(),
+                        scores[joins],
+                        pair_items,
+                        scores,
+                        threshold,
+                        C,
+                        P,
+                        min_views,
+                    )
+                    changed["drop"] += not repair and (want != before).any()
+                got = _repaired_roots(
+                    parent,
+                    a,
+                    b,
+                    pair_items,
+                    scores,
+                    joins,
+                    threshold,
+                    C,
+                    P,
+                    min_views,
+                    repair,
+                    drop,
+                )
+                np.testing.assert_array_equal(got, want, err_msg=f"case {case}")
+    assert min(changed.values()) >= 20, changed
+
+
 def test_union_find_exclusive_plain():
     roots = union_find_exclusive(4, [0, 1, 2], [1, 2, 3], np.array([0, 1, 0, 2]))
     assert roots.tolist() == [0, 0, 2, 2]  # 1-2 refused (camera 0 twice), 2-3 joined
