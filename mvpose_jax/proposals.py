@@ -103,34 +103,74 @@ def propose_people(
     """
     count, ok = _skeleton_slots(count, num_skeletons)
     F, C, P = ok.shape
-    n = F * C * P
-    rows = np.asarray(rows, np.int64).reshape(-1, 5)
-    scores = np.asarray(scores).reshape(-1)
     if C == 1:
-        parent = np.arange(n)
-    else:
-        # Each pair's two skeletons as flat item indices (frame, camera, skeleton).
-        pair_items = (rows[:, [0]] * C + rows[:, [1, 3]]) * P + rows[:, [2, 4]]  # (M, 2)
-        keep = np.nonzero(scores > threshold)[0]
-        joins = keep[np.argsort(-scores[keep], kind="stable")]  # best first
-        a, b = pair_items[joins, 0], pair_items[joins, 1]
-        parent = union_find_exclusive(n, a, b, np.tile(np.repeat(np.arange(C), P), F))
-        if repair_splits or drop_duplicates:  # they read every scored pair, not only the joins
-            parent = _repaired_roots(
-                parent,
-                a,
-                b,
-                pair_items,
-                scores,
-                joins,
-                threshold,
-                C,
-                P,
-                min_views,
-                repair_splits,
-                drop_duplicates,
-            )
-    return _proposals_from_roots(parent.reshape(F, C, P), ok, 1 if C == 1 else min_views)
+        return _proposals_from_roots(np.arange(F * C * P).reshape(F, C, P), ok, 1)
+    scores = np.asarray(scores).reshape(-1)
+    identity, table, num = _grouped(
+        np.ascontiguousarray(rows, np.int64).reshape(-1, 5),
+        np.ascontiguousarray(scores, np.float64),
+        scores > threshold,  # in the scores' own precision
+        ok.reshape(-1),
+        C,
+        P,
+        float(threshold),
+        # The Python float product, as the rule was tuned.
+        float(SPLIT_VETO_FRACTION * threshold),
+        min_views,
+        repair_splits,
+        drop_duplicates,
+    )
+    return Proposals(identity.reshape(F, C, P), [table[f, : num[f]] for f in range(F)])
+
+
+# Compiled whole: a live frame's grouping was about 30 numpy calls and three compiled ones, twice
+# a frame for the combined matcher (its grouping and the epipolar one).
+@numba.njit(cache=True)
+def _grouped(rows, scores, above, ok, C, P, threshold, veto, min_views, repair, drop):
+    """`propose_people` for C > 1 cameras: rows (M, 5), scores (M,) float64, above (M,) which
+    pairs score above the threshold, ok (F * C * P,) which slots hold skeletons. Returns the
+    identity (F * C * P,) int32, the people's table (F, people, C) int32 and (F,) people."""
+    per_frame = C * P
+    n = len(ok)
+    F = n // per_frame
+    # Each pair's two skeletons as flat item indices (frame, camera, skeleton).
+    pair_items = np.empty((len(rows), 2), np.int64)
+    for m in range(len(rows)):
+        pair_items[m, 0] = (rows[m, 0] * C + rows[m, 1]) * P + rows[m, 2]
+        pair_items[m, 1] = (rows[m, 0] * C + rows[m, 3]) * P + rows[m, 4]
+    keep = np.nonzero(above)[0]
+    joins = keep[np.argsort(-scores[keep], kind="mergesort")]  # best first, ties in row order
+    a = np.empty(len(joins), np.int64)
+    b = np.empty(len(joins), np.int64)
+    for k in range(len(joins)):
+        a[k], b[k] = pair_items[joins[k], 0], pair_items[joins[k], 1]
+    camera = (np.arange(n) // P) % C
+    root = _union_find_exclusive(n, a, b, camera)
+    if repair or drop:  # they read every scored pair, not only the joins
+        root = _repaired_roots(
+            root,
+            a,
+            b,
+            scores[joins],
+            pair_items,
+            scores,
+            threshold,
+            veto,
+            C,
+            P,
+            min_views,
+            repair,
+            drop,
+        )
+    identity, num = _identity_from_roots(root, ok, F, per_frame, min_views)
+    most = 1
+    for f in range(F):
+        most = max(most, num[f])
+    table = np.full((F, most, C), -1, np.int32)
+    for i in range(n):
+        if identity[i] >= 0:
+            table[i // per_frame, identity[i], camera[i]] = i % P
+    return identity, table, num
 
 
 def _skeleton_slots(count: np.ndarray, num_skeletons: int | None) -> tuple[np.ndarray, np.ndarray]:
@@ -153,55 +193,19 @@ def _skeleton_slots(count: np.ndarray, num_skeletons: int | None) -> tuple[np.nd
 SPLIT_VETO_FRACTION = 0.1
 
 
-def _repaired_roots(
-    root: np.ndarray,
-    a: np.ndarray,
-    b: np.ndarray,
-    pair_items: np.ndarray,
-    scores: np.ndarray,
-    joins: np.ndarray,
-    threshold: float,
-    C: int,
-    P: int,
-    min_views: int,
-    repair_splits: bool,
-    drop_duplicates: bool,
-) -> np.ndarray:
-    """`propose_people`'s ``repair_splits`` then ``drop_duplicates`` on a grouping.
-
-    Args:
-      root: (n,) each item's group (its lowest item), n = F * C * P.
-      a, b: (J,) the joining pairs' items, best first; ``joins`` (J,) their rows in ``scores``.
-      pair_items: (M, 2) every scored pair's items; scores (M,) their scores.
-    Returns:
-      The new roots (a dropped skeleton, and a ghost's skeletons: their own).
-    """
-    return _repaired_roots_compiled(
-        np.ascontiguousarray(root, np.int64),
-        np.ascontiguousarray(a, np.int64),
-        np.ascontiguousarray(b, np.int64),
-        np.ascontiguousarray(scores[joins], np.float64),
-        np.ascontiguousarray(pair_items, np.int64),
-        np.ascontiguousarray(scores, np.float64),
-        float(threshold),
-        # The Python float product, as the rule was first written and tuned.
-        float(SPLIT_VETO_FRACTION * threshold),
-        C,
-        P,
-        min_views,
-        repair_splits,
-        drop_duplicates,
-    )
-
-
 # Compiled: as Python (dicts of links, sets of cameras) the two repairs were most of the combined
 # matcher's host time, about 0.25 ms a live frame. Groups never span frames, so each frame is
 # repaired on its own dense (C*P, C*P) table of pair scores; the rules and their orders are the
 # ones `propose_people`'s docstring states, tie for tie.
 @numba.njit(cache=True)
-def _repaired_roots_compiled(
+def _repaired_roots(
     root, a, b, strength, pair_items, pair_scores, threshold, veto, C, P, min_views, repair, drop
 ):
+    """`propose_people`'s ``repair_splits`` then ``drop_duplicates`` on a grouping: root (n,)
+    each item's group (its lowest item), n = F * C * P; a, b (J,) the joining pairs' items, best
+    first, strength (J,) their scores; pair_items (M, 2) and pair_scores (M,) every scored pair;
+    veto: `SPLIT_VETO_FRACTION` of the threshold. Returns the new roots (a dropped skeleton, and
+    a ghost's skeletons: their own)."""
     root = root.copy()
     per_frame = C * P
     F = len(root) // per_frame

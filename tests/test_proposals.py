@@ -312,12 +312,13 @@ def test_of_two_duplicate_people_on_the_same_cameras_the_weaker_is_left_out():
 
 
 def test_compiled_repairs_equal_the_plain_reference():
-    """The compiled split repair and duplicate drop give the roots of the plain Python reference
-    (tests/reference_proposals.py) on random frames: scores from four values (so that link
-    counts, mean scores and supports tie) or continuous, some pairs scored twice (the last score
-    counts), thresholds in both signs (the epipolar grouping's are negative distances), and
-    one to three views a person. Both repairs must change the grouping in many of the cases."""
-    from mvpose_jax.proposals import _repaired_roots
+    """`propose_people` with the split repair and the duplicate drop (compiled) gives the people
+    of the plain Python reference (tests/reference_proposals.py, on the same union-find) on
+    random frames: scores from four values (so that link counts, mean scores and supports tie)
+    or continuous, some pairs scored twice (the last score counts), thresholds in both signs
+    (the epipolar grouping's are negative distances), float32 and float64 scores, one to three
+    views a person. Both repairs must change the grouping in many of the cases."""
+    from mvpose_jax.proposals import _proposals_from_roots, _skeleton_slots
     from tests import reference_proposals as reference
 
     rng = np.random.default_rng(0)
@@ -338,6 +339,7 @@ def test_compiled_repairs_equal_the_plain_reference():
         joins = keep[np.argsort(-scores[keep], kind="stable")]
         a, b = pair_items[joins, 0], pair_items[joins, 1]
         parent = union_find_exclusive(F * C * P, a, b, np.tile(np.repeat(np.arange(C), P), F))
+        _, ok = _skeleton_slots(count, P)
         for repair in (False, True):
             for drop in (False, True):
                 want = parent
@@ -369,21 +371,20 @@ def test_compiled_repairs_equal_the_plain_reference():
                         min_views,
                     )
                     changed["drop"] += not repair and (want != before).any()
-                got = _repaired_roots(
-                    parent,
-                    a,
-                    b,
-                    pair_items,
+                want = _proposals_from_roots(want.reshape(F, C, P), ok, min_views)
+                got = propose_people(
+                    rows,
                     scores,
-                    joins,
-                    threshold,
-                    C,
-                    P,
-                    min_views,
-                    repair,
-                    drop,
+                    count,
+                    num_skeletons=P,
+                    threshold=threshold,
+                    min_views=min_views,
+                    repair_splits=repair,
+                    drop_duplicates=drop,
                 )
-                np.testing.assert_array_equal(got, want, err_msg=f"case {case}")
+                np.testing.assert_array_equal(got.identity, want.identity, err_msg=f"{case}")
+                for g, w in zip(got.people, want.people, strict=True):
+                    np.testing.assert_array_equal(g, w, err_msg=f"case {case}")
     assert min(changed.values()) >= 20, changed
 
 
