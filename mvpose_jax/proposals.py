@@ -106,47 +106,13 @@ def propose_people(
     if C == 1:
         return _proposals_from_roots(np.arange(F * C * P).reshape(F, C, P), ok, 1)
     scores = np.asarray(scores).reshape(-1)
-    identity, table, num = _grouped(
-        np.ascontiguousarray(rows, np.int64).reshape(-1, 5),
-        np.ascontiguousarray(scores, np.float64),
-        scores > threshold,  # in the scores' own precision
-        ok.reshape(-1),
-        C,
-        P,
-        float(threshold),
-        # The Python float product, as the rule was tuned.
-        float(SPLIT_VETO_FRACTION * threshold),
-        min_views,
-        repair_splits,
-        drop_duplicates,
+    keep = np.nonzero(scores > threshold)[0]  # in the scores' own precision
+    joins = keep[np.argsort(-scores[keep], kind="stable")]  # best first
+    scores = np.ascontiguousarray(scores, np.float64)
+    pair_items, a, b, root = _joined(
+        np.ascontiguousarray(rows, np.int64).reshape(-1, 5), joins, F, C, P
     )
-    return Proposals(identity.reshape(F, C, P), [table[f, : num[f]] for f in range(F)])
-
-
-# Compiled whole: a live frame's grouping was about 30 numpy calls and three compiled ones, twice
-# a frame for the combined matcher (its grouping and the epipolar one).
-@numba.njit(cache=True)
-def _grouped(rows, scores, above, ok, C, P, threshold, veto, min_views, repair, drop):
-    """`propose_people` for C > 1 cameras: rows (M, 5), scores (M,) float64, above (M,) which
-    pairs score above the threshold, ok (F * C * P,) which slots hold skeletons. Returns the
-    identity (F * C * P,) int32, the people's table (F, people, C) int32 and (F,) people."""
-    per_frame = C * P
-    n = len(ok)
-    F = n // per_frame
-    # Each pair's two skeletons as flat item indices (frame, camera, skeleton).
-    pair_items = np.empty((len(rows), 2), np.int64)
-    for m in range(len(rows)):
-        pair_items[m, 0] = (rows[m, 0] * C + rows[m, 1]) * P + rows[m, 2]
-        pair_items[m, 1] = (rows[m, 0] * C + rows[m, 3]) * P + rows[m, 4]
-    keep = np.nonzero(above)[0]
-    joins = keep[np.argsort(-scores[keep], kind="mergesort")]  # best first, ties in row order
-    a = np.empty(len(joins), np.int64)
-    b = np.empty(len(joins), np.int64)
-    for k in range(len(joins)):
-        a[k], b[k] = pair_items[joins[k], 0], pair_items[joins[k], 1]
-    camera = (np.arange(n) // P) % C
-    root = _union_find_exclusive(n, a, b, camera)
-    if repair or drop:  # they read every scored pair, not only the joins
+    if repair_splits or drop_duplicates:  # they read every scored pair, not only the joins
         root = _repaired_roots(
             root,
             a,
@@ -154,22 +120,57 @@ def _grouped(rows, scores, above, ok, C, P, threshold, veto, min_views, repair, 
             scores[joins],
             pair_items,
             scores,
-            threshold,
-            veto,
+            float(threshold),
+            # The Python float product, as the rule was tuned.
+            float(SPLIT_VETO_FRACTION * threshold),
             C,
             P,
             min_views,
-            repair,
-            drop,
+            repair_splits,
+            drop_duplicates,
         )
+    identity, table, num = _people_table(root, ok.reshape(-1), C, P, min_views)
+    return Proposals(identity.reshape(F, C, P), [table[f, : num[f]] for f in range(F)])
+
+
+# Compiled: a live frame's grouping was about 30 numpy calls around three compiled ones, twice a
+# frame for the combined matcher (its grouping and the epipolar one). Three flat calls, not one
+# that calls the others: numba optimises a caller with all its callees again, and compiling on a
+# fresh install took seconds longer.
+@numba.njit(cache=True)
+def _joined(rows, joins, F, C, P):
+    """The union-find of `propose_people`: rows (M, 5), joins (J,) the rows joined, best first.
+    Returns every pair's two items (M, 2) (flat (frame, camera, skeleton) indices), the joins'
+    items a, b (J,) and each item's root (F * C * P,)."""
+    pair_items = np.empty((len(rows), 2), np.int64)
+    for m in range(len(rows)):
+        pair_items[m, 0] = (rows[m, 0] * C + rows[m, 1]) * P + rows[m, 2]
+        pair_items[m, 1] = (rows[m, 0] * C + rows[m, 3]) * P + rows[m, 4]
+    a = np.empty(len(joins), np.int64)
+    b = np.empty(len(joins), np.int64)
+    for k in range(len(joins)):
+        a[k], b[k] = pair_items[joins[k], 0], pair_items[joins[k], 1]
+    n = F * C * P
+    camera = np.empty(n, np.int64)
+    for i in range(n):
+        camera[i] = i // P % C
+    return pair_items, a, b, _union_find_exclusive(n, a, b, camera)
+
+
+@numba.njit(cache=True)
+def _people_table(root, ok, C, P, min_views):
+    """`_proposals_from_roots` on flat (F * C * P,) roots and slots: the identity (F * C * P,)
+    int32, the people's table (F, people, C) int32 and the people per frame (F,)."""
+    per_frame = C * P
+    F = len(ok) // per_frame
     identity, num = _identity_from_roots(root, ok, F, per_frame, min_views)
     most = 1
     for f in range(F):
         most = max(most, num[f])
     table = np.full((F, most, C), -1, np.int32)
-    for i in range(n):
+    for i in range(len(ok)):
         if identity[i] >= 0:
-            table[i // per_frame, identity[i], camera[i]] = i % P
+            table[i // per_frame, identity[i], i // P % C] = i % P
     return identity, table, num
 
 
@@ -209,8 +210,17 @@ def _repaired_roots(
     root = root.copy()
     per_frame = C * P
     F = len(root) // per_frame
-    join_order, join_start = _by_frame(a // per_frame, F)
-    pair_order, pair_start = _by_frame(pair_items[:, 0] // per_frame, F)
+    # Loops, not array expressions, here and below: numba compiles each of those into a kernel
+    # of its own, and compiling was seconds on a fresh install.
+    join_frame = np.empty(len(a), np.int64)
+    for k in range(len(a)):
+        join_frame[k] = a[k] // per_frame
+    pair_frame = np.empty(len(pair_items), np.int64)
+    for m in range(len(pair_items)):
+        pair_frame[m] = pair_items[m, 0] // per_frame
+    join_order, join_start = _by_frame(join_frame, F)
+    pair_order, pair_start = _by_frame(pair_frame, F)
+    r = np.empty(per_frame, np.int64)
     score = np.zeros((per_frame, per_frame))
     known = np.zeros((per_frame, per_frame), np.bool_)
     index = np.full((per_frame, per_frame), -1, np.int64)
@@ -219,7 +229,7 @@ def _repaired_roots(
             continue  # nothing joins two groups here
         base = f * per_frame
         ja = np.empty(join_start[f + 1] - join_start[f], np.int64)
-        jb = np.empty_like(ja)
+        jb = np.empty(len(ja), np.int64)
         js = np.empty(len(ja))
         for k in range(len(ja)):
             j = join_order[join_start[f] + k]
@@ -232,12 +242,14 @@ def _repaired_roots(
             score[y, x] = pair_scores[m]
             known[x, y] = True
             known[y, x] = True
-        r = root[base : base + per_frame] - base
+        for i in range(per_frame):
+            r[i] = root[base + i] - base
         if repair:
             r = _merge_split_frame(r, ja, jb, js, score, known, index, threshold, veto, P)
         if drop:
             r = _drop_duplicates_frame(r, ja, jb, score, known, index, veto, P, min_views)
-        root[base : base + per_frame] = r + base
+        for i in range(per_frame):
+            root[base + i] = r[i] + base
         for k in range(pair_start[f], pair_start[f + 1]):
             m = pair_order[k]
             x, y = pair_items[m, 0] - base, pair_items[m, 1] - base
@@ -252,8 +264,11 @@ def _by_frame(frame, F):
     start = np.zeros(F + 1, np.int64)
     for f in frame:
         start[f + 1] += 1
-    start = np.cumsum(start)
-    fill = start[:-1].copy()
+    for f in range(F):
+        start[f + 1] += start[f]
+    fill = np.empty(F, np.int64)
+    for f in range(F):
+        fill[f] = start[f]
     order = np.empty(len(frame), np.int64)
     for i in range(len(frame)):
         order[fill[frame[i]]] = i
@@ -331,7 +346,9 @@ def _merge_split_frame(r0, ja, jb, js, score, known, index, threshold, veto, P):
             while not (shared >> c) & 1:
                 c += 1
             shared_camera[i] = c
-    mean = total / np.maximum(count, 1)
+    mean = np.empty(L)
+    for i in range(L):
+        mean[i] = total[i] / count[i]
     touched = np.zeros(len(r), np.bool_)
     # Most links first, then the higher mean score, then the higher roots (`sorted(reverse=True)`
     # over (links, mean, root a, root b)).
@@ -352,7 +369,11 @@ def _merge_split_frame(r0, ja, jb, js, score, known, index, threshold, veto, P):
         if touched[ra] or touched[rb]:
             continue
         A, B = _members(r0, ra), _members(r0, rb)
-        group = np.concatenate((A, B))
+        group = np.empty(len(A) + len(B), np.int64)
+        for k in range(len(A)):
+            group[k] = A[k]
+        for k in range(len(B)):
+            group[len(A) + k] = B[k]
         # Each twin's mean score to the other views, over the pairs scored (Python's sum order).
         drop, drop_support, lowest = -1, 0.0, np.inf
         for x in group:
@@ -674,18 +695,22 @@ def _identity_from_roots(root, ok, F, per_frame, min_views):
             size[root[i]] += 1
     identity = np.full(n, -1, np.int32)
     num = np.zeros(F, np.int64)
-    roots = np.empty(per_frame, np.int64)
+    # A frame's people numbered in the order of their roots (slots of that frame), by marking
+    # them: np.unique and searchsorted here cost seconds of compiling and nothing at run time.
+    rank = np.empty(per_frame, np.int32)
     for f in range(F):
-        m = 0
-        for i in range(f * per_frame, (f + 1) * per_frame):
+        start = f * per_frame
+        rank[:] = -1
+        for i in range(start, start + per_frame):
             if ok[i] and size[root[i]] >= min_views:
-                roots[m] = root[i]
-                m += 1
-        people = np.unique(roots[:m])
-        num[f] = len(people)
-        for i in range(f * per_frame, (f + 1) * per_frame):
+                rank[root[i] - start] = 0
+        for j in range(per_frame):
+            if rank[j] >= 0:
+                rank[j] = num[f]
+                num[f] += 1
+        for i in range(start, start + per_frame):
             if ok[i] and size[root[i]] >= min_views:
-                identity[i] = np.searchsorted(people, root[i])
+                identity[i] = rank[root[i] - start]
     return identity, num
 
 
