@@ -91,7 +91,7 @@ def propose_people(
     lower), joined to it by pairs above the threshold for at least half of the pairs they have
     across cameras and by none under `SPLIT_VETO_FRACTION` of the threshold, is such a ghost
     (two people can share a camera set, but not stand where each other's views agree): its
-    skeletons are left out (`_drop_duplicate_people`). After the split repair.
+    skeletons are left out (`_drop_duplicates_frame`). After the split repair.
 
     Args:
       rows: (M, 5) int ``[frame, camera_a, skeleton_a, camera_b, skeleton_b]``.
