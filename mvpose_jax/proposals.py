@@ -353,18 +353,9 @@ def _merge_split_frame(r0, ja, jb, js, score, known, index, threshold, veto, P):
     # Most links first, then the higher mean score, then the higher roots (`sorted(reverse=True)`
     # over (links, mean, root a, root b)).
     while True:
-        best = -1
-        for i in range(L):
-            if ok[i] and (
-                best < 0
-                or _after(
-                    count[i], mean[i], lo[i], hi[i], count[best], mean[best], lo[best], hi[best]
-                )
-            ):
-                best = i
+        best = _take_largest(ok, count, mean, lo, hi)
         if best < 0:
             break
-        ok[best] = False
         ra, rb, c = lo[best], hi[best], shared_camera[best]
         if touched[ra] or touched[rb]:
             continue
@@ -409,6 +400,21 @@ def _merge_split_frame(r0, ja, jb, js, score, known, index, threshold, veto, P):
             r[x] = kept
         r[drop] = drop
     return r
+
+
+@numba.njit(cache=True)
+def _take_largest(ok, k1, k2, k3, k4):
+    """The candidate i with ok[i] whose key (k1[i], k2[i], k3[i], k4[i]) is the largest, as
+    Python orders tuples (-1: none left); it is taken (ok[i] set False)."""
+    best = -1
+    for i in range(len(ok)):
+        if ok[i] and (
+            best < 0 or _after(k1[i], k2[i], k3[i], k4[i], k1[best], k2[best], k3[best], k4[best])
+        ):
+            best = i
+    if best >= 0:
+        ok[best] = False
+    return best
 
 
 @numba.njit(cache=True)
@@ -509,25 +515,9 @@ def _drop_duplicates_frame(r0, ja, jb, score, known, index, veto, P, min_views):
     dropped = np.zeros(len(r), np.bool_)
     # The largest people first (`sorted(reverse=True)` over (host size, links, host, ghost)).
     while True:
-        best = -1
-        for i in range(L):
-            if ok[i] and (
-                best < 0
-                or _after(
-                    host_size[i],
-                    count[i],
-                    host[i],
-                    ghost[i],
-                    host_size[best],
-                    count[best],
-                    host[best],
-                    ghost[best],
-                )
-            ):
-                best = i
+        best = _take_largest(ok, host_size, count, host, ghost)
         if best < 0:
             break
-        ok[best] = False
         if dropped[host[best]] or dropped[ghost[best]]:
             continue
         dropped[ghost[best]] = True

@@ -340,47 +340,22 @@ def test_compiled_repairs_equal_the_plain_reference():
         a, b = pair_items[joins, 0], pair_items[joins, 1]
         parent = union_find_exclusive(F * C * P, a, b, np.tile(np.repeat(np.arange(C), P), F))
         _, ok = _skeleton_slots(count, P)
+        # The reference's arguments: the joins as lists, their scores, every scored pair.
+        pairs = (a.tolist(), b.tolist(), scores[joins], pair_items, scores, threshold, C, P)
         for repair in (False, True):
             for drop in (False, True):
                 want = parent
                 if repair:
-                    want = reference.merge_split_people(
-                        want,
-                        a.tolist(),
-                        b.tolist(),
-                        scores[joins],
-                        pair_items,
-                        scores,
-                        threshold,
-                        C,
-                        P,
-                    )
+                    want = reference.merge_split_people(want, *pairs)
                     changed["repair"] += not drop and (want != parent).any()
                 if drop:
                     before = want
-                    want = reference.drop_duplicate_people(
-                        want,
-                        a.tolist(),
-                        b.tolist(),
-                        scores[joins],
-                        pair_items,
-                        scores,
-                        threshold,
-                        C,
-                        P,
-                        min_views,
-                    )
+                    want = reference.drop_duplicate_people(want, *pairs, min_views)
                     changed["drop"] += not repair and (want != before).any()
                 want = _proposals_from_roots(want.reshape(F, C, P), ok, min_views)
+                flags = dict(min_views=min_views, repair_splits=repair, drop_duplicates=drop)
                 got = propose_people(
-                    rows,
-                    scores,
-                    count,
-                    num_skeletons=P,
-                    threshold=threshold,
-                    min_views=min_views,
-                    repair_splits=repair,
-                    drop_duplicates=drop,
+                    rows, scores, count, num_skeletons=P, threshold=threshold, **flags
                 )
                 np.testing.assert_array_equal(got.identity, want.identity, err_msg=f"{case}")
                 for g, w in zip(got.people, want.people, strict=True):
