@@ -129,8 +129,7 @@ def propose_people(
             repair_splits,
             drop_duplicates,
         )
-    identity, table, num = _people_table(root, ok.reshape(-1), C, P, min_views)
-    return Proposals(identity.reshape(F, C, P), [table[f, : num[f]] for f in range(F)])
+    return _proposals_from_roots(root.reshape(F, C, P), ok, min_views)
 
 
 # Compiled: a live frame's grouping was about 30 numpy calls around three compiled ones, twice a
@@ -159,8 +158,8 @@ def _joined(rows, joins, F, C, P):
 
 @numba.njit(cache=True)
 def _people_table(root, ok, C, P, min_views):
-    """`_proposals_from_roots` on flat (F * C * P,) roots and slots: the identity (F * C * P,)
-    int32, the people's table (F, people, C) int32 and the people per frame (F,)."""
+    """`_proposals_from_roots`'s arrays from flat (F * C * P,) roots and slots: the identity
+    (F * C * P,) int32, the people's table (F, people, C) int32 and the people per frame (F,)."""
     per_frame = C * P
     F = len(ok) // per_frame
     identity, num = _identity_from_roots(root, ok, F, per_frame, min_views)
@@ -247,7 +246,7 @@ def _repaired_roots(
         if repair:
             r = _merge_split_frame(r, ja, jb, js, score, known, index, threshold, veto, P)
         if drop:
-            r = _drop_duplicates_frame(r, ja, jb, score, known, index, veto, P, min_views)
+            r = _drop_duplicates_frame(r, ja, jb, js, score, known, index, veto, P, min_views)
         for i in range(per_frame):
             root[base + i] = r[i] + base
         for k in range(pair_start[f], pair_start[f + 1]):
@@ -476,10 +475,10 @@ def _own_score(r, group, score, known):
 
 
 @numba.njit(cache=True)
-def _drop_duplicates_frame(r0, ja, jb, score, known, index, veto, P, min_views):
+def _drop_duplicates_frame(r0, ja, jb, js, score, known, index, veto, P, min_views):
     """One frame of ``drop_duplicates``: r0 (C*P,) roots, frame-local items."""
     r = r0.copy()
-    lo, hi, count, _ = _links(r0, ja, jb, np.zeros(len(ja)), index)
+    lo, hi, count, _ = _links(r0, ja, jb, js, index)
     L = len(lo)
     host = np.empty(L, np.int64)
     ghost = np.empty(L, np.int64)
@@ -663,14 +662,10 @@ def _proposals_from_roots(root: np.ndarray, ok: np.ndarray, min_views: int) -> P
     hold skeletons; a set of at least ``min_views`` skeletons is a person, numbered 0.. within
     its frame in the order of its root."""
     F, C, P = ok.shape
-    identity, num = _identity_from_roots(
-        np.ascontiguousarray(root, np.int64).reshape(-1), ok.reshape(-1), F, C * P, min_views
+    identity, table, num = _people_table(
+        np.ascontiguousarray(root, np.int64).reshape(-1), ok.reshape(-1), C, P, min_views
     )
-    identity = identity.reshape(F, C, P)
-    table = np.full((F, max(1, int(num.max(initial=0))), C), -1, np.int32)
-    f_i, c_i, p_i = np.nonzero(identity >= 0)
-    table[f_i, identity[f_i, c_i, p_i], c_i] = p_i
-    return Proposals(identity, [table[f, : num[f]] for f in range(F)])
+    return Proposals(identity.reshape(F, C, P), [table[f, : num[f]] for f in range(F)])
 
 
 # Compiled: a live frame's numbering cost about 50 us of numpy calls (unique, bincount, search).
