@@ -545,6 +545,11 @@ class MatcherAdaptReport:
       heldout_loss_before, heldout_loss_after: the held-out pseudo-label loss (MSE per pair) of
         the given and of the returned parameters; heldout_accuracy_*: decisions at 0.5 that
         agree with the pseudo-labels.
+      threshold, threshold_ari: the returned GAT's proposal threshold, chosen on the held-out
+        frames by the best per-frame ARI of its proposals against the pseudo-labels
+        (`proposals.choose_proposal_threshold`), and the ARI of each threshold tried. The
+        threshold chosen on composed dev frames was chosen for the given network's scores, not
+        for the adapted one's, which have learnt this recording's pairs.
       steps, best_step, stopped, seconds, seconds_grouping, settings, history: as `AdaptReport`.
     """
 
@@ -558,6 +563,8 @@ class MatcherAdaptReport:
     heldout_loss_after: float
     heldout_accuracy_before: float
     heldout_accuracy_after: float
+    threshold: float
+    threshold_ari: dict[float, float]
     steps: int
     best_step: int
     stopped: str
@@ -602,7 +609,8 @@ def adapt_matcher(
     """
     from mvpose_jax.graphs import build_graphs, detection_features, graph_budget
     from mvpose_jax.matcher_training import matcher_eval_sums, matcher_loss_fn
-    from mvpose_jax.matching import propose_with_matcher
+    from mvpose_jax.matching import gat_match_table, propose_with_matcher
+    from mvpose_jax.proposals import choose_proposal_threshold
 
     start = time.perf_counter()
     config.check()
@@ -717,6 +725,11 @@ def adapt_matcher(
         for a in range(C)
         for b in range(a + 1, C)
     )
+    adapted = matcher._replace(params=jax.device_get(result_state.params))
+    held_rows, held_scores = gat_match_table(adapted, jax.tree.map(lambda a: a[held_f], det))
+    threshold, threshold_ari = choose_proposal_threshold(
+        held_rows, held_scores, identity[held_f], count[held_f]
+    )
     report = MatcherAdaptReport(
         frames=F,
         frames_adapt=len(adapt_f),
@@ -728,6 +741,8 @@ def adapt_matcher(
         heldout_loss_after=after["val_loss"],
         heldout_accuracy_before=before["val_accuracy"],
         heldout_accuracy_after=after["val_accuracy"],
+        threshold=float(threshold),
+        threshold_ari={float(k): float(v) for k, v in threshold_ari.items()},
         steps=int(steps),
         best_step=int(result_state.step),
         stopped=stopped,
@@ -742,7 +757,7 @@ def adapt_matcher(
         },
         history=history,
     )
-    return matcher._replace(params=jax.device_get(result_state.params)), report
+    return adapted, report
 
 
 def save_adapted_matcher(
@@ -773,4 +788,13 @@ def save_adapted_matcher(
         folder.write_adapt_report(report.to_json())
         if settings_from is not None:
             folder.copy_proposal_settings(ModelFolder(settings_from))
+        # The GAT's threshold is the adapted network's own; the combined matcher's settings
+        # (chosen on the matcher's composed dev frames) are kept as they were.
+        folder.set_proposal_threshold(
+            report.threshold,
+            report.threshold_ari,
+            report.frames_heldout,
+            "the best per-frame adjusted Rand index of the adapted GAT's proposals against the "
+            "pseudo-labels on the recording's held-out frames (adapt.adapt_matcher)",
+        )
     return Path(directory)

@@ -565,6 +565,22 @@ class ModelFolder:
                 }
         return self._write_json(PROPOSAL_THRESHOLD_FILE, record)
 
+    def set_proposal_threshold(
+        self, threshold: float, ari: dict[float, float], frames: int, how: str
+    ) -> Path:
+        """Writes the GAT's proposal threshold (with the ARI of each threshold tried on
+        ``frames`` frames, and ``how`` it was chosen), keeping the combined matcher's settings
+        already written here."""
+        record = self._read_json(PROPOSAL_THRESHOLD_FILE) or {}
+        record.pop("composed_frames", None)
+        record.update(
+            threshold=float(threshold),
+            ari_by_threshold={str(k): round(v, 6) for k, v in ari.items()},
+            frames=int(frames),
+            how=how,
+        )
+        return self._write_json(PROPOSAL_THRESHOLD_FILE, record)
+
     def read_proposal_threshold(self, given: float | None = None) -> float:
         """``given``, else the chosen threshold, else the paper's 0.5."""
         if given is not None:

@@ -331,6 +331,19 @@ def test_a_matcher_learns_a_recordings_groups_from_its_labels(rig, crowd):
         for b in range(a + 1, 5)
     )
     assert report.positive_fraction == pytest.approx(same / report.pairs_adapt)
+    # The threshold: the adapted GAT's proposals on the held-out frames, against their labels,
+    # at each threshold tried (ARI recomputed here); the best one, ties to the one nearest 0.5.
+    held_f = np.flatnonzero(held & has_pair)
+    held_det = jax.tree.map(lambda a: np.asarray(a)[held_f], crowd.detections)
+    aris = {}
+    for t in report.threshold_ari:
+        got = propose_with_matcher(adapted, held_det, mode="gat", threshold=t)
+        aris[t] = matching_scores(crowd.identity[held_f], got.identity, held_det.count)["ari"]
+    assert report.threshold_ari == pytest.approx(aris)
+    best = max(aris.values())
+    assert report.threshold == min(
+        (t for t, a in aris.items() if a == best), key=lambda t: abs(t - 0.5)
+    )
 
 
 def test_matcher_adaptation_keeps_the_given_matcher_when_nothing_helps(rig, crowd):
@@ -371,7 +384,13 @@ def test_an_adapted_matcher_is_saved_as_a_folder_load_matcher_reads(rig, crowd, 
         loaded.params,
         adapted.params,
     )
-    assert read_combined_config(out).threshold == 0.25 and read_proposal_threshold(out) == 0.3
+    # The combined matcher's settings are the source's; the GAT's threshold the adapted one's.
+    assert read_combined_config(out).threshold == 0.25
+    assert read_proposal_threshold(out) == report.threshold
+    assert read_combined_config(
+        save_adapted_matcher(tmp_path / "a2", adapted, report)
+    ).threshold == (CombinedConfig().threshold)
+    assert read_proposal_threshold(tmp_path / "a2") == report.threshold
     assert json.loads((out / "adapt_report.json").read_text())["best_step"] == report.best_step
     with pytest.raises(InputError, match="not an empty folder"):
         save_adapted_matcher(out, adapted, report)

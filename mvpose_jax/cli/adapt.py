@@ -87,7 +87,8 @@ def _adapt(args: argparse.Namespace) -> int:
             f"the combined proposals): held-out pseudo-label loss {r.heldout_loss_before:.4f} -> "
             f"{r.heldout_loss_after:.4f} (agreement {r.heldout_accuracy_before:.3f} -> "
             f"{r.heldout_accuracy_after:.3f}), step {r.best_step} of {r.steps} ({r.stopped}), "
-            f"{r.seconds:.0f} s; wrote {args.matcher_out}"
+            f"{r.seconds:.0f} s; GAT threshold {r.threshold:g} (chosen on the held-out frames); "
+            f"wrote {args.matcher_out}"
         )
     print_adapt_report(done.report)
     print(
