@@ -87,15 +87,16 @@ GROUPING_RULES = (("greedy", propose_people), ("average linkage", propose_people
 DEMO_SOURCE = {"default": "synthetic", "fitted": "detector-like"}
 
 
-def mvor_rows(data, pairs: dict) -> list[dict]:
+def mvor_rows(data, pairs: dict, sources=SOURCES, model_rows=MVOR_MODEL_ROWS) -> list[dict]:
     """The MVOR protocol's overall numbers (and people built per frame) of the geometric default
-    and of `MVOR_MODEL_ROWS` with each model pair of ``pairs`` ({`SOURCES` key: Models})."""
+    and of ``model_rows`` ((name, grouping, method), as `MVOR_MODEL_ROWS`) with each model pair
+    of ``pairs`` ({``sources`` key: Models}; ``sources``: (key, label), as `SOURCES`)."""
     identity = true_identity(data)
     members = members_from_identity(identity, data.gt.valid.shape[1])
     views = (members >= 0).sum(-1)
     plan = [(GEOMETRIC[0], None, GEOMETRIC[1], {"method": GEOMETRIC[2]})]
-    for key, label in SOURCES:
-        for name, grouping, method in MVOR_MODEL_ROWS:
+    for key, label in sources:
+        for name, grouping, method in model_rows:
             settings = real.model_settings(grouping, method, pairs[key])
             plan.append((f"{name}, {label}", key, grouping, settings))
     rows = []
@@ -179,17 +180,17 @@ def grouping_rules(models, rig, floor, detector, smoke: bool, detections, refere
             "threshold": best,
             "dev_ari": ari[best],
             "dev_ari_by_threshold": {str(k): v for k, v in ari.items()},
-            "people_per_frame": _people_per_frame(grouped),
+            "people_per_frame": people_per_frame(grouped),
             **{
                 f"ari_vs_{ref}": matching_scores(truth, grouped, detections.count)["ari"]
                 for ref, truth in references.items()
             },
         }
-    out["references"] = {ref: _people_per_frame(t) for ref, t in references.items()}
+    out["references"] = {ref: people_per_frame(t) for ref, t in references.items()}
     return out
 
 
-def _people_per_frame(identity: np.ndarray) -> float:
+def people_per_frame(identity: np.ndarray) -> float:
     """Mean number of people (distinct identities >= 0) per frame of (F, C, P) identities."""
     ident = np.asarray(identity).reshape(len(identity), -1)
     return float(np.mean([len(np.unique(f[f >= 0])) for f in ident]))
@@ -224,6 +225,39 @@ def fitted_fields(fit) -> dict:
     }
 
 
+def mvor_table(rows: list[dict]) -> list[str]:
+    """`mvor_rows`' rows as a markdown table."""
+    lines = [
+        "| pipeline | missed / people | MPJPE mm | PCK3D@150 % | PCP upper % "
+        "| joints produced % | people built / frame |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['row']} | {r['missed']} / {r['people']} | {r['mpjpe_mm']:.1f} "
+            f"| {r['pck3d_150']:.1f} | {r['pcp_upper']:.1f} | {r['produced']:.1f} "
+            f"| {r['people_per_frame']:.2f} |"
+        )
+    return lines
+
+
+def demo_table(rows: list[dict]) -> list[str]:
+    """Label-free score rows (`pose2sim_demo.score_row`'s numbers and a ``row`` name) as a
+    markdown table."""
+    lines = [
+        "| result | within 20 px (all skeletons) % | median px | coverage % | people / frame "
+        "| jitter m/s² |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['row']} | {100 * r['within_20px_all_skeletons']:.1f} "
+            f"| {r['median_px']:.2f} | {100 * r['coverage']:.1f} "
+            f"| {r['people_per_frame']:.2f} | {r['jitter_m_s2']:.2f} |"
+        )
+    return lines
+
+
 def markdown(report: dict) -> str:
     lines = [
         "# Models trained on a detector like the recording's",
@@ -235,36 +269,15 @@ def markdown(report: dict) -> str:
     ]
     if "mvor" in report:
         m = report["mvor"]
-        lines += [
-            f"## MVOR days 1-2 ({m['split']})",
-            "",
-            "| pipeline | missed / people | MPJPE mm | PCK3D@150 % | PCP upper % "
-            "| joints produced % | people built / frame |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for r in m["rows"]:
-            lines.append(
-                f"| {r['row']} | {r['missed']} / {r['people']} | {r['mpjpe_mm']:.1f} "
-                f"| {r['pck3d_150']:.1f} | {r['pcp_upper']:.1f} | {r['produced']:.1f} "
-                f"| {r['people_per_frame']:.2f} |"
-            )
-        lines.append("")
+        lines += [f"## MVOR days 1-2 ({m['split']})", "", *mvor_table(m["rows"]), ""]
     if "pose2sim_demo" in report:
         d = report["pose2sim_demo"]
         lines += [
             f"## Pose2Sim demo, {d['trial']} (no labels: the label-free score)",
             "",
-            "| result | within 20 px (all skeletons) % | median px | coverage % | people / frame "
-            "| jitter m/s² |",
-            "|---|---|---|---|---|---|",
+            *demo_table(d["rows"]),
+            "",
         ]
-        for r in d["rows"]:
-            lines.append(
-                f"| {r['row']} | {100 * r['within_20px_all_skeletons']:.1f} "
-                f"| {r['median_px']:.2f} | {100 * r['coverage']:.1f} "
-                f"| {r['people_per_frame']:.2f} | {r['jitter_m_s2']:.2f} |"
-            )
-        lines.append("")
     lines += [
         "## The GAT's pair scores (same person or not, by a reference grouping)",
         "",

@@ -75,17 +75,18 @@ def synthetic_models(
     smoke: bool,
     progress: bool = False,
     detector: DetectorConfig | None = None,
+    seed: int = SEED,
 ) -> Models:
     """The matcher and estimator of ``rig`` trained on synthetic recordings of it with the
     measured ``floor`` (loaded from ``folder`` when it holds them). ``detector``: the
     recordings' simulated detector, such as one fitted to the real recording's own detections
     (`detector_fit.fit_detector`, what ``mvpose-jax generate --detector-like`` does), so that
     the models see its jitter, misses and false skeletons while they train; None: the default
-    one."""
+    one. ``seed``: the recordings' and the training's."""
     return cached_models(
         rig,
         folder,
-        seed=SEED,
+        seed=seed,
         scale=scale(smoke),
         progress=progress,
         floor_height=floor.height,

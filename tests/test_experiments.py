@@ -202,3 +202,15 @@ def test_score_separation_auc_is_scikit_learns():
     assert got["same_person_pairs"] == same.sum() and got["pairs"] == 400
     assert got["same_below_threshold"] == pytest.approx((scores[same] < 0.5).mean())
     assert got["other_above_threshold"] == pytest.approx((scores[~same] >= 0.5).mean())
+
+
+def test_seed_table_gives_each_seed_and_the_mean_and_range():
+    from experiments.real_adapted import seed_lines
+
+    records = {"0": {"a": 1.0, "b": 0.5}, "1": {"a": 4.0, "b": 0.25}, "2": {"a": 2.5, "b": 0.75}}
+    columns = (("A", lambda r: r["a"], ".1f"), ("B", lambda r: r["b"], ".3f"))
+    lines = seed_lines(records, columns)
+    assert lines[0] == "| seed | A | B |"
+    assert lines[2:5] == ["| 0 | 1.0 | 0.500 |", "| 1 | 4.0 | 0.250 |", "| 2 | 2.5 | 0.750 |"]
+    assert lines[5] == "| mean (min-max) | 2.5 (1.0-4.0) | 0.500 (0.250-0.750) |"
+    assert len(seed_lines({"0": records["0"]}, columns)) == 3  # one seed: no summary row
