@@ -26,7 +26,7 @@ Scored as ``experiments.real`` scores them:
 
 * MVOR (evaluation only): the MVOR protocol (`mvor_protocol.evaluate`) of the geometric default
   and, with each pair, the ``infer`` default (combined + blend), combined + MLP, the paper's
-  method (GAT + MLP) and GAT + robust triangulation (the grouping alone);
+  method (GAT + MLP), GAT + robust triangulation (the grouping alone) and GAT + blend;
 * the demo (no labels): the label-free score of the geometric default and, with each pair, the
   ``infer`` default and the paper's method. The estimator's adaptation minimises the
   reprojection error in these same views, which that score measures: read its rows with that in
@@ -85,6 +85,7 @@ MVOR_MODEL_ROWS = (
     ("combined + MLP", "combined", "mlp"),
     ("paper's method (GAT + MLP)", "gat", "mlp"),
     ("GAT + robust triangulation", "gat", "robust"),
+    ("GAT + blend", "gat", "blend"),
 )
 # A wall-clock cap no adaptation here reaches: steps and held-out frames decide, not the machine.
 NO_CAP_SECONDS = 3600.0
@@ -273,25 +274,37 @@ def _row(seed_record: dict, name: str) -> dict:
     return next(r for r in seed_record["rows"] if r["row"] == name)
 
 
-PAPER = "paper's method (GAT + MLP)"
-# The figures compared over training seeds: (header, value of a seed's record, format).
-MVOR_SEED_COLUMNS = tuple(
-    (f"{what}, {label}", (lambda r, f=field, lb=label: _row(r, f"{PAPER}, {lb}")[f]), fmt)
-    for what, field, fmt in (
-        ("GAT + MLP MPJPE mm", "mpjpe_mm", ".1f"),
-        ("GAT + MLP PCK3D@150 %", "pck3d_150", ".1f"),
-        ("GAT + MLP PCP %", "pcp_upper", ".1f"),
+PAPER = ("paper's method (GAT + MLP)", "GAT + MLP")
+DEFAULT = ("infer default (combined + blend)", "infer default")
+
+
+def row_columns(pipeline: tuple[str, str], fields) -> tuple:
+    """Seed-table columns ((header, value of a seed's record, format), as `seed_lines` takes) of
+    one pipeline's row (``pipeline``: its row name and short name), trained and adapted, for
+    each of ``fields`` ((header, key of the row, scale, format))."""
+    name, short = pipeline
+    return tuple(
+        (
+            f"{short} {what}, {key}",
+            (lambda r, f=field, x=scale, lb=label: x * _row(r, f"{name}, {lb}")[f]),
+            fmt,
+        )
+        for what, field, scale, fmt in fields
+        for key, label in SOURCES
     )
-    for _, label in SOURCES
+
+
+MVOR_FIELDS = (
+    ("MPJPE mm", "mpjpe_mm", 1, ".1f"),
+    ("PCK3D@150 %", "pck3d_150", 1, ".1f"),
+    ("PCP %", "pcp_upper", 1, ".1f"),
 )
-DEMO_SEED_COLUMNS = tuple(
-    (
-        f"GAT + MLP within 20 px %, {label}",
-        (lambda r, lb=label: 100 * _row(r, f"{PAPER}, {lb}")["within_20px_all_skeletons"]),
-        ".1f",
-    )
-    for _, label in SOURCES
-)
+DEMO_FIELDS = (("within 20 px %", "within_20px_all_skeletons", 100, ".1f"),)
+# The figures compared over training seeds, per recording: one table per pipeline.
+SEED_TABLES = {
+    "mvor": (row_columns(PAPER, MVOR_FIELDS), row_columns(DEFAULT, MVOR_FIELDS)),
+    "pose2sim_demo": (row_columns(PAPER, DEMO_FIELDS), row_columns(DEFAULT, DEMO_FIELDS)),
+}
 GAT_SEED_COLUMNS = tuple(
     (f"GAT alone {what}, {key}", (lambda r, k=key, f=field: r["gat_alone"][k][f]), fmt)
     for what, field, fmt in (
@@ -383,11 +396,9 @@ def markdown(report: dict) -> str:
             "",
             "Over training seeds:",
             "",
-            *seed_lines(p["seeds"], MVOR_SEED_COLUMNS if part == "mvor" else DEMO_SEED_COLUMNS),
-            "",
-            *seed_lines(p["seeds"], GAT_SEED_COLUMNS),
-            "",
         ]
+        for columns in (*SEED_TABLES[part], GAT_SEED_COLUMNS):
+            lines += [*seed_lines(p["seeds"], columns), ""]
     lines += [f"Seconds, with training: {report['seconds']:.0f}."]
     return "\n".join(lines) + "\n"
 
