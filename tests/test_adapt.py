@@ -29,10 +29,10 @@ from mvpose_jax.estimator_training import train_estimator
 from mvpose_jax.features import single_person_samples
 from mvpose_jax.inference import run_pipeline
 from mvpose_jax.lifting import predict_people
-from mvpose_jax.matching import propose_with_matcher
+from mvpose_jax.matching import gat_match_table, propose_with_matcher
 from mvpose_jax.metrics import matching_scores
 from mvpose_jax.models import GATConfig, MatchingGAT, MLPConfig, PoseMLP
-from mvpose_jax.proposals import CombinedConfig
+from mvpose_jax.proposals import CombinedConfig, propose_people
 from mvpose_jax.synthetic import (
     SyntheticConfig,
     generate_recording,
@@ -335,9 +335,12 @@ def test_a_matcher_learns_a_recordings_groups_from_its_labels(rig, crowd):
     # at each threshold tried (ARI recomputed here); the best one, ties to the one nearest 0.5.
     held_f = np.flatnonzero(held & has_pair)
     held_det = jax.tree.map(lambda a: np.asarray(a)[held_f], crowd.detections)
+    rows, scores = gat_match_table(adapted, held_det)
     aris = {}
     for t in report.threshold_ari:
-        got = propose_with_matcher(adapted, held_det, mode="gat", threshold=t)
+        got = propose_people(
+            rows, scores, held_det.count, num_skeletons=held_det.score.shape[2], threshold=t
+        )
         aris[t] = matching_scores(crowd.identity[held_f], got.identity, held_det.count)["ari"]
     assert report.threshold_ari == pytest.approx(aris)
     best = max(aris.values())
