@@ -422,6 +422,8 @@ def adapt_estimator(
         settings={
             **dataclasses.asdict(config),
             "grouping": grouping,
+            "proposals": proposals if grouping == "matcher" else None,
+            "threshold": threshold if grouping != "given" else None,
             "grouping_cameras": list(cameras),
             "loss_power": power,
             "num_augment": augment,

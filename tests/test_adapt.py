@@ -408,7 +408,9 @@ def test_adapt_command_adapts_the_matcher_too(rig, shifted_scene, tmp_path, caps
     matcher = untrained_matcher(rig)
     _, report = _adapt_on_truth(rig, shifted_scene, matcher, max_steps=0)
     save_adapted_matcher(tmp_path / "m", matcher, report)
-    write_proposal_threshold(tmp_path / "m", 0.4, {0.4: 0.9}, 10, combined=CombinedConfig())
+    write_proposal_threshold(
+        tmp_path / "m", 0.15, {0.15: 0.9}, 10, combined=CombinedConfig(threshold=0.25)
+    )
     save_recording(shifted_scene, tmp_path / "rec.npz")
     common = ["--rig", "panoptic5", "--detections", str(tmp_path / "rec.npz")]
     est = untrained_estimator(rig)
@@ -425,7 +427,7 @@ def test_adapt_command_adapts_the_matcher_too(rig, shifted_scene, tmp_path, caps
     assert cli.main(argv + ["--matcher-out", str(tmp_path / "m2")]) == 2
     assert "give --matcher" in capsys.readouterr().err
     argv += ["--matcher", str(tmp_path / "m"), "--matcher-out", str(tmp_path / "m2")]
-    assert cli.main(argv + ["--matcher-max-steps", "5"]) == 0
+    assert cli.main(argv + ["--matcher-max-steps", "5", "--proposals", "gat"]) == 0
     out = capsys.readouterr().out
     assert "adapted the matcher on" in out and "wrote" in out
     saved = json.loads((tmp_path / "m2" / "adapt_report.json").read_text())
@@ -434,7 +436,11 @@ def test_adapt_command_adapts_the_matcher_too(rig, shifted_scene, tmp_path, caps
     assert saved["settings"]["budget_seconds"] == pytest.approx(15.0)
     est_budget = json.loads((tmp_path / "e2" / "adapt_report.json").read_text())["settings"]
     assert est_budget["budget_seconds"] == pytest.approx(30.0 - saved["seconds"], abs=1e-6)
-    assert read_proposal_threshold(tmp_path / "m2") == 0.4  # the matcher's settings travel
+    # The combined matcher's settings travel; the GAT's threshold is the adapted one's.
+    assert read_combined_config(tmp_path / "m2").threshold == 0.25
+    assert read_proposal_threshold(tmp_path / "m2") == saved["threshold"] != 0.15
     assert load_matcher(tmp_path / "m2", rig).rig.names == rig.names
-    # The estimator adapted behind the adapted matcher's proposals.
-    assert json.loads((tmp_path / "e2" / "adapt_report.json").read_text())["steps"] == 2
+    # The estimator adapted behind the adapted matcher's proposals, at its threshold.
+    est_saved = json.loads((tmp_path / "e2" / "adapt_report.json").read_text())
+    assert est_saved["steps"] == 2 and est_saved["settings"]["proposals"] == "gat"
+    assert est_saved["settings"]["threshold"] == saved["threshold"]

@@ -138,6 +138,11 @@ def adapt(job: AdaptJob) -> Adapted:
         config = dataclasses.replace(config, max_seconds=max(1.0, total - matcher_report.seconds))
         matcher_report.settings["matcher"] = str(Path(job.matcher).resolve())
         save_adapted_matcher(job.matcher_out, matcher, matcher_report, settings_from=job.matcher)
+        # The estimator adapts behind the grouping `infer --matcher MATCHER_OUT` makes with the
+        # same options: with --proposals gat, the adapted GAT's own threshold.
+        proposals, threshold, combined = proposal_settings(
+            job.proposals, str(job.matcher_out), matcher
+        )
     estimator = load_estimator(job.estimator, rig)
     adapted, report = adapt_estimator(
         rig,
