@@ -11,7 +11,8 @@ adapted to the recording's own detections as ``mvpose-jax adapt --matcher-out`` 
    matcher's groups (`adapt.adapt_matcher`; pseudo-labels, no truth), its proposal threshold
    chosen again on the recording's held-out frames against those pseudo-labels;
 2. the MLP fine-tuned by the reprojection loss on the people the adapted matcher's combined
-   proposals build (`adapt.adapt_estimator`).
+   proposals build (`adapt.adapt_estimator`); for the paper's method also, as ``--proposals
+   gat`` adapts it, behind the adapted GAT's own proposals (`BEHIND_GAT`).
 
 The budgets are the adaptation's defaults in steps (matcher 400, estimator 300, held-out frames
 stop each earlier) with no wall-clock cap (``max_seconds`` = `NO_CAP_SECONDS`), so that the
@@ -80,6 +81,10 @@ from mvpose_jax.skeletons import Detections
 
 SEEDS = (0, 1, 2)
 SOURCES = (("trained", "as trained"), ("adapted", "adapted to the recording"))
+# The paper's method as `mvpose-jax adapt --matcher-out ... --proposals gat` adapts it: the
+# same adapted matcher, the MLP adapted behind the adapted GAT's own proposals.
+BEHIND_GAT = ("adapted-gat", "adapted, the MLP behind the GAT")
+PAPER_ROW = ("paper's method (GAT + MLP)", "gat", "mlp")
 MVOR_MODEL_ROWS = (
     ("infer default (combined + blend)", "combined", "blend"),
     ("combined + MLP", "combined", "mlp"),
@@ -129,11 +134,29 @@ def adapted_pair(rig, detections: Detections, models: Models, smoke: bool):
     return Models(matcher, estimator, fit, models.seed), matcher_report, estimator_report
 
 
-def adaptation_record(matcher_report, estimator_report) -> dict:
-    """The two adaptation reports, without their step histories."""
+def behind_gat(rig, detections: Detections, adapted: Models, trained: Models, smoke: bool):
+    """``trained``'s estimator adapted behind the proposals of ``adapted``'s GAT alone, at its
+    threshold (`BEHIND_GAT`). Returns (the pair: ``adapted`` with that estimator, its
+    `AdaptReport`)."""
+    config = SMOKE_ESTIMATOR_ADAPT if smoke else ESTIMATOR_ADAPT
+    estimator, report = adapt_estimator(
+        rig,
+        detections,
+        trained.estimator,
+        matcher=adapted.matcher,
+        proposals="gat",
+        threshold=adapted.fit["threshold"],
+        config=dataclasses.replace(config, seed=trained.seed),
+        progress=not smoke,
+    )
+    return adapted._replace(estimator=estimator), report
+
+
+def adaptation_record(**reports) -> dict:
+    """The adaptation reports ({name: report}), without their step histories."""
     return {
         name: {k: v for k, v in r.to_json().items() if k != "history"}
-        for name, r in (("matcher", matcher_report), ("estimator", estimator_report))
+        for name, r in reports.items()
     }
 
 
@@ -203,13 +226,23 @@ def mvor_part(root: str, models_dir: Path, seeds: tuple[int, ...], smoke: bool) 
         data = select_frames(data, real.smoke_frames(data))
     out = {"split": real.SPLIT, "frames": int(data.num_frames), "seeds": {}}
     for seed, trained in trained_pairs.items():
-        adapted, *reports = adapted_pair(data.rig, data.detections, trained, smoke)
+        adapted, matcher_report, estimator_report = adapted_pair(
+            data.rig, data.detections, trained, smoke
+        )
+        gat_pair, gat_report = behind_gat(data.rig, data.detections, adapted, trained, smoke)
         pairs = {"trained": trained, "adapted": adapted}
         references = references_of(data.rig, data.detections, trained, data.layout)
         references["true groups"] = true_identity(data)
+        rows = mvor_rows(data, pairs, SOURCES, MVOR_MODEL_ROWS)
+        # Its one row (the geometric default, first, is there already).
+        rows += mvor_rows(data, {BEHIND_GAT[0]: gat_pair}, (BEHIND_GAT,), (PAPER_ROW,))[1:]
         out["seeds"][str(seed)] = {
-            "adaptation": adaptation_record(*reports),
-            "rows": mvor_rows(data, pairs, SOURCES, MVOR_MODEL_ROWS),
+            "adaptation": adaptation_record(
+                matcher=matcher_report,
+                estimator=estimator_report,
+                estimator_behind_gat=gat_report,
+            ),
+            "rows": rows,
             "gat_alone": gat_grouping(pairs, data.detections, references),
         }
     return out
@@ -232,6 +265,7 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
         folder = model_folder(models_dir, Path("pose2sim-demo") / "synthetic", seed)
         trained = synthetic_models(rig, floor, folder, smoke=smoke, progress=True, seed=seed)
         adapted, matcher_report, estimator_report = adapted_pair(rig, detections, trained, smoke)
+        gat_pair, gat_report = behind_gat(rig, detections, adapted, trained, smoke)
         pairs = {"trained": trained, "adapted": adapted}
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
@@ -246,13 +280,23 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
             save_adapted_estimator(
                 tmp / "adapted" / "estimator", adapted.estimator, estimator_report
             )
+            save_adapted_matcher(
+                tmp / "adapted-gat" / "matcher",
+                adapted.matcher,
+                matcher_report,
+                settings_from=folder / "matcher",
+            )
+            save_adapted_estimator(
+                tmp / "adapted-gat" / "estimator", gat_pair.estimator, gat_report
+            )
             plan = [(GEOMETRIC[0], None, "robust", None)]
             for key, label in SOURCES:
                 pair_folder = folder if key == "trained" else tmp / "adapted"
                 plan += [
                     (f"infer default (combined + blend), {label}", pair_folder, None, None),
-                    (f"paper's method (GAT + MLP), {label}", pair_folder, "mlp", "gat"),
+                    (f"{PAPER_ROW[0]}, {label}", pair_folder, "mlp", "gat"),
                 ]
+            plan.append((f"{PAPER_ROW[0]}, {BEHIND_GAT[1]}", tmp / "adapted-gat", "mlp", "gat"))
             for i, (name, pair_folder, method, proposals) in enumerate(plan):
                 result, seconds = demo.our_result(
                     trial, method, tmp / f"row{i}", frames, models=pair_folder, proposals=proposals
@@ -261,7 +305,11 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
                     {"row": name, "seconds": seconds, **demo.score_row(result, rig, detections)}
                 )
         out["seeds"][str(seed)] = {
-            "adaptation": adaptation_record(matcher_report, estimator_report),
+            "adaptation": adaptation_record(
+                matcher=matcher_report,
+                estimator=estimator_report,
+                estimator_behind_gat=gat_report,
+            ),
             "rows": rows,
             "gat_alone": gat_grouping(
                 pairs, detections, references_of(rig, detections, trained, demo.LAYOUT)
@@ -278,10 +326,10 @@ PAPER = ("paper's method (GAT + MLP)", "GAT + MLP")
 DEFAULT = ("infer default (combined + blend)", "infer default")
 
 
-def row_columns(pipeline: tuple[str, str], fields) -> tuple:
+def row_columns(pipeline: tuple[str, str], fields, sources=SOURCES) -> tuple:
     """Seed-table columns ((header, value of a seed's record, format), as `seed_lines` takes) of
-    one pipeline's row (``pipeline``: its row name and short name), trained and adapted, for
-    each of ``fields`` ((header, key of the row, scale, format))."""
+    one pipeline's row (``pipeline``: its row name and short name) with each of ``sources``'
+    pairs, for each of ``fields`` ((header, key of the row, scale, format))."""
     name, short = pipeline
     return tuple(
         (
@@ -290,7 +338,7 @@ def row_columns(pipeline: tuple[str, str], fields) -> tuple:
             fmt,
         )
         for what, field, scale, fmt in fields
-        for key, label in SOURCES
+        for key, label in sources
     )
 
 
@@ -302,8 +350,14 @@ MVOR_FIELDS = (
 DEMO_FIELDS = (("within 20 px %", "within_20px_all_skeletons", 100, ".1f"),)
 # The figures compared over training seeds, per recording: one table per pipeline.
 SEED_TABLES = {
-    "mvor": (row_columns(PAPER, MVOR_FIELDS), row_columns(DEFAULT, MVOR_FIELDS)),
-    "pose2sim_demo": (row_columns(PAPER, DEMO_FIELDS), row_columns(DEFAULT, DEMO_FIELDS)),
+    "mvor": (
+        row_columns(PAPER, MVOR_FIELDS, (*SOURCES, BEHIND_GAT)),
+        row_columns(DEFAULT, MVOR_FIELDS),
+    ),
+    "pose2sim_demo": (
+        row_columns(PAPER, DEMO_FIELDS, (*SOURCES, BEHIND_GAT)),
+        row_columns(DEFAULT, DEMO_FIELDS),
+    ),
 }
 GAT_SEED_COLUMNS = tuple(
     (f"GAT alone {what}, {key}", (lambda r, k=key, f=field: r["gat_alone"][k][f]), fmt)
