@@ -88,7 +88,7 @@ PAPER_ROW = ("paper's method (GAT + MLP)", "gat", "mlp")
 MVOR_MODEL_ROWS = (
     ("infer default (combined + blend)", "combined", "blend"),
     ("combined + MLP", "combined", "mlp"),
-    ("paper's method (GAT + MLP)", "gat", "mlp"),
+    PAPER_ROW,
     ("GAT + robust triangulation", "gat", "robust"),
     ("GAT + blend", "gat", "blend"),
 )
@@ -108,8 +108,9 @@ SMOKE_ESTIMATOR_ADAPT = dataclasses.replace(
 def adapted_pair(rig, detections: Detections, models: Models, smoke: bool):
     """``models`` adapted to ``detections`` (module docstring): the matcher on its combined
     proposals, then the estimator behind the adapted matcher's, both with the pair's training
-    seed; the returned pair's fit record carries the adapted GAT's threshold. Returns (the pair,
-    the matcher's `MatcherAdaptReport`, the estimator's `AdaptReport`)."""
+    seed; the returned pairs' fit records carry the adapted GAT's threshold. Returns (the pair,
+    the pair with the estimator adapted behind the GAT alone instead (`behind_gat`), {"matcher":
+    its `MatcherAdaptReport`, "estimator", "estimator_behind_gat": the `AdaptReport`s})."""
     combined = combined_config(models.fit)
     matcher_config = SMOKE_MATCHER_ADAPT if smoke else MATCHER_ADAPT
     estimator_config = SMOKE_ESTIMATOR_ADAPT if smoke else ESTIMATOR_ADAPT
@@ -131,7 +132,14 @@ def adapted_pair(rig, detections: Detections, models: Models, smoke: bool):
         progress=not smoke,
     )
     fit = {**models.fit, "threshold": matcher_report.threshold}
-    return Models(matcher, estimator, fit, models.seed), matcher_report, estimator_report
+    adapted = Models(matcher, estimator, fit, models.seed)
+    gat_pair, gat_report = behind_gat(rig, detections, adapted, models, smoke)
+    reports = {
+        "matcher": matcher_report,
+        "estimator": estimator_report,
+        "estimator_behind_gat": gat_report,
+    }
+    return adapted, gat_pair, reports
 
 
 def behind_gat(rig, detections: Detections, adapted: Models, trained: Models, smoke: bool):
@@ -152,7 +160,7 @@ def behind_gat(rig, detections: Detections, adapted: Models, trained: Models, sm
     return adapted._replace(estimator=estimator), report
 
 
-def adaptation_record(**reports) -> dict:
+def adaptation_record(reports: dict) -> dict:
     """The adaptation reports ({name: report}), without their step histories."""
     return {
         name: {k: v for k, v in r.to_json().items() if k != "history"}
@@ -226,10 +234,7 @@ def mvor_part(root: str, models_dir: Path, seeds: tuple[int, ...], smoke: bool) 
         data = select_frames(data, real.smoke_frames(data))
     out = {"split": real.SPLIT, "frames": int(data.num_frames), "seeds": {}}
     for seed, trained in trained_pairs.items():
-        adapted, matcher_report, estimator_report = adapted_pair(
-            data.rig, data.detections, trained, smoke
-        )
-        gat_pair, gat_report = behind_gat(data.rig, data.detections, adapted, trained, smoke)
+        adapted, gat_pair, reports = adapted_pair(data.rig, data.detections, trained, smoke)
         pairs = {"trained": trained, "adapted": adapted}
         references = references_of(data.rig, data.detections, trained, data.layout)
         references["true groups"] = true_identity(data)
@@ -237,11 +242,7 @@ def mvor_part(root: str, models_dir: Path, seeds: tuple[int, ...], smoke: bool) 
         # Its one row (the geometric default, first, is there already).
         rows += mvor_rows(data, {BEHIND_GAT[0]: gat_pair}, (BEHIND_GAT,), (PAPER_ROW,))[1:]
         out["seeds"][str(seed)] = {
-            "adaptation": adaptation_record(
-                matcher=matcher_report,
-                estimator=estimator_report,
-                estimator_behind_gat=gat_report,
-            ),
+            "adaptation": adaptation_record(reports),
             "rows": rows,
             "gat_alone": gat_grouping(pairs, data.detections, references),
         }
@@ -264,31 +265,23 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
     for seed in seeds:
         folder = model_folder(models_dir, Path("pose2sim-demo") / "synthetic", seed)
         trained = synthetic_models(rig, floor, folder, smoke=smoke, progress=True, seed=seed)
-        adapted, matcher_report, estimator_report = adapted_pair(rig, detections, trained, smoke)
-        gat_pair, gat_report = behind_gat(rig, detections, adapted, trained, smoke)
+        adapted, gat_pair, reports = adapted_pair(rig, detections, trained, smoke)
         pairs = {"trained": trained, "adapted": adapted}
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
-            # The adapted pair as `mvpose-jax adapt` writes it, for `infer` to run.
-            save_adapted_matcher(
-                tmp / "adapted" / "matcher",
-                adapted.matcher,
-                matcher_report,
-                settings_from=folder / "matcher",
-            )
-            save_adapted_estimator(
-                tmp / "adapted" / "estimator", adapted.estimator, estimator_report
-            )
-            save_adapted_matcher(
-                tmp / "adapted-gat" / "matcher",
-                adapted.matcher,
-                matcher_report,
-                settings_from=folder / "matcher",
-            )
-            save_adapted_estimator(
-                tmp / "adapted-gat" / "estimator", gat_pair.estimator, gat_report
-            )
+            # The adapted pairs as `mvpose-jax adapt` writes them, for `infer` to run.
+            for name, pair, estimator_report in (
+                ("adapted", adapted, reports["estimator"]),
+                ("adapted-gat", gat_pair, reports["estimator_behind_gat"]),
+            ):
+                save_adapted_matcher(
+                    tmp / name / "matcher",
+                    pair.matcher,
+                    reports["matcher"],
+                    settings_from=folder / "matcher",
+                )
+                save_adapted_estimator(tmp / name / "estimator", pair.estimator, estimator_report)
             plan = [(GEOMETRIC[0], None, "robust", None)]
             for key, label in SOURCES:
                 pair_folder = folder if key == "trained" else tmp / "adapted"
@@ -305,11 +298,7 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
                     {"row": name, "seconds": seconds, **demo.score_row(result, rig, detections)}
                 )
         out["seeds"][str(seed)] = {
-            "adaptation": adaptation_record(
-                matcher=matcher_report,
-                estimator=estimator_report,
-                estimator_behind_gat=gat_report,
-            ),
+            "adaptation": adaptation_record(reports),
             "rows": rows,
             "gat_alone": gat_grouping(
                 pairs, detections, references_of(rig, detections, trained, demo.LAYOUT)
