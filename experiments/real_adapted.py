@@ -1,5 +1,6 @@
 """The paper's models adapted to the real recording itself, without a label: ``python -m
-experiments.real_adapted --out DIR [--models DIR] [--smoke]`` (issue 37, item 4 and the target for the paper's method).
+experiments.real_adapted --out DIR [--models DIR] [--smoke]`` (issue 37: item 4, and the
+acceptance's target for the paper's method).
 
 For each real recording of ``../shared/real/`` (MVOR days 1-2; Pose2Sim's demo, the two-person
 trial), the model pair ``python -m experiments.real`` trains on synthetic recordings of its rig
