@@ -87,14 +87,17 @@ GROUPING_RULES = (("greedy", propose_people), ("average linkage", propose_people
 DEMO_SOURCE = {"default": "synthetic", "fitted": "detector-like"}
 
 
-def mvor_rows(data, pairs: dict, sources=SOURCES, model_rows=MVOR_MODEL_ROWS) -> list[dict]:
+def mvor_rows(
+    data, pairs: dict, sources=SOURCES, model_rows=MVOR_MODEL_ROWS, geometric: bool = True
+) -> list[dict]:
     """The MVOR protocol's overall numbers (and people built per frame) of the geometric default
-    and of ``model_rows`` ((name, grouping, method), as `MVOR_MODEL_ROWS`) with each model pair
-    of ``pairs`` ({``sources`` key: Models}; ``sources``: (key, label), as `SOURCES`)."""
+    (first; left out with ``geometric`` False) and of ``model_rows`` ((name, grouping, method),
+    as `MVOR_MODEL_ROWS`) with each model pair of ``pairs`` ({``sources`` key: Models};
+    ``sources``: (key, label), as `SOURCES`)."""
     identity = true_identity(data)
     members = members_from_identity(identity, data.gt.valid.shape[1])
     views = (members >= 0).sum(-1)
-    plan = [(GEOMETRIC[0], None, GEOMETRIC[1], {"method": GEOMETRIC[2]})]
+    plan = [(GEOMETRIC[0], None, GEOMETRIC[1], {"method": GEOMETRIC[2]})] if geometric else []
     for key, label in sources:
         for name, grouping, method in model_rows:
             settings = real.model_settings(grouping, method, pairs[key])

@@ -196,19 +196,24 @@ def gat_grouping(pairs: dict, detections: Detections, references: dict) -> dict:
     return out
 
 
-def references_of(rig, detections: Detections, models: Models, layout: str) -> dict:
-    """The groupings the GAT is compared with: the geometric default's and the combined
-    matcher's (the adaptation's pseudo-labels)."""
-    geometric = run_pipeline(rig, detections, layout=layout).identity
-    combined = run_pipeline(
-        rig,
-        detections,
-        matcher=models.matcher,
-        proposals="combined",
-        combined=combined_config(models.fit),
-        layout=layout,
-    ).identity
-    return {"geometric": np.asarray(geometric), "combined": np.asarray(combined)}
+def combined_identity(rig, detections: Detections, models: Models, layout: str) -> np.ndarray:
+    """The combined matcher's grouping (F, C, P) with ``models`` (the adaptation's
+    pseudo-labels), a reference the GAT is compared with."""
+    return np.asarray(
+        run_pipeline(
+            rig,
+            detections,
+            matcher=models.matcher,
+            proposals="combined",
+            combined=combined_config(models.fit),
+            layout=layout,
+        ).identity
+    )
+
+
+def geometric_identity(rig, detections: Detections, layout: str) -> np.ndarray:
+    """The geometric default's grouping (F, C, P), a reference the GAT is compared with."""
+    return np.asarray(run_pipeline(rig, detections, layout=layout).identity)
 
 
 def model_folder(models_dir: Path, name: Path, seed: int) -> Path:
@@ -234,14 +239,20 @@ def mvor_part(root: str, models_dir: Path, seeds: tuple[int, ...], smoke: bool) 
     if smoke:
         data = select_frames(data, real.smoke_frames(data))
     out = {"split": real.SPLIT, "frames": int(data.num_frames), "seeds": {}}
+    geometric = geometric_identity(data.rig, data.detections, data.layout)
+    truth = true_identity(data)
     for seed, trained in trained_pairs.items():
         adapted, gat_pair, reports = adapted_pair(data.rig, data.detections, trained, smoke)
         pairs = {"trained": trained, "adapted": adapted}
-        references = references_of(data.rig, data.detections, trained, data.layout)
-        references["true groups"] = true_identity(data)
+        references = {
+            "geometric": geometric,
+            "combined": combined_identity(data.rig, data.detections, trained, data.layout),
+            "true groups": truth,
+        }
         rows = mvor_rows(data, pairs, SOURCES, MVOR_MODEL_ROWS)
-        # Its one row (the geometric default, first, is there already).
-        rows += mvor_rows(data, {BEHIND_GAT[0]: gat_pair}, (BEHIND_GAT,), (PAPER_ROW,))[1:]
+        rows += mvor_rows(
+            data, {BEHIND_GAT[0]: gat_pair}, (BEHIND_GAT,), (PAPER_ROW,), geometric=False
+        )
         out["seeds"][str(seed)] = {
             "adaptation": adaptation_record(reports),
             "rows": rows,
@@ -263,12 +274,21 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
         "frames": int(detections.score.shape[0]),
         "seeds": {},
     }
+    geometric = geometric_identity(rig, detections, demo.LAYOUT)
+    with tempfile.TemporaryDirectory() as tmp:
+        # The geometric default as `infer` runs it: one row, the same beside every seed.
+        result, seconds = demo.our_result(trial, "robust", Path(tmp) / "geometric", frames)
+        geometric_row = {
+            "row": GEOMETRIC[0],
+            "seconds": seconds,
+            **demo.score_row(result, rig, detections),
+        }
     for seed in seeds:
         folder = model_folder(models_dir, Path("pose2sim-demo") / "synthetic", seed)
         trained = synthetic_models(rig, floor, folder, smoke=smoke, progress=True, seed=seed)
         adapted, gat_pair, reports = adapted_pair(rig, detections, trained, smoke)
         pairs = {"trained": trained, "adapted": adapted}
-        rows = []
+        rows = [geometric_row]
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
             # The adapted pairs as `mvpose-jax adapt` writes them, for `infer` to run.
@@ -283,7 +303,7 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
                     settings_from=folder / "matcher",
                 )
                 save_adapted_estimator(tmp / name / "estimator", pair.estimator, estimator_report)
-            plan = [(GEOMETRIC[0], None, "robust", None)]
+            plan = []
             for key, label in SOURCES:
                 pair_folder = folder if key == "trained" else tmp / "adapted"
                 plan += [
@@ -302,7 +322,12 @@ def demo_part(data: Path, models_dir: Path, seeds: tuple[int, ...], smoke: bool)
             "adaptation": adaptation_record(reports),
             "rows": rows,
             "gat_alone": gat_grouping(
-                pairs, detections, references_of(rig, detections, trained, demo.LAYOUT)
+                pairs,
+                detections,
+                {
+                    "geometric": geometric,
+                    "combined": combined_identity(rig, detections, trained, demo.LAYOUT),
+                },
             ),
         }
     return out
