@@ -48,7 +48,7 @@ from mvpose_jax.trained import PRETRAINED, load_estimator
 SPLIT = "MVOR days 1-2, all frames (evaluation only; nothing is chosen here)"
 MAX_TILTS_DEG = (20.0, 30.0, 45.0)
 DIAGNOSED_TILT_DEG = 30.0
-# A move that more than doubles or less than thirds the depth is left undone.
+# A move that would scale the depth by less than 0.3 or more than 3 is left undone.
 MOVE_FACTORS = (0.3, 3.0)
 GROUPINGS = ("true", "epipolar")
 
