@@ -53,6 +53,15 @@ MOVE_FACTORS = (0.3, 3.0)
 GROUPINGS = ("true", "epipolar")
 
 
+def one_view_people(result: PoseResults) -> list[tuple[int, int, int]]:
+    """(frame, group, camera) of each person the result built from one view alone."""
+    members = np.asarray(result.members)
+    one = np.asarray(result.poses.valid) & ((members >= 0).sum(-1) == 1)
+    f, g = np.nonzero(one)
+    cameras = np.argmax(members[f, g] >= 0, axis=-1)
+    return list(zip(f.tolist(), g.tolist(), cameras.tolist(), strict=True))
+
+
 def moved_to_standing_height(
     result: PoseResults,
     centres: np.ndarray,
@@ -68,10 +77,8 @@ def moved_to_standing_height(
     rs, ls, rh, lh = (lay.index(n) for n in ("r_shoulder", "l_shoulder", "r_hip", "l_hip"))
     xyz = np.asarray(result.poses.xyz, np.float64)
     ok = np.asarray(result.poses.keypoint_valid)
-    members = np.asarray(result.members)
-    one_view = np.asarray(result.poses.valid) & ((members >= 0).sum(-1) == 1)
     out, moved = xyz.copy(), 0
-    for f, g in zip(*np.nonzero(one_view), strict=True):
+    for f, g, camera in one_view_people(result):
         k = ok[f, g]
         if not (k[rs] and k[ls] and k[rh] and k[lh]):
             continue
@@ -80,7 +87,7 @@ def moved_to_standing_height(
         cos_tilt = torso @ up / max(np.linalg.norm(torso), 1e-9)
         if cos_tilt < np.cos(np.radians(max_tilt_deg)):
             continue
-        centre = centres[int(np.nonzero(members[f, g] >= 0)[0][0])]
+        centre = centres[camera]
         ray = shoulders - centre
         if abs(ray @ up) < 1e-6:
             continue
@@ -124,14 +131,12 @@ def diagnostics(
         h = gt_xyz[both & sel][:, [ls, rs]].mean(1) @ up - floor_height
         out["truth_shoulder_height_m"][key] = {"n": len(h), "values": _pct(h, pct)}
     xyz, ok = np.asarray(result.poses.xyz), np.asarray(result.poses.keypoint_valid)
-    rmembers = np.asarray(result.members)
-    one = np.asarray(result.poses.valid) & ((rmembers >= 0).sum(-1) == 1)
     angle, depth_ratio, elevation, height, error, error_moved = [], [], [], [], [], []
-    for f, g in zip(*np.nonzero(one), strict=True):
+    for f, g, camera in one_view_people(result):
         # True groups: group g is true person g.
         if not (both[f, g] and ok[f, g, prs] and ok[f, g, pls]):
             continue
-        centre = centres[int(np.nonzero(rmembers[f, g] >= 0)[0][0])]
+        centre = centres[camera]
         lifted = xyz[f, g, [prs, pls]].mean(0) - centre
         truth = gt_xyz[f, g, [ls, rs]].mean(0) - centre
         cos = lifted @ truth / np.linalg.norm(lifted) / np.linalg.norm(truth)
